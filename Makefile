@@ -1,0 +1,53 @@
+# aynamics — `make help` lists the targets.
+SHELL := /bin/bash
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+MESA_PKGS := libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libosmesa6
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: help setup mesa test test-slow test-all bench lint format train clean
+
+help:  ## list the targets
+	@grep -E '^[a-zA-Z_-]+:.*?## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*?## "}; {printf "  %-10s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	# torch first: 2.13.0 is a CPU build on disk; anything else pulls GBs of CUDA wheels
+	$(BIN)/pip install -q --disable-pip-version-check torch==2.13.0
+	$(BIN)/pip install -q --disable-pip-version-check -e '.[dev]'
+	@touch $(STAMP)
+
+setup: $(STAMP) mesa  ## create .venv (torch==2.13.0 first) and install the package with dev extras
+
+mesa:  ## install Debian's Mesa (EGL + OSMesa) for headless rendering when missing and running as root
+	@missing=""; for p in $(MESA_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "installing Mesa:$$missing"; \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null) \
+	    || echo "warning: could not install$$missing; OpenGL rendering tests will skip"; \
+	else echo "note: Mesa packages missing ($$missing); not root, so OpenGL rendering tests will skip"; fi
+
+test: setup  ## run the default test suite (offline, CPU)
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+
+test-slow: setup  ## run the slow tests only
+	$(BIN)/python -m pytest -q -m slow
+
+test-all: setup  ## run every test, slow ones included
+	$(BIN)/python -m pytest -q -m "not gpu"
+
+bench: setup  ## run the benchmark scripts; they print measured figures and ratios
+	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
+
+lint: setup  ## ruff lint + format check
+	$(BIN)/ruff check . && $(BIN)/ruff format --check .
+
+format: setup  ## ruff autofix + format
+	$(BIN)/ruff check --fix . && $(BIN)/ruff format .
+
+clean:  ## remove caches (keeps .venv)
+	rm -rf .pytest_cache .ruff_cache .hypothesis build *.egg-info

@@ -1,0 +1,122 @@
+"""The `aynamics` console script.
+
+    aynamics simulate SCENE.yaml --out TRAJ.npz [--json]
+    aynamics ranges [--markdown]
+
+Usage errors and invalid input exit with status 2 and a one-paragraph message on stderr (no traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+
+from aynamics.scene import SceneError
+
+
+class UsageError(Exception):
+    """Bad command-line input: reported on stderr, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # argparse prints usage + exits 2; we want one paragraph, same status
+        raise UsageError(f"{self.prog}: {message}. Run `{self.prog} --help` for usage.")
+
+
+def _print_json(obj) -> None:
+    json.dump(obj, sys.stdout, indent=None)
+    sys.stdout.write("\n")
+
+
+# --------------------------------------------------------------------------------------------
+# simulate
+# --------------------------------------------------------------------------------------------
+def _add_simulate(sub) -> None:
+    p = sub.add_parser("simulate", help="simulate a scene and write its trajectory (npz)")
+    p.add_argument("scene", help="scene YAML file (or model output holding one)")
+    p.add_argument("--out", help="trajectory .npz to write: names, t, position, orientation, velocities")
+    p.add_argument("--json", action="store_true", help="print final positions, rest times and contacts as JSON")
+    p.add_argument("--duration", type=float, default=1.0, help="seconds to simulate (default 1.0)")
+    p.add_argument("--fps", type=int, default=30, help="frames per second (default 30)")
+    p.add_argument("--substeps", type=int, default=8, help="physics steps per frame (default 8)")
+    p.set_defaults(run=_run_simulate)
+
+
+def _run_simulate(args) -> int:
+    from aynamics import scene as scenelib
+    from aynamics import simulate as sim
+
+    scene = scenelib.load(args.scene)
+    try:
+        config = sim.SimConfig(duration=args.duration, fps=args.fps, substeps=args.substeps)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if not args.out and not args.json:
+        raise UsageError("simulate: nothing to do; give --out TRAJ.npz and/or --json")
+    rollout = sim.simulate(scene, config)
+    if args.out:
+        try:
+            rollout.to_npz(args.out)
+        except OSError as e:
+            raise UsageError(f"simulate: cannot write --out {args.out!r}: {e.strerror or e}") from None
+    if args.json:
+        _print_json(rollout.summary())
+    return 0 if rollout.valid else 1
+
+
+# --------------------------------------------------------------------------------------------
+# ranges
+# --------------------------------------------------------------------------------------------
+def _add_ranges(sub) -> None:
+    p = sub.add_parser("ranges", help="print the scene format's field table (units, frames, ranges)")
+    p.add_argument("--markdown", action="store_true", help="as a Markdown table (the README's)")
+    p.set_defaults(run=_run_ranges)
+
+
+def _run_ranges(args) -> int:
+    from aynamics.scene import RANGES, ranges_markdown
+
+    if args.markdown:
+        sys.stdout.write(ranges_markdown())
+    else:
+        _print_json({k: {"lo": r.lo, "hi": r.hi, "unit": r.unit, "frame": r.frame} for k, r in RANGES.items()})
+    return 0
+
+
+# every subcommand adds itself here: (name, adder)
+COMMANDS: list[Callable] = [_add_simulate, _add_ranges]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="aynamics", description="Infer rigid-body physics from video: scenes, simulation, tools.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for add in COMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if not getattr(args, "run", None):
+            raise UsageError("aynamics: give a command. Run `aynamics --help` for the list.")
+        return args.run(args)
+    except (UsageError, SceneError) as e:
+        sys.stderr.write(" ".join(str(e).split()) + "\n")
+        return 2
+    except FileNotFoundError as e:
+        sys.stderr.write(f"aynamics: file not found: {e.filename}\n")
+        return 2
+    except BrokenPipeError:  # e.g. `aynamics ... | head`
+        sys.stderr.close()
+        return 0
+    except KeyboardInterrupt:
+        sys.stderr.write("aynamics: interrupted\n")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,256 @@
+"""The vision-language model: a tiny random Qwen2.5-VL for tests, the real checkpoints, LoRA and freezing.
+
+Three models, all `Qwen2_5_VLForConditionalGeneration`:
+
+- `build_tiny_model()`: random weights from a config (64-wide, 2 text layers, 2 vision blocks) with the
+  tokenizer kept in `aynamics/assets/tokenizer/` (see `aynamics.tokenizer_build`); offline, CPU, ms per step.
+- `load_pretrained(QWEN2_5_VL_3B)` (the paper's model) or `load_pretrained(QWEN2_5_VL_7B)`: a hub id or a local
+  directory with the checkpoint; nothing is downloaded when `local_files_only=True` (or `HF_HUB_OFFLINE=1`).
+
+Then `apply_lora(model)` puts LoRA on the language model only (a regex on `language_model`, so the vision
+MLPs that share the projection names stay untouched) and freezes or trains the vision tower by a flag.
+
+    model = build_tiny_model()
+    model = apply_lora(model, rank=8, alpha=16, train_vision=False, gradient_checkpointing=True)
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from peft import LoraConfig, PeftModel, get_peft_model
+from transformers import (
+    PreTrainedTokenizerBase,
+    Qwen2_5_VLConfig,
+    Qwen2_5_VLForConditionalGeneration,
+)
+
+from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+QWEN2_5_VL_3B = "Qwen/Qwen2.5-VL-3B-Instruct"  # the paper's model
+QWEN2_5_VL_7B = "Qwen/Qwen2.5-VL-7B-Instruct"
+
+# The seven projections of every decoder layer. The vision blocks' MLPs are also called gate/up/down_proj,
+# hence `lora_target_regex` restricts matching to `language_model`.
+DEFAULT_LORA_TARGETS = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
+
+
+def tiny_config(
+    tokenizer: PreTrainedTokenizerBase,
+    *,
+    hidden_size: int = 64,
+    num_layers: int = 2,
+    num_heads: int = 4,
+    num_kv_heads: int = 2,
+    intermediate_size: int = 128,
+    vision_hidden_size: int = 32,
+    vision_depth: int = 2,
+    vision_heads: int = 2,
+    vision_intermediate_size: int = 64,
+    tie_word_embeddings: bool = False,
+) -> Qwen2_5_VLConfig:
+    """Config of a tiny Qwen2.5-VL whose special-token ids come from `tokenizer`.
+
+    Keeps Qwen's patch geometry (14 px patches, 2x2 merge, temporal patch 2), so the processor is the real one.
+    The embedding is the tokenizer's length rounded up to a multiple of 64.
+    """
+    head_dim = hidden_size // num_heads
+    if hidden_size % num_heads or head_dim % 2:
+        raise ValueError(f"hidden_size = {hidden_size}, num_heads = {num_heads}: head_dim must be an even integer")
+    if num_heads % num_kv_heads:
+        raise ValueError(f"num_heads = {num_heads} is not a multiple of num_kv_heads = {num_kv_heads}")
+    if vision_hidden_size % vision_heads:
+        raise ValueError(
+            f"vision_hidden_size = {vision_hidden_size} is not a multiple of vision_heads = {vision_heads}"
+        )
+    # M-RoPE splits head_dim/2 rotary frequencies over (t, h, w); Qwen uses [16, 24, 24] of 64.
+    half = head_dim // 2
+    mrope_section = [half - 2 * (3 * half // 8), 3 * half // 8, 3 * half // 8]
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in ("<|endoftext|>", "<|im_end|>")}
+    ids |= {t: tokenizer.convert_tokens_to_ids(t) for t in ("<|image_pad|>", "<|video_pad|>")}
+    ids |= {t: tokenizer.convert_tokens_to_ids(t) for t in ("<|vision_start|>", "<|vision_end|>")}
+    missing = [t for t, i in ids.items() if i is None or i == tokenizer.unk_token_id]
+    if missing:
+        raise ValueError(f"tokenizer lacks the special tokens {missing}; rebuild it with aynamics.tokenizer_build")
+    vocab_size = -(-len(tokenizer) // 64) * 64
+    text_config = {
+        "vocab_size": vocab_size,
+        "hidden_size": hidden_size,
+        "intermediate_size": intermediate_size,
+        "num_hidden_layers": num_layers,
+        "num_attention_heads": num_heads,
+        "num_key_value_heads": num_kv_heads,
+        "max_position_embeddings": 4096,
+        "rope_parameters": {"rope_type": "default", "rope_theta": 1_000_000.0, "mrope_section": mrope_section},
+        "bos_token_id": ids["<|endoftext|>"],
+        "eos_token_id": ids["<|im_end|>"],
+        "pad_token_id": ids["<|endoftext|>"],
+        "tie_word_embeddings": tie_word_embeddings,
+    }
+    vision_config = {
+        "depth": vision_depth,
+        "hidden_size": vision_hidden_size,
+        "intermediate_size": vision_intermediate_size,
+        "num_heads": vision_heads,
+        "out_hidden_size": hidden_size,  # must equal the text width: merged patches become token embeddings
+        "fullatt_block_indexes": [vision_depth - 1],  # indexes must be < depth
+        "window_size": 112,  # pixels: 4x4 merged patches per attention window, as in Qwen2.5-VL
+        "tokens_per_second": 2,  # Qwen2.5-VL-3B/7B value: temporal position step per second of video
+    }
+    return Qwen2_5_VLConfig(
+        text_config=text_config,
+        vision_config=vision_config,
+        image_token_id=ids["<|image_pad|>"],
+        video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"],
+        vision_end_token_id=ids["<|vision_end|>"],
+        tie_word_embeddings=tie_word_embeddings,
+    )
+
+
+def build_tiny_model(
+    tokenizer_dir: str | Path = TINY_ASSET_DIR,
+    *,
+    seed: int = 0,
+    attn_implementation: str = "sdpa",
+    **config_kwargs: int | bool,
+) -> Qwen2_5_VLForConditionalGeneration:
+    """Randomly initialised tiny Qwen2.5-VL (~0.2 M parameters) matching the tokenizer in `tokenizer_dir`.
+
+    Args:
+        tokenizer_dir: Directory holding the tokenizer (default: the repo's asset).
+        seed: Seed of the initialisation; the global RNG state is left as it was.
+        attn_implementation: "sdpa" or "eager".
+        **config_kwargs: Overrides passed to `tiny_config` (hidden_size, num_layers, ...).
+    """
+    from transformers import AutoTokenizer
+
+    tokenizer = AutoTokenizer.from_pretrained(str(tokenizer_dir))
+    config = tiny_config(tokenizer, **config_kwargs)
+    config._attn_implementation = attn_implementation
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = Qwen2_5_VLForConditionalGeneration(config)
+    _set_generation_ids(model, tokenizer)
+    return model.eval()
+
+
+def load_pretrained(
+    name_or_path: str | Path,
+    *,
+    dtype: str | torch.dtype = "auto",
+    attn_implementation: str | None = None,
+    device_map: str | dict | None = None,
+    local_files_only: bool = False,
+) -> Qwen2_5_VLForConditionalGeneration:
+    """Load a Qwen2.5-VL checkpoint (`QWEN2_5_VL_3B`, `QWEN2_5_VL_7B`, or a local directory) with `from_pretrained`.
+
+    Args:
+        name_or_path: Hub id or local directory (also one written by `save_pretrained` of the tiny model).
+        dtype: "auto" keeps the checkpoint's dtype (bfloat16 for Qwen), or e.g. torch.float32.
+        attn_implementation: "sdpa", "eager", "flash_attention_2" or None for transformers' default.
+        device_map: Passed through (e.g. "auto" or "cuda:0"); None loads on the CPU.
+        local_files_only: Never touch the network (the machines here have no hub access).
+    """
+    looks_local = str(name_or_path).startswith((".", "/", "~")) or isinstance(name_or_path, Path)
+    if looks_local and not Path(name_or_path).expanduser().is_dir():
+        raise FileNotFoundError(f"model path {str(name_or_path)!r} is not a directory (or pass a hub id)")
+    model = Qwen2_5_VLForConditionalGeneration.from_pretrained(
+        str(name_or_path),
+        dtype=dtype,
+        attn_implementation=attn_implementation,
+        device_map=device_map,
+        local_files_only=local_files_only,
+    )
+    gen = model.generation_config
+    if gen.pad_token_id is None:
+        gen.pad_token_id = model.config.text_config.pad_token_id or model.config.text_config.bos_token_id
+    return model
+
+
+def _set_generation_ids(model: Qwen2_5_VLForConditionalGeneration, tokenizer: PreTrainedTokenizerBase) -> None:
+    """Stop on <|im_end|> or <|endoftext|> and pad with <|endoftext|>, as Qwen's Instruct generation config does."""
+    im_end, eot = tokenizer.convert_tokens_to_ids(["<|im_end|>", "<|endoftext|>"])
+    model.generation_config.eos_token_id = [im_end, eot]
+    model.generation_config.pad_token_id = eot
+    model.generation_config.bos_token_id = eot
+
+
+def lora_target_regex(target_modules: Sequence[str] = DEFAULT_LORA_TARGETS) -> str:
+    """Regex (peft full-matches it against module names) selecting `target_modules` inside the language model."""
+    if not target_modules:
+        raise ValueError("target_modules is empty: name at least one projection, e.g. 'q_proj'")
+    names = "|".join(re.escape(m) for m in target_modules)
+    return rf"(.*\.)?language_model\.(.*\.)?({names})"
+
+
+def set_vision_trainable(model: torch.nn.Module, trainable: bool) -> None:
+    """Freeze (`trainable=False`) or unfreeze the vision tower (`model.visual`, patch merger included)."""
+    visual = _find_visual(model)
+    for p in visual.parameters():
+        p.requires_grad_(trainable)
+
+
+def _find_visual(model: torch.nn.Module) -> torch.nn.Module:
+    for name, module in model.named_modules():
+        if name == "visual" or name.endswith(".visual"):
+            return module
+    raise ValueError(f"{type(model).__name__} has no `visual` module: not a Qwen2.5-VL model")
+
+
+def enable_gradient_checkpointing(model: torch.nn.Module) -> None:
+    """Non-reentrant activation checkpointing (works with frozen embeddings and LoRA); disables the KV cache."""
+    model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+    model.config.use_cache = False
+
+
+def apply_lora(
+    model: Qwen2_5_VLForConditionalGeneration,
+    *,
+    rank: int = 16,
+    alpha: float = 32.0,
+    dropout: float = 0.05,
+    target_modules: Sequence[str] = DEFAULT_LORA_TARGETS,
+    train_vision: bool = False,
+    gradient_checkpointing: bool = False,
+) -> PeftModel:
+    """Wrap `model` with LoRA adapters on the language model's projections; everything else is frozen.
+
+    Args:
+        model: A Qwen2.5-VL model (tiny or pretrained).
+        rank: LoRA rank r (> 0).
+        alpha: LoRA scaling numerator; the update is scaled by alpha / rank.
+        dropout: Dropout on the LoRA input, in [0, 1).
+        target_modules: Projection names inside `language_model` to adapt.
+        train_vision: Also train the whole vision tower (full weights). peft saves it with the adapter
+            (`modules_to_save=["visual"]`), so `PeftModel.from_pretrained` restores it.
+        gradient_checkpointing: Enable non-reentrant activation checkpointing first.
+    """
+    if rank <= 0:
+        raise ValueError(f"lora rank = {rank}: must be > 0")
+    if not 0.0 <= dropout < 1.0:
+        raise ValueError(f"lora dropout = {dropout}: must be in [0, 1)")
+    if gradient_checkpointing:
+        enable_gradient_checkpointing(model)
+    config = LoraConfig(
+        r=rank,
+        lora_alpha=alpha,
+        lora_dropout=dropout,
+        target_modules=lora_target_regex(target_modules),
+        modules_to_save=["visual"] if train_vision else None,
+        bias="none",
+        task_type="CAUSAL_LM",
+    )
+    peft_model = get_peft_model(model, config)
+    if not any("lora_" in n for n, _ in peft_model.named_parameters()):
+        raise ValueError(f"LoRA target_modules = {list(target_modules)} matched no module of the language model")
+    return peft_model
+
+
+def count_parameters(model: torch.nn.Module) -> tuple[int, int]:
+    """(trainable, total) parameter counts."""
+    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+    return trainable, sum(p.numel() for p in model.parameters())

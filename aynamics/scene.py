@@ -1,0 +1,643 @@
+"""The scene language: YAML text <-> validated `Scene` <-> canonical YAML.
+
+A scene is a YAML list of items, as written by the model (the ΔYNAMICS format):
+
+    - type: box | sphere | cylinder   # objects, any number (at least one)
+    - type: camera                    # exactly one
+    - type: gravity                   # optional, default [0, 0, -9.81]
+    - type: environment               # optional extension item (air, wind, floor), absent in the paper
+
+Meaning of every field (units, frames) and its plausible range live in one table, `RANGES`,
+which validation uses here, the dataset sampler and CMA-ES bounds use later, and the README
+reproduces (`aynamics ranges --markdown`).
+
+    scene = parse(text)        # plain YAML, or model output with <think>/<answer> and stray text
+    text = dump(scene)         # canonical: fixed key order, fixed decimals; parse(dump(s)) == s
+
+Every problem in a text is reported at once in one `SceneError`, each as
+`objects[1].physics.mass = -2.0: must be > 0`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic_core import PydanticCustomError
+
+DECIMALS = 4  # canonical precision of every number: 0.1 mm, 0.1 mrad, 0.1 g
+MAX_TEXT_CHARS = 200_000  # a scene is a few kB; longer text is refused before parsing
+MAX_OBJECTS = 32
+
+
+# --------------------------------------------------------------------------------------------
+# The range table
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Range:
+    """Plausible range of one scene field (per component for vectors)."""
+
+    lo: float | tuple[float, ...]
+    hi: float | tuple[float, ...]
+    unit: str
+    frame: str
+    meaning: str
+    default: Any = None  # value used when the field is absent (optional fields only)
+
+    def bounds(self, n: int = 1) -> tuple[list[float], list[float]]:
+        """Lower and upper bounds as lists of length n (scalars broadcast)."""
+        lo = list(self.lo) if isinstance(self.lo, tuple) else [self.lo] * n
+        hi = list(self.hi) if isinstance(self.hi, tuple) else [self.hi] * n
+        return lo, hi
+
+
+RANGES: dict[str, Range] = {
+    "box.size": Range(0.05, 2.0, "m", "body", "half-extents along the box's own x, y, z axes (MuJoCo's convention)"),
+    "sphere.radius": Range(0.05, 1.5, "m", "-", "radius"),
+    "cylinder.radius": Range(0.05, 1.5, "m", "-", "radius of the circular faces"),
+    "cylinder.height": Range(
+        0.05, 3.0, "m", "body", "FULL length along the cylinder's own z axis (MuJoCo half-length ×2)"
+    ),
+    "state.position": Range(
+        (-10.0, -10.0, -0.5), (10.0, 10.0, 10.0), "m", "world, z up", "centre of the object (of its bounding box)"
+    ),
+    "state.orientation": Range(
+        -1.0, 1.0, "-", "body→world", "unit quaternion [w, x, y, z], w first; norm must be in [0.9, 1.1], normalised"
+    ),
+    "state.linear_velocity": Range(-20.0, 20.0, "m/s", "world", "initial velocity of the centre"),
+    "state.angular_velocity": Range(-50.0, 50.0, "rad/s", "world", "initial spin, world axes"),
+    "physics.mass": Range(0.01, 100.0, "kg", "-", "mass; inertia is that of a uniform solid of the shape"),
+    "physics.friction": Range(
+        (0.0, 0.0),
+        (2.0, 1.0),
+        "-",
+        "-",
+        "[sliding μ, rolling-resistance coefficient c_rr]: Coulomb friction against floor and objects, and the "
+        "rolling-resistance torque c_rr·r·N that slows rolling and tumbling (r: sphere/cylinder radius, box smallest "
+        "half-extent). The object's values are used against the floor; two objects use the larger of each",
+    ),
+    "physics.damping": Range(
+        -8.0,
+        2.0,
+        "log10(1/s)",
+        "-",
+        "log10 of the linear damping rate k: in free motion v and ω decay as exp(-k·t) (k = 10^damping); -4 → 1e-4/s",
+    ),
+    "physics.restitution": Range(
+        0.0, 0.95, "-", "-", "optional: normal bounce coefficient against the floor (absent: MuJoCo's soft contact)"
+    ),
+    "camera.position": Range((-20.0, -20.0, 0.1), (20.0, 20.0, 20.0), "m", "world", "optical centre"),
+    "camera.orientation": Range(
+        0.0,
+        89.0,
+        "deg",
+        "world",
+        "pitch: angle between the optical axis and straight down; the camera looks along +y tilted down "
+        "(0 = looking straight down, 90 = horizontal). MuJoCo euler='θ 0 0'",
+    ),
+    "camera.fovy": Range(10.0, 120.0, "deg", "-", "vertical field of view"),
+    "gravity.gravity": Range(-30.0, 30.0, "m/s²", "world", "gravitational acceleration vector", (0.0, 0.0, -9.81)),
+    "environment.air_density": Range(
+        0.0, 5.0, "kg/m³", "-", "optional: quadratic air drag ½ρC_d A|v|v on every object (MuJoCo fluid model)", 0.0
+    ),
+    "environment.air_viscosity": Range(
+        0.0, 5.0, "Pa·s", "-", "optional: linear (Stokes) air drag on every object (MuJoCo <option viscosity>)", 0.0
+    ),
+    "environment.wind": Range(
+        -20.0, 20.0, "m/s", "world", "optional: air velocity; acts through the drag terms only", (0.0, 0.0, 0.0)
+    ),
+    "environment.floor_offset": Range(-0.5, 0.5, "m", "world", "optional: height of the floor plane", 0.0),
+    "environment.floor_tilt": Range(
+        -20.0, 20.0, "deg", "world", "optional: floor rotation about world x then y", (0.0, 0.0)
+    ),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Errors
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Problem:
+    """One validation problem: where, what value, what is allowed."""
+
+    path: str
+    value: Any
+    message: str
+
+    def __str__(self) -> str:
+        if self.value is _NO_VALUE:
+            return f"{self.path}: {self.message}" if self.path else self.message
+        return f"{self.path} = {_show(self.value)}: {self.message}"
+
+
+_NO_VALUE = object()
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}"
+
+
+class SceneError(ValueError):
+    """A scene text or record is invalid. `problems` lists every problem found."""
+
+    def __init__(self, problems: list[Problem]):
+        self.problems = list(problems)
+        n = len(self.problems)
+        head = f"invalid scene ({n} problem{'s' if n != 1 else ''}): "
+        super().__init__(head + "; ".join(str(p) for p in self.problems))
+
+
+def _show(value: Any, limit: int = 60) -> str:
+    text = repr(value) if isinstance(value, str) else str(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+# --------------------------------------------------------------------------------------------
+# Records
+# --------------------------------------------------------------------------------------------
+def _number(value: Any) -> float:
+    # YAML gives int/float; refuse bool ('yes' → True) and strings ('1.0' quoted) explicitly
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"must be a number, got {type(value).__name__}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError("must be finite")
+    return round(value, DECIMALS)
+
+
+Num = Annotated[float, BeforeValidator(_number)]
+Vec2 = tuple[Num, Num]
+Vec3 = tuple[Num, Num, Num]
+Vec4 = tuple[Num, Num, Num, Num]
+Name = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")]
+
+
+def _ranged(key: str, positive: bool = False) -> AfterValidator:
+    """Validator checking a number or vector against `RANGES[key]` (and > 0 first when `positive`)."""
+    rng = RANGES[key]
+
+    def check(value: float | tuple[float, ...]) -> float | tuple[float, ...]:
+        values = value if isinstance(value, tuple) else (value,)
+        lo, hi = rng.bounds(len(values))
+        for i, (v, a, b) in enumerate(zip(values, lo, hi, strict=True)):
+            if positive and v <= 0:
+                msg = "must be > 0"
+            elif not a <= v <= b:
+                msg = f"must be in [{_fmt(a)}, {_fmt(b)}] {rng.unit}".rstrip(" -")
+            else:
+                continue
+            index = i if isinstance(value, tuple) else -1
+            raise PydanticCustomError("range", "{msg}", {"msg": msg, "index": index, "value": v})
+        return value
+
+    return AfterValidator(check)
+
+
+def _unit_quaternion(q: tuple[float, ...]) -> tuple[float, ...]:
+    norm = math.sqrt(sum(x * x for x in q))
+    if not 0.9 <= norm <= 1.1:
+        raise PydanticCustomError(
+            "range", "{msg}", {"msg": f"must be a unit quaternion [w, x, y, z] (norm {norm:.3g})"}
+        )
+    return q
+
+
+class _Record(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=False)
+
+
+class State(_Record):
+    """Initial state of an object (t = 0)."""
+
+    angular_velocity: Annotated[Vec3, _ranged("state.angular_velocity")] = (0.0, 0.0, 0.0)
+    linear_velocity: Annotated[Vec3, _ranged("state.linear_velocity")] = (0.0, 0.0, 0.0)
+    orientation: Annotated[Vec4, AfterValidator(_unit_quaternion)] = (1.0, 0.0, 0.0, 0.0)
+    position: Annotated[Vec3, _ranged("state.position")]
+
+
+class Physics(_Record):
+    """Physical properties of an object. `restitution` is an optional extension field."""
+
+    friction: Annotated[Vec2, _ranged("physics.friction")] = (0.5, 0.0)
+    mass: Annotated[Num, _ranged("physics.mass", positive=True)] = 1.0
+    damping: Annotated[Num, _ranged("physics.damping")] = -4.0
+    restitution: Annotated[Num, _ranged("physics.restitution")] | None = None
+
+
+class _Object(_Record):
+    name: Name | None = None
+    state: State
+    physics: Physics = Physics()
+
+
+class Box(_Object):
+    type: Literal["box"] = "box"
+    size: Annotated[Vec3, _ranged("box.size", positive=True)]
+
+
+class Sphere(_Object):
+    type: Literal["sphere"] = "sphere"
+    radius: Annotated[Num, _ranged("sphere.radius", positive=True)]
+
+
+class Cylinder(_Object):
+    type: Literal["cylinder"] = "cylinder"
+    radius: Annotated[Num, _ranged("cylinder.radius", positive=True)]
+    height: Annotated[Num, _ranged("cylinder.height", positive=True)]
+
+
+Object = Box | Sphere | Cylinder
+
+
+class Camera(_Record):
+    type: Literal["camera"] = "camera"
+    fovy: Annotated[Num, _ranged("camera.fovy")] = 45.0
+    orientation: Annotated[Num, _ranged("camera.orientation")] = 45.0
+    position: Annotated[Vec3, _ranged("camera.position")]
+
+
+class Environment(_Record):
+    """Optional extension item: air drag, wind and floor geometry (defaults: none of them)."""
+
+    type: Literal["environment"] = "environment"
+    air_density: Annotated[Num, _ranged("environment.air_density")] = 0.0
+    air_viscosity: Annotated[Num, _ranged("environment.air_viscosity")] = 0.0
+    wind: Annotated[Vec3, _ranged("environment.wind")] = (0.0, 0.0, 0.0)
+    floor_offset: Annotated[Num, _ranged("environment.floor_offset")] = 0.0
+    floor_tilt: Annotated[Vec2, _ranged("environment.floor_tilt")] = (0.0, 0.0)
+
+
+class Gravity(_Record):
+    type: Literal["gravity"] = "gravity"
+    gravity: Annotated[Vec3, _ranged("gravity.gravity")]
+
+
+DEFAULT_GRAVITY: tuple[float, float, float] = (0.0, 0.0, -9.81)
+
+
+class Scene(_Record):
+    """A validated scene. Object names are always filled in (`{type}_{k}` when absent in the text)."""
+
+    objects: tuple[Object, ...]
+    camera: Camera
+    gravity: Vec3 = DEFAULT_GRAVITY
+    environment: Environment | None = None
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(o.name for o in self.objects)
+
+    def object(self, name: str) -> Object:
+        for o in self.objects:
+            if o.name == name:
+                return o
+        raise KeyError(f"no object named {name!r}; the scene has {list(self.names)}")
+
+    @property
+    def structure(self) -> tuple[str, ...]:
+        """Object types in order: scenes with equal structure share one MuJoCo model layout."""
+        return tuple(o.type for o in self.objects)
+
+
+_ITEM_TYPES: dict[str, type[_Record]] = {
+    "box": Box,
+    "sphere": Sphere,
+    "cylinder": Cylinder,
+    "camera": Camera,
+    "gravity": Gravity,
+    "environment": Environment,
+}
+OBJECT_TYPES = ("box", "sphere", "cylinder")
+
+
+# --------------------------------------------------------------------------------------------
+# From plain Python data (the YAML list) to a Scene
+# --------------------------------------------------------------------------------------------
+_PYDANTIC_MESSAGES = {
+    "missing": "required field is missing",
+    "extra_forbidden": "unknown field",
+    "tuple_type": "must be a list",
+    "too_short": "has too few values",
+    "too_long": "has too many values",
+    "string_type": "must be a string",
+    "string_pattern_mismatch": "must be a name of letters, digits and _ (not starting with a digit), at most 64 chars",
+    "literal_error": "wrong type",
+    "model_type": "must be a mapping",
+    "model_attributes_type": "must be a mapping",
+}
+
+
+def _pydantic_problems(prefix: str, err: ValidationError) -> list[Problem]:
+    out = []
+    for e in err.errors(include_url=False):
+        path = prefix + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in e["loc"])
+        msg = e["msg"]
+        value = _NO_VALUE if e["type"] == "missing" else e.get("input", _NO_VALUE)
+        if e["type"] == "range":
+            ctx = e["ctx"]
+            if ctx.get("index", -1) >= 0:
+                path, value = f"{path}[{ctx['index']}]", ctx["value"]
+            out.append(Problem(path, value, ctx["msg"]))
+            continue
+        if e["type"] == "value_error":
+            msg = str(e.get("ctx", {}).get("error", msg))
+        elif e["type"] in ("too_short", "too_long"):
+            ctx = e.get("ctx", {})
+            msg = f"must have {ctx.get('max_length', ctx.get('min_length'))} values"
+            if "expected" in ctx:
+                msg = f"must have {ctx['expected']} values"
+        else:
+            msg = _PYDANTIC_MESSAGES.get(e["type"], msg)
+        out.append(Problem(path, value, msg))
+    return out
+
+
+def from_items(items: Any) -> Scene:
+    """Validate the parsed YAML (a list of item mappings) into a `Scene`.
+
+    Raises:
+        SceneError: with every problem found (types, ranges, duplicates, missing camera, ...).
+    """
+    problems: list[Problem] = []
+    if items is None:
+        raise SceneError([Problem("", _NO_VALUE, "empty scene: no YAML items found")])
+    if not isinstance(items, list):
+        raise SceneError([Problem("scene", _short_type(items), "must be a YAML list of items (- type: ...)")])
+    objects: list[Object] = []
+    cameras: list[Camera] = []
+    gravities: list[tuple[float, float, float]] = []
+    environments: list[Environment] = []
+    counts = {"camera": 0, "gravity": 0, "environment": 0}
+    n_obj = 0
+    for i, item in enumerate(items):
+        if not isinstance(item, dict):
+            problems.append(Problem(f"items[{i}]", _short_type(item), "must be a mapping with a 'type' key"))
+            continue
+        kind = item.get("type")
+        if kind in OBJECT_TYPES:
+            path = f"objects[{n_obj}]"
+            n_obj += 1
+        elif kind in counts:
+            counts[kind] += 1
+            path = kind if counts[kind] == 1 else f"{kind}[{counts[kind] - 1}]"
+        else:
+            allowed = ", ".join([*OBJECT_TYPES, "camera", "gravity", "environment"])
+            problems.append(Problem(f"items[{i}].type", kind, f"unknown type; allowed: {allowed}"))
+            continue
+        try:
+            rec = _ITEM_TYPES[kind].model_validate(item)
+        except ValidationError as e:
+            problems.extend(_pydantic_problems(path, e))
+            continue
+        if kind in OBJECT_TYPES:
+            objects.append(rec)
+        elif kind == "camera":
+            cameras.append(rec)
+        elif kind == "gravity":
+            gravities.append(rec.gravity)
+        else:
+            environments.append(rec)
+
+    if n_obj == 0:
+        problems.append(Problem("objects", _NO_VALUE, "the scene needs at least one box, sphere or cylinder"))
+    if n_obj > MAX_OBJECTS:
+        problems.append(Problem("objects", n_obj, f"at most {MAX_OBJECTS} objects"))
+    if counts["camera"] == 0:
+        problems.append(Problem("camera", _NO_VALUE, "the scene needs one camera item (- type: camera)"))
+    for kind, n in counts.items():
+        if n > 1:
+            problems.append(Problem(kind, n, f"at most one {kind} item, found {n}"))
+
+    # names: fill in {type}_{k} for unnamed objects, refuse duplicates
+    named = [o.name for o in objects if o.name is not None]
+    for name in sorted({n for n in named if named.count(n) > 1}):
+        idx = [i for i, o in enumerate(objects) if o.name == name]
+        problems.append(Problem(f"objects[{idx[1]}].name", name, f"duplicate name (also objects[{idx[0]}])"))
+    taken = set(named)
+    filled: list[Object] = []
+    per_type: dict[str, int] = {}
+    for o in objects:
+        if o.name is None:
+            k = per_type.get(o.type, 0)
+            while f"{o.type}_{k}" in taken:
+                k += 1
+            per_type[o.type] = k + 1
+            taken.add(f"{o.type}_{k}")
+            o = o.model_copy(update={"name": f"{o.type}_{k}"})
+        filled.append(o)
+
+    parts = {
+        "objects": filled,
+        "camera": cameras[0] if cameras else None,
+        "gravity": gravities[0] if gravities else DEFAULT_GRAVITY,
+        "environment": environments[0] if environments else None,
+    }
+    if problems:
+        raise SceneError(problems)
+    return Scene(
+        objects=tuple(filled), camera=parts["camera"], gravity=parts["gravity"], environment=parts["environment"]
+    )
+
+
+def _short_type(value: Any) -> str:
+    return f"<{type(value).__name__}>"
+
+
+# --------------------------------------------------------------------------------------------
+# Safe YAML
+# --------------------------------------------------------------------------------------------
+class _NoAliasLoader(yaml.SafeLoader):
+    """SafeLoader that refuses anchors/aliases (no alias bombs) and python/* tags (SafeLoader already does)."""
+
+    def compose_node(self, parent, index):  # noqa: D102
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.YAMLError(f"YAML aliases are not allowed (*{event.anchor} at line {event.start_mark.line + 1})")
+        return super().compose_node(parent, index)
+
+
+def load_yaml(text: str | bytes) -> Any:
+    """Parse YAML text safely: no tags that build Python objects, no aliases, bounded size."""
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise SceneError([Problem("text", _NO_VALUE, f"not UTF-8 text (byte {e.start}): binary input?")]) from None
+    if "\x00" in text:
+        raise SceneError([Problem("text", _NO_VALUE, "contains NUL bytes: binary input?")])
+    if len(text) > MAX_TEXT_CHARS:
+        raise SceneError([Problem("text", len(text), f"too long: at most {MAX_TEXT_CHARS} characters")])
+    try:
+        return yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - SafeLoader subclass
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e)
+        if isinstance(e, yaml.constructor.ConstructorError):
+            problem = f"refused YAML tag: {problem}"
+        raise SceneError([Problem("yaml", _NO_VALUE, f"{problem}{where}")]) from None
+
+
+_ANSWER = re.compile(r"<answer>(.*?)(?:</answer>|$)", re.S)
+_THINK = re.compile(r"<think>.*?(?:</think>|$)", re.S)
+_FENCE = re.compile(r"```(?:ya?ml)?\s*\n(.*?)(?:```|$)", re.S)
+_FIRST_ITEM = re.compile(r"^\s*-\s+type\s*:", re.M)
+
+
+def extract_yaml(text: str) -> str:
+    """Return the YAML part of a model response.
+
+    Takes the last `<answer>...</answer>` block when there is one (an unclosed one runs to the end),
+    otherwise drops `<think>...</think>`; then a ```yaml fence if any; then cuts stray prose before
+    the first `- type:` line and after the last line that belongs to the list.
+    """
+    answers = _ANSWER.findall(text)
+    body = answers[-1] if answers else _THINK.sub("", text)
+    fence = _FENCE.search(body)
+    if fence:
+        body = fence.group(1)
+    m = _FIRST_ITEM.search(body)
+    if m is None:
+        return body.strip()
+    lines = body[m.start() :].splitlines()
+    indent = len(lines[0]) - len(lines[0].lstrip())
+    keep = []
+    for line in lines:
+        stripped = line.strip()
+        # list items and their indented children belong; an unindented non-item line is prose
+        if stripped and (len(line) - len(line.lstrip())) <= indent and not stripped.startswith("-"):
+            break
+        keep.append(line)
+    return "\n".join(keep).strip()
+
+
+def parse(text: str | bytes) -> Scene:
+    """Parse a scene from YAML text or a model response.
+
+    Raises:
+        SceneError: naming every problem (path, value, what is allowed).
+    """
+    if isinstance(text, bytes):
+        load_yaml(text)  # raises a clear error on binary input
+        text = text.decode("utf-8")
+    if not isinstance(text, str):
+        raise SceneError([Problem("text", _short_type(text), "must be a string")])
+    if not text.strip():
+        raise SceneError([Problem("text", _NO_VALUE, "empty text: no YAML found")])
+    return from_items(load_yaml(extract_yaml(text)))
+
+
+def load(path: str) -> Scene:
+    """Read and parse a scene file; a missing file raises SceneError naming the path."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_TEXT_CHARS + 1)
+    except OSError as e:
+        raise SceneError([Problem("file", path, e.strerror or str(e))]) from None
+    return parse(data)
+
+
+# --------------------------------------------------------------------------------------------
+# Canonical dump
+# --------------------------------------------------------------------------------------------
+def _num(x: float) -> str:
+    text = f"{x:.{DECIMALS}f}".rstrip("0")
+    text = text + "0" if text.endswith(".") else text
+    return "0.0" if text == "-0.0" else text
+
+
+def _vec(v: tuple[float, ...]) -> str:
+    return "[" + ", ".join(_num(x) for x in v) + "]"
+
+
+def to_items(scene: Scene) -> list[dict[str, Any]]:
+    """The scene as plain Python data in canonical order (what `dump` writes)."""
+    items: list[dict[str, Any]] = []
+    for o in scene.objects:
+        d: dict[str, Any] = {"type": o.type, "name": o.name}
+        if isinstance(o, Box):
+            d["size"] = list(o.size)
+        else:
+            d["radius"] = o.radius
+            if isinstance(o, Cylinder):
+                d["height"] = o.height
+        s = o.state
+        d["state"] = {
+            "angular_velocity": list(s.angular_velocity),
+            "linear_velocity": list(s.linear_velocity),
+            "orientation": list(s.orientation),
+            "position": list(s.position),
+        }
+        p = o.physics
+        d["physics"] = {"friction": list(p.friction), "mass": p.mass, "damping": p.damping}
+        if p.restitution is not None:
+            d["physics"]["restitution"] = p.restitution
+        items.append(d)
+    c = scene.camera
+    items.append({"type": "camera", "fovy": c.fovy, "orientation": c.orientation, "position": list(c.position)})
+    items.append({"type": "gravity", "gravity": list(scene.gravity)})
+    if scene.environment is not None:
+        e = scene.environment
+        items.append(
+            {
+                "type": "environment",
+                "air_density": e.air_density,
+                "air_viscosity": e.air_viscosity,
+                "wind": list(e.wind),
+                "floor_offset": e.floor_offset,
+                "floor_tilt": list(e.floor_tilt),
+            }
+        )
+    return items
+
+
+def _emit(value: Any, indent: int, lines: list[str], key: str | None = None) -> None:
+    pad = " " * indent
+    if isinstance(value, dict):
+        if key is not None:
+            lines.append(f"{pad}{key}:")
+            indent += 2
+        for k, v in value.items():
+            _emit(v, indent, lines, k)
+        return
+    if isinstance(value, list):
+        text = _vec(tuple(value))
+    elif isinstance(value, float | int) and not isinstance(value, bool):
+        text = _num(float(value))
+    else:
+        text = str(value)
+    lines.append(f"{pad}{key}: {text}")
+
+
+def dump(scene: Scene) -> str:
+    """Canonical YAML: fixed key order (the paper's), numbers with at most `DECIMALS` decimals.
+
+    `parse(dump(s)) == s` for every valid scene.
+    """
+    lines: list[str] = []
+    for item in to_items(scene):
+        first = True
+        for k, v in item.items():
+            sub: list[str] = []
+            _emit(v, 2, sub, k)
+            if first:
+                sub[0] = "- " + sub[0][2:]
+                first = False
+            lines.extend(sub)
+    return "\n".join(lines) + "\n"
+
+
+def ranges_markdown() -> str:
+    """The range table as Markdown (the README's scene-format reference)."""
+    rows = ["| field | unit | frame | range | meaning |", "| --- | --- | --- | --- | --- |"]
+    for key, r in RANGES.items():
+        if isinstance(r.lo, tuple):
+            rng = ", ".join(f"[{_fmt(a)}, {_fmt(b)}]" for a, b in zip(r.lo, r.hi, strict=True))
+        else:
+            rng = f"[{_fmt(r.lo)}, {_fmt(r.hi)}]"
+        rows.append(f"| `{key}` | {r.unit} | {r.frame} | {rng} | {r.meaning} |")
+    return "\n".join(rows) + "\n"

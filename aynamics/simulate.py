@@ -1,0 +1,618 @@
+"""Scene -> MuJoCo model, and rollouts (one scene or many at once) with states, contacts, rest and view.
+
+Scenes with the same structure (object types in order) share one compiled template model; a scene's
+numbers (sizes, masses, inertias, friction, damping, gravity, camera, extension fields) are written into
+that model's fields, so a batch of candidates costs one compile and a few array writes, and runs on
+MuJoCo's threaded `mujoco.batch.Batch` (bit-identical to one simulation at a time).
+
+    rollout = simulate(scene)                    # 1 s at 30 FPS, 8 physics steps per frame
+    rollouts = simulate_batch(scenes, nthread=2)  # many scenes or CMA-ES/reward candidates
+
+Physical meaning of the fields (see `aynamics.scene.RANGES`):
+- friction[0] is the sliding coefficient, friction[1] a dimensionless rolling-resistance coefficient
+  c_rr mapped to MuJoCo's rolling friction c_rr·r (condim 6; torsional friction 0). Object geoms have
+  priority 1 over the floor, so an object's own friction (and contact softness) governs its floor contacts;
+  two objects in contact use the larger of each coefficient (MuJoCo's rule for equal priority).
+- damping d: free-joint damping of mass·10^d on the linear and I_i·10^d on the angular dofs, so that in free
+  motion v and ω decay as exp(-10^d t) whatever the mass.
+- restitution e (optional): the direct contact form solref = (-k, -b) with k = 1e4 and b chosen so that
+  a damped spring of that stiffness rebounds with coefficient e.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import math
+import os
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+from mujoco import batch as mjbatch
+
+from aynamics import camera as camlib
+from aynamics.scene import Box, Cylinder, Object, Scene, Sphere
+
+FPS = 30
+SUBSTEPS = 8  # physics steps per frame: dt = 1 / 240 s
+DURATION = 1.0
+REST_LINEAR = 0.02  # m/s: below this (and REST_ANGULAR) for every later frame, an object is at rest
+REST_ANGULAR = 0.2  # rad/s
+MAX_SPEED = 200.0  # m/s: beyond this a rollout has blown up
+MAX_SPIN = 1000.0  # rad/s
+MAX_DISTANCE = 1000.0  # m from the origin
+RESTITUTION_STIFFNESS = 1e4  # k of the direct contact form used for `physics.restitution`
+
+_GEOM = {
+    "box": mujoco.mjtGeom.mjGEOM_BOX,
+    "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
+    "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry and inertia of the shapes
+# --------------------------------------------------------------------------------------------
+def geom_size(obj: Object) -> np.ndarray:
+    """MuJoCo `geom_size` (3,): box half-extents, sphere (r, 0, 0), cylinder (r, half-length, 0)."""
+    if isinstance(obj, Box):
+        return np.array(obj.size, dtype=float)
+    if isinstance(obj, Sphere):
+        return np.array([obj.radius, 0.0, 0.0])
+    return np.array([obj.radius, obj.height / 2, 0.0])
+
+
+def half_extents(obj: Object) -> np.ndarray:
+    """(3,) half-extents of the object's bounding box in its own frame."""
+    if isinstance(obj, Box):
+        return np.array(obj.size, dtype=float)
+    if isinstance(obj, Sphere):
+        return np.full(3, obj.radius)
+    return np.array([obj.radius, obj.radius, obj.height / 2])
+
+
+def bounding_radius(obj: Object) -> float:
+    return float(np.linalg.norm(half_extents(obj))) if not isinstance(obj, Sphere) else float(obj.radius)
+
+
+def rolling_radius(obj: Object) -> float:
+    """Lever arm of rolling resistance: the radius, or a box's smallest half-extent."""
+    return float(min(obj.size)) if isinstance(obj, Box) else float(obj.radius)
+
+
+def inertia(obj: Object) -> np.ndarray:
+    """(3,) principal moments of inertia (kg m²) of a uniform solid, about the object's own axes."""
+    m = obj.physics.mass
+    if isinstance(obj, Box):
+        a, b, c = obj.size
+        return m / 3 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+    if isinstance(obj, Sphere):
+        return np.full(3, 0.4 * m * obj.radius**2)
+    r, h = obj.radius, obj.height
+    side = m * (3 * r * r + h * h) / 12
+    return np.array([side, side, 0.5 * m * r * r])
+
+
+def restitution_solref(e: float, k: float = RESTITUTION_STIFFNESS) -> tuple[float, float]:
+    """Direct-form solref (-k, -b) of a damped spring whose rebound coefficient is e.
+
+    For x'' + b x' + k x = 0 released into contact, e = exp(-ζπ / sqrt(1 - ζ²)) with ζ = b / (2 sqrt k), so
+    ζ = -ln e / sqrt(π² + ln² e). e = 0 is critical damping (ζ = 1).
+    """
+    if e <= 0:
+        zeta = 1.0
+    else:
+        le = math.log(e)
+        zeta = -le / math.sqrt(math.pi**2 + le * le)
+    return -k, -2 * zeta * math.sqrt(k)
+
+
+# --------------------------------------------------------------------------------------------
+# Templates and parameters
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Template:
+    """A compiled model for one structure, with the ids looked up once."""
+
+    model: mujoco.MjModel
+    structure: tuple[str, ...]
+    body_ids: np.ndarray  # (N,) object bodies
+    geom_ids: np.ndarray  # (N,) object geoms
+    floor_geom: int
+    camera_id: int
+    qpos_adr: np.ndarray  # (N,) start of each free joint in qpos
+    dof_adr: np.ndarray  # (N,) start in qvel
+    pairs: tuple[tuple[int, int], ...]  # contact sensors: (i, j) objects, j = -1 for the floor
+
+
+def _spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
+    spec = mujoco.MjSpec()
+    spec.modelname = "aynamics_scene"
+    spec.option.timestep = 1.0 / (FPS * SUBSTEPS)
+    spec.visual.headlight.active = 0  # lighting comes from the scene's lights (rendering randomises them)
+    world = spec.worldbody
+    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=[0, 0, 0])
+    for i, kind in enumerate(structure):
+        body = world.add_body(name=f"obj{i}", pos=[0, 0, 1])
+        body.add_freejoint(name=f"obj{i}_joint")
+        body.add_geom(name=f"obj{i}_geom", type=_GEOM[kind], size=[0.1, 0.1, 0.1], priority=1, condim=6)
+    world.add_camera(name="camera", pos=[0, -2, 3.5], quat=[1, 0, 0, 0], fovy=45)
+    n = len(structure)
+    for i in range(n):
+        spec.add_sensor(
+            name=f"contact_floor_{i}",
+            type=mujoco.mjtSensor.mjSENS_CONTACT,
+            objtype=mujoco.mjtObj.mjOBJ_GEOM,
+            objname="floor",
+            reftype=mujoco.mjtObj.mjOBJ_BODY,
+            refname=f"obj{i}",
+            intprm=[1, 0, 1],  # data = found; reduce = none; num = 1
+        )
+    for i in range(n):
+        for j in range(i + 1, n):
+            spec.add_sensor(
+                name=f"contact_{i}_{j}",
+                type=mujoco.mjtSensor.mjSENS_CONTACT,
+                objtype=mujoco.mjtObj.mjOBJ_BODY,
+                objname=f"obj{i}",
+                reftype=mujoco.mjtObj.mjOBJ_BODY,
+                refname=f"obj{j}",
+                intprm=[1, 0, 1],
+            )
+    return spec
+
+
+@functools.lru_cache(maxsize=64)
+def template(structure: tuple[str, ...]) -> Template:
+    """The compiled template model for a structure (cached)."""
+    model = _spec(structure).compile()
+    n = len(structure)
+    body_ids = np.array([model.body(f"obj{i}").id for i in range(n)])
+    joints = [model.joint(f"obj{i}_joint") for i in range(n)]
+    pairs = tuple((i, -1) for i in range(n)) + tuple((i, j) for i in range(n) for j in range(i + 1, n))
+    return Template(
+        model=model,
+        structure=structure,
+        body_ids=body_ids,
+        geom_ids=np.array([model.geom(f"obj{i}_geom").id for i in range(n)]),
+        floor_geom=model.geom("floor").id,
+        camera_id=model.camera("camera").id,
+        qpos_adr=np.array([j.qposadr[0] for j in joints]),
+        dof_adr=np.array([j.dofadr[0] for j in joints]),
+        pairs=pairs,
+    )
+
+
+# the model fields a scene writes; `Batch.expand` makes them per-simulation
+PARAM_FIELDS = (
+    "geom_size",
+    "geom_rbound",
+    "geom_aabb",
+    "geom_friction",
+    "geom_solref",
+    "geom_pos",
+    "geom_quat",
+    "body_mass",
+    "body_inertia",
+    "dof_damping",
+    "cam_pos",
+    "cam_quat",
+    "cam_fovy",
+    "opt.gravity",
+    "opt.density",
+    "opt.viscosity",
+    "opt.wind",
+)
+
+
+def scene_params(scene: Scene, tpl: Template) -> dict[str, np.ndarray]:
+    """The template's parameter fields (full arrays, as in the model) filled with the scene's numbers."""
+    m = tpl.model
+    p = {
+        name: np.array(getattr(m.opt, name[4:]) if name.startswith("opt.") else getattr(m, name))
+        for name in PARAM_FIELDS
+    }
+    for i, obj in enumerate(scene.objects):
+        g, b, d = tpl.geom_ids[i], tpl.body_ids[i], tpl.dof_adr[i]
+        half = half_extents(obj)
+        p["geom_size"][g] = geom_size(obj)
+        p["geom_rbound"][g] = bounding_radius(obj)
+        p["geom_aabb"][g] = np.concatenate([np.zeros(3), half])
+        mu, c_rr = obj.physics.friction
+        p["geom_friction"][g] = [mu, 0.0, c_rr * rolling_radius(obj)]
+        if obj.physics.restitution is not None:
+            p["geom_solref"][g] = restitution_solref(obj.physics.restitution)
+        p["body_mass"][b] = obj.physics.mass
+        moments = inertia(obj)
+        p["body_inertia"][b] = moments
+        rate = 10.0**obj.physics.damping
+        p["dof_damping"][d : d + 6] = rate * np.concatenate([np.full(3, obj.physics.mass), moments])
+    c = tpl.camera_id
+    p["cam_pos"][c] = scene.camera.position
+    p["cam_quat"][c] = camlib.gl_quaternion(scene.camera)
+    p["cam_fovy"][c] = scene.camera.fovy
+    p["opt.gravity"][:] = scene.gravity
+    env = scene.environment
+    if env is not None:
+        p["opt.density"] = np.array(env.air_density)
+        p["opt.viscosity"] = np.array(env.air_viscosity)
+        p["opt.wind"][:] = env.wind
+        f = tpl.floor_geom
+        p["geom_pos"][f] = [0.0, 0.0, env.floor_offset]
+        p["geom_quat"][f] = _tilt_quaternion(*env.floor_tilt)
+    return p
+
+
+def _tilt_quaternion(about_x: float, about_y: float) -> np.ndarray:
+    qx = np.array([math.cos(math.radians(about_x) / 2), math.sin(math.radians(about_x) / 2), 0, 0])
+    qy = np.array([math.cos(math.radians(about_y) / 2), 0, math.sin(math.radians(about_y) / 2), 0])
+    out = np.zeros(4)
+    mujoco.mju_mulQuat(out, qy, qx)  # x first, then y (world axes)
+    return out
+
+
+def _write_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> None:
+    for name, value in params.items():
+        if name.startswith("opt."):
+            setattr(model.opt, name[4:], value)
+        else:
+            getattr(model, name)[...] = value
+
+
+def compile_scene(scene: Scene) -> tuple[mujoco.MjModel, Template]:
+    """A standalone MjModel of the scene (for rendering and single simulations), and its template."""
+    tpl = template(scene.structure)
+    model = _copy_model(tpl.model)
+    _write_params(model, scene_params(scene, tpl))
+    mujoco.mj_setConst(model, mujoco.MjData(model))
+    return model, tpl
+
+
+def _copy_model(model: mujoco.MjModel) -> mujoco.MjModel:
+    return copy.copy(model)
+
+
+def initial_qpos_qvel(scene: Scene, tpl: Template) -> tuple[np.ndarray, np.ndarray]:
+    """qpos (nq,) and qvel (nv,) of the scene's initial state: unit quaternions, body-frame spin."""
+    qpos = np.zeros(tpl.model.nq)
+    qvel = np.zeros(tpl.model.nv)
+    for i, obj in enumerate(scene.objects):
+        s = obj.state
+        quat = np.asarray(s.orientation, dtype=float)
+        quat = quat / np.linalg.norm(quat)
+        a, d = tpl.qpos_adr[i], tpl.dof_adr[i]
+        qpos[a : a + 3] = s.position
+        qpos[a + 3 : a + 7] = quat
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, quat)
+        qvel[d : d + 3] = s.linear_velocity
+        qvel[d + 3 : d + 6] = rot.reshape(3, 3).T @ np.asarray(s.angular_velocity)  # world -> body
+    return qpos, qvel
+
+
+# --------------------------------------------------------------------------------------------
+# Rollouts
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Contact:
+    """A contact interval between two objects or an object and the floor (`other == "floor"`)."""
+
+    a: str
+    b: str
+    start: float  # s, first frame time at which the pair touches
+    end: float  # s, last frame time at which it touches
+
+    def to_json(self) -> dict:
+        return {"with": self.b, "start": round(self.start, 4), "end": round(self.end, 4)}
+
+
+@dataclass(frozen=True)
+class Rollout:
+    """One simulated scene. Frame 0 is the initial state; T = duration · fps + 1 frames.
+
+    Attributes:
+        names: (N,) object names.
+        t: (T,) frame times, s.
+        position, linear_velocity, angular_velocity: (T, N, 3), world frame (angular velocity in world axes).
+        orientation: (T, N, 4) unit quaternions w, x, y, z.
+        touching: (T, N, N + 1) bool: object i touches object j (j < N) or the floor (j = N) at any physics step
+            in (t[k-1], t[k]] (frame 0: at the initial state after one step).
+        in_view: (T, N) bool: the object's bounding sphere meets the camera's view frustum.
+        rest_time: (N,) s at which each object is at rest for the rest of the rollout, or None.
+        valid: False when the rollout diverged (NaN, blow-up, tunnelling); `reason` says where.
+    """
+
+    names: tuple[str, ...]
+    t: np.ndarray
+    position: np.ndarray
+    orientation: np.ndarray
+    linear_velocity: np.ndarray
+    angular_velocity: np.ndarray
+    touching: np.ndarray
+    in_view: np.ndarray
+    rest_time: tuple[float | None, ...]
+    valid: bool = True
+    reason: str | None = None
+    contacts: tuple[Contact, ...] = field(default=())
+
+    def to_npz(self, path: str) -> None:
+        np.savez_compressed(
+            path,
+            names=np.array(self.names),
+            t=self.t,
+            position=self.position,
+            orientation=self.orientation,
+            linear_velocity=self.linear_velocity,
+            angular_velocity=self.angular_velocity,
+            touching=self.touching,
+            in_view=self.in_view,
+            rest_time=np.array([np.nan if r is None else r for r in self.rest_time]),
+            valid=np.array(self.valid),
+        )
+
+    def summary(self) -> dict:
+        """The `aynamics simulate --json` record."""
+        objects = {}
+        for i, name in enumerate(self.names):
+            objects[name] = {
+                "final_position": [round(float(x), 4) for x in self.position[-1, i]],
+                "rest_time": self.rest_time[i],
+                "contacts": [c.to_json() for c in self.contacts if c.a == name],
+            }
+        return {"objects": objects, "valid": self.valid, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Timing of a rollout: `duration` s at `fps` frames per second, `substeps` physics steps per frame."""
+
+    duration: float = DURATION
+    fps: int = FPS
+    substeps: int = SUBSTEPS
+
+    def __post_init__(self):
+        if not (0 < self.duration <= 60):
+            raise ValueError(f"duration = {self.duration}: must be in (0, 60] s")
+        if not (1 <= self.fps <= 1000) or not (1 <= self.substeps <= 1000):
+            raise ValueError(f"fps = {self.fps}, substeps = {self.substeps}: must be in [1, 1000]")
+
+    @property
+    def frames(self) -> int:
+        return int(round(self.duration * self.fps))
+
+
+def simulate(scene: Scene, config: SimConfig = SimConfig()) -> Rollout:
+    """Simulate one scene."""
+    return simulate_batch([scene], config, nthread=1)[0]
+
+
+def default_threads() -> int:
+    return max(1, min(os.cpu_count() or 1, 8))
+
+
+def simulate_batch(scenes: list[Scene], config: SimConfig = SimConfig(), nthread: int | None = None) -> list[Rollout]:
+    """Simulate many scenes at once on MuJoCo's threaded Batch, one batch per structure.
+
+    Results are in the order of `scenes` and bit-identical to `simulate` one by one.
+    """
+    out: list[Rollout | None] = [None] * len(scenes)
+    groups: dict[tuple[str, ...], list[int]] = {}
+    for k, s in enumerate(scenes):
+        groups.setdefault(s.structure, []).append(k)
+    for structure, idx in groups.items():
+        for k, r in zip(idx, _simulate_group([scenes[k] for k in idx], structure, config, nthread), strict=True):
+            out[k] = r
+    return out  # type: ignore[return-value]
+
+
+_BATCHES = threading.local()  # per-thread cache: a Batch must not be used from two threads at once
+_BATCH_CACHE_SIZE = 16
+
+
+def _cached_batch(tpl: Template, n: int, nthread: int) -> mjbatch.Batch:
+    cache: OrderedDict = getattr(_BATCHES, "cache", None) or OrderedDict()
+    _BATCHES.cache = cache
+    key = (tpl.structure, n, nthread)
+    b = cache.pop(key, None)
+    if b is None:
+        b = mjbatch.Batch(tpl.model, n, nthread=nthread)
+        for name in PARAM_FIELDS:
+            b.expand(name)
+    cache[key] = b
+    while len(cache) > _BATCH_CACHE_SIZE:
+        cache.popitem(last=False)
+    return b
+
+
+def prepare_batch(
+    scenes: list[Scene], structure: tuple[str, ...], nthread: int | None = None
+) -> tuple[mjbatch.Batch, Template]:
+    """A Batch over the structure's template with each scene's parameters and initial state written in.
+
+    Batches are cached per (structure, size, threads) and rewritten completely on each call.
+    """
+    tpl = template(structure)
+    n = len(scenes)
+    b = _cached_batch(tpl, n, max(1, min(nthread or default_threads(), n)))
+    params = [scene_params(s, tpl) for s in scenes]
+    for name in PARAM_FIELDS:
+        b.expand(name)[...] = np.stack([p[name] for p in params]).reshape(b.expand(name).shape)
+    b.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+    b.set_const()
+    qpos, qvel = b.bind("qpos"), b.bind("qvel")
+    for k, s in enumerate(scenes):
+        qpos[k], qvel[k] = initial_qpos_qvel(s, tpl)
+    b.forward()
+    return b, tpl
+
+
+@dataclass(frozen=True)
+class RawRollout:
+    """Frame-rate states of a batch of same-structure scenes (the scorer's hot path skips `Rollout`).
+
+    Attributes:
+        qpos: (n, T, nq), qvel: (n, T, nv) per frame, frame 0 the initial state.
+        sensor: (n, S, nsensordata) contact counts after every physics step.
+        warnings: (n,) MuJoCo warning counts (instability).
+    """
+
+    template: Template
+    qpos: np.ndarray
+    qvel: np.ndarray
+    sensor: np.ndarray
+    warnings: np.ndarray
+
+
+def rollout_raw(
+    scenes: list[Scene], structure: tuple[str, ...], config: SimConfig = SimConfig(), nthread: int | None = None
+) -> RawRollout:
+    """Simulate same-structure scenes in one Batch; states per frame, contact sensors per physics step."""
+    b, tpl = prepare_batch(scenes, structure, nthread)
+    qpos0 = np.array(b.bind("qpos"))
+    qvel0 = np.array(b.bind("qvel"))
+    sub = config.substeps
+    rec = b.rollout(config.frames * sub, record=("qpos", "qvel", "sensordata"))
+    qpos = np.concatenate([qpos0[:, None], rec["qpos"][:, sub - 1 :: sub]], axis=1)
+    qvel = np.concatenate([qvel0[:, None], rec["qvel"][:, sub - 1 :: sub]], axis=1)
+    warnings = np.array(b.warning).sum(axis=(1, 2))
+    return RawRollout(tpl, qpos, qvel, rec["sensordata"], warnings)
+
+
+def _simulate_group(
+    scenes: list[Scene], structure: tuple[str, ...], config: SimConfig, nthread: int | None
+) -> list[Rollout]:
+    raw = rollout_raw(scenes, structure, config, nthread)
+    return [
+        _assemble(scene, raw.template, config, raw.qpos[k], raw.qvel[k], raw.sensor[k], int(raw.warnings[k]))
+        for k, scene in enumerate(scenes)
+    ]
+
+
+def _assemble(
+    scene: Scene,
+    tpl: Template,
+    config: SimConfig,
+    qpos_f: np.ndarray,  # (T, nq) per frame
+    qvel_f: np.ndarray,  # (T, nv)
+    sensor: np.ndarray,  # (S, nsensordata) after each physics step
+    nwarning: int,
+) -> Rollout:
+    n, sub, frames = len(scene.objects), config.substeps, config.frames
+    cols_p = tpl.qpos_adr[:, None] + np.arange(7)  # (N, 7)
+    cols_v = tpl.dof_adr[:, None] + np.arange(6)
+    q = qpos_f[:, cols_p]  # (T, N, 7)
+    v = qvel_f[:, cols_v]  # (T, N, 6)
+    position, orientation = q[..., :3], q[..., 3:]
+    orientation = orientation / np.linalg.norm(orientation, axis=-1, keepdims=True)
+    rot = _quat_to_mat(orientation)  # (T, N, 3, 3)
+    angular = np.einsum("tnij,tnj->tni", rot, v[..., 3:])  # body -> world
+    t = np.arange(frames + 1) / config.fps
+
+    # contacts: sensor value > 0 at any physics step of the frame interval
+    found = sensor > 0  # (S, npairs)
+    first = found[:1]
+    per_frame = found[: frames * sub].reshape(frames, sub, -1).any(axis=1)
+    per_frame = np.concatenate([first, per_frame])  # (T, npairs)
+    touching = np.zeros((frames + 1, n, n + 1), dtype=bool)
+    for k, (i, j) in enumerate(tpl.pairs):
+        if j < 0:
+            touching[:, i, n] = per_frame[:, k]
+        else:
+            touching[:, i, j] = touching[:, j, i] = per_frame[:, k]
+
+    names = scene.names
+    contacts = []
+    for i in range(n):
+        for j in range(n + 1):
+            if j == i:
+                continue
+            other = "floor" if j == n else names[j]
+            for a, b in _intervals(touching[:, i, j]):
+                contacts.append(Contact(names[i], other, float(t[a]), float(t[b])))
+
+    cam = camlib.matrices(scene.camera)
+    radii = np.array([bounding_radius(o) for o in scene.objects])
+    with np.errstate(invalid="ignore"):
+        in_view = camlib.sphere_in_view(cam, position, radii)
+
+    valid, reason = _check(scene, position, v, nwarning, t)
+    speed = np.linalg.norm(v[..., :3], axis=-1)
+    spin = np.linalg.norm(v[..., 3:], axis=-1)
+    rest = []
+    for i in range(n):
+        moving = (speed[:, i] > REST_LINEAR) | (spin[:, i] > REST_ANGULAR) | ~np.isfinite(speed[:, i])
+        idx = np.flatnonzero(moving)
+        if not valid or (len(idx) and idx[-1] == frames):
+            rest.append(None)
+        else:
+            rest.append(0.0 if len(idx) == 0 else float(t[idx[-1] + 1]))
+
+    return Rollout(
+        names=names,
+        t=t,
+        position=position,
+        orientation=orientation,
+        linear_velocity=v[..., :3],
+        angular_velocity=angular,
+        touching=touching,
+        in_view=in_view,
+        rest_time=tuple(rest),
+        valid=valid,
+        reason=reason,
+        contacts=tuple(contacts),
+    )
+
+
+def _check(scene: Scene, position: np.ndarray, v: np.ndarray, nwarning: int, t: np.ndarray) -> tuple[bool, str | None]:
+    names = scene.names
+    finite = np.isfinite(position).all(-1) & np.isfinite(v).all(-1)  # (T, N)
+    if not finite.all():
+        k, i = np.argwhere(~finite)[0]
+        return False, f"diverged: non-finite state of {names[i]} at t={t[k]:.3f}s"
+    speed = np.linalg.norm(v[..., :3], axis=-1)
+    spin = np.linalg.norm(v[..., 3:], axis=-1)
+    far = np.linalg.norm(position, axis=-1)
+    bad = (speed > MAX_SPEED) | (spin > MAX_SPIN) | (far > MAX_DISTANCE)
+    if bad.any():
+        k, i = np.argwhere(bad)[0]
+        return False, (
+            f"blew up: {names[i]} at t={t[k]:.3f}s has speed {speed[k, i]:.3g} m/s, spin {spin[k, i]:.3g} rad/s, "
+            f"distance {far[k, i]:.3g} m"
+        )
+    floor = scene.environment.floor_offset if scene.environment is not None else 0.0
+    tilt = scene.environment.floor_tilt if scene.environment is not None else (0.0, 0.0)
+    if tilt == (0.0, 0.0):
+        depth = np.array([half_extents(o).min() for o in scene.objects])
+        below = position[..., 2] < floor - depth  # the centre went through the floor
+        if below.any():
+            k, i = np.argwhere(below)[0]
+            return False, f"tunnelled: {names[i]} fell through the floor at t={t[k]:.3f}s (z={position[k, i, 2]:.3g} m)"
+    if nwarning > 0:
+        return (
+            False,
+            f"diverged: MuJoCo raised {nwarning} instability warning(s) (bad acceleration or contact overflow)",
+        )
+    return True, None
+
+
+def _intervals(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of True in a boolean vector as (first, last) index pairs."""
+    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    d = np.diff(padded)
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1, strict=True))
+
+
+def _quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) wxyz unit quaternions -> (..., 3, 3) rotation matrices."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
