@@ -331,10 +331,25 @@ _PYDANTIC_MESSAGES = {
 }
 
 
-def _pydantic_problems(prefix: str, err: ValidationError) -> list[Problem]:
+def _lookup(data: Any, loc: tuple) -> Any:
+    for key in loc:
+        try:
+            data = data[key]
+        except (KeyError, IndexError, TypeError):
+            return _NO_VALUE
+    return data
+
+
+def _pydantic_problems(prefix: str, err: ValidationError, item: Any = None) -> list[Problem]:
     out = []
     for e in err.errors(include_url=False):
-        path = prefix + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in e["loc"])
+        loc = e["loc"]
+        if e["type"] == "missing" and loc and isinstance(loc[-1], int):
+            # a vector with too few values: report the vector, not its missing element
+            path = prefix + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc[:-1])
+            out.append(Problem(path, _lookup(item, loc[:-1]), f"has too few values (element {loc[-1]} missing)"))
+            continue
+        path = prefix + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
         msg = e["msg"]
         value = _NO_VALUE if e["type"] == "missing" else e.get("input", _NO_VALUE)
         if e["type"] == "range":
@@ -391,7 +406,7 @@ def from_items(items: Any) -> Scene:
         try:
             rec = _ITEM_TYPES[kind].model_validate(item)
         except ValidationError as e:
-            problems.extend(_pydantic_problems(path, e))
+            problems.extend(_pydantic_problems(path, e, item))
             continue
         if kind in OBJECT_TYPES:
             objects.append(rec)
@@ -488,21 +503,19 @@ _FENCE = re.compile(r"```(?:ya?ml)?\s*\n(.*?)(?:```|$)", re.S)
 _FIRST_ITEM = re.compile(r"^\s*-\s+type\s*:", re.M)
 
 
-def extract_yaml(text: str) -> str:
-    """Return the YAML part of a model response.
-
-    Takes the last `<answer>...</answer>` block when there is one (an unclosed one runs to the end),
-    otherwise drops `<think>...</think>`; then a ```yaml fence if any; then cuts stray prose before
-    the first `- type:` line and after the last line that belongs to the list.
-    """
+def _strip_wrappers(text: str) -> str:
+    """The last `<answer>` block (an unclosed one runs to the end), else the text without `<think>`; then a fence."""
     answers = _ANSWER.findall(text)
     body = answers[-1] if answers else _THINK.sub("", text)
     fence = _FENCE.search(body)
-    if fence:
-        body = fence.group(1)
+    return fence.group(1) if fence else body
+
+
+def _cut_prose(body: str) -> str | None:
+    """The part of `body` from the first `- type:` line to the last line of that list, or None."""
     m = _FIRST_ITEM.search(body)
     if m is None:
-        return body.strip()
+        return None
     lines = body[m.start() :].splitlines()
     indent = len(lines[0]) - len(lines[0].lstrip())
     keep = []
@@ -512,7 +525,24 @@ def extract_yaml(text: str) -> str:
         if stripped and (len(line) - len(line.lstrip())) <= indent and not stripped.startswith("-"):
             break
         keep.append(line)
-    return "\n".join(keep).strip()
+    return "\n".join(keep)
+
+
+def extract_yaml(text: str) -> str:
+    """Return the YAML part of a model response.
+
+    Takes the last `<answer>...</answer>` block when there is one, otherwise drops `<think>...</think>`;
+    then the inside of a ```yaml fence if any. When that is not a YAML list by itself, stray prose before the
+    first `- type:` line and after the list is cut away.
+    """
+    body = _strip_wrappers(text)
+    try:
+        if isinstance(load_yaml(body), list):
+            return body.strip()
+    except SceneError:
+        pass
+    cut = _cut_prose(body)
+    return (cut if cut is not None else body).strip()
 
 
 def parse(text: str | bytes) -> Scene:

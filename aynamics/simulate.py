@@ -34,7 +34,7 @@ import numpy as np
 from mujoco import batch as mjbatch
 
 from aynamics import camera as camlib
-from aynamics.scene import Box, Cylinder, Object, Scene, Sphere
+from aynamics.scene import Box, Object, Scene, Sphere
 
 FPS = 30
 SUBSTEPS = 8  # physics steps per frame: dt = 1 / 240 s
@@ -132,6 +132,7 @@ def _spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
     spec = mujoco.MjSpec()
     spec.modelname = "aynamics_scene"
     spec.option.timestep = 1.0 / (FPS * SUBSTEPS)
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # exact Coulomb cone: rolling resistance matches c_rr·g/1.4
     spec.visual.headlight.active = 0  # lighting comes from the scene's lights (rendering randomises them)
     world = spec.worldbody
     world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=[0, 0, 0])
@@ -485,85 +486,76 @@ def _simulate_group(
     scenes: list[Scene], structure: tuple[str, ...], config: SimConfig, nthread: int | None
 ) -> list[Rollout]:
     raw = rollout_raw(scenes, structure, config, nthread)
-    return [
-        _assemble(scene, raw.template, config, raw.qpos[k], raw.qvel[k], raw.sensor[k], int(raw.warnings[k]))
-        for k, scene in enumerate(scenes)
-    ]
+    return assemble(scenes, raw, config)
 
 
-def _assemble(
-    scene: Scene,
-    tpl: Template,
-    config: SimConfig,
-    qpos_f: np.ndarray,  # (T, nq) per frame
-    qvel_f: np.ndarray,  # (T, nv)
-    sensor: np.ndarray,  # (S, nsensordata) after each physics step
-    nwarning: int,
-) -> Rollout:
-    n, sub, frames = len(scene.objects), config.substeps, config.frames
-    cols_p = tpl.qpos_adr[:, None] + np.arange(7)  # (N, 7)
-    cols_v = tpl.dof_adr[:, None] + np.arange(6)
-    q = qpos_f[:, cols_p]  # (T, N, 7)
-    v = qvel_f[:, cols_v]  # (T, N, 6)
-    position, orientation = q[..., :3], q[..., 3:]
-    orientation = orientation / np.linalg.norm(orientation, axis=-1, keepdims=True)
-    rot = _quat_to_mat(orientation)  # (T, N, 3, 3)
-    angular = np.einsum("tnij,tnj->tni", rot, v[..., 3:])  # body -> world
+def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig()) -> list[Rollout]:
+    """Turn a batch's raw records into `Rollout`s (vectorised over the batch)."""
+    tpl = raw.template
+    n_sim, n, sub, frames = len(scenes), len(tpl.structure), config.substeps, config.frames
+    q = raw.qpos[:, :, tpl.qpos_adr[:, None] + np.arange(7)]  # (B, T, N, 7)
+    v = raw.qvel[:, :, tpl.dof_adr[:, None] + np.arange(6)]  # (B, T, N, 6)
+    position = q[..., :3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        orientation = q[..., 3:] / np.linalg.norm(q[..., 3:], axis=-1, keepdims=True)
+    angular = np.einsum("btnij,btnj->btni", _quat_to_mat(orientation), v[..., 3:])  # body -> world
     t = np.arange(frames + 1) / config.fps
 
-    # contacts: sensor value > 0 at any physics step of the frame interval
-    found = sensor > 0  # (S, npairs)
-    first = found[:1]
-    per_frame = found[: frames * sub].reshape(frames, sub, -1).any(axis=1)
-    per_frame = np.concatenate([first, per_frame])  # (T, npairs)
-    touching = np.zeros((frames + 1, n, n + 1), dtype=bool)
-    for k, (i, j) in enumerate(tpl.pairs):
-        if j < 0:
-            touching[:, i, n] = per_frame[:, k]
-        else:
-            touching[:, i, j] = touching[:, j, i] = per_frame[:, k]
+    # contacts: the pair's sensor counts a contact at any physics step of the frame interval
+    found = raw.sensor[:, : frames * sub] > 0  # (B, S, P)
+    per_frame = np.concatenate([found[:, :1], found.reshape(n_sim, frames, sub, -1).any(axis=2)], axis=1)
+    touching = np.zeros((n_sim, frames + 1, n, n + 1), dtype=bool)
+    pi = np.array([i for i, _ in tpl.pairs], dtype=int)
+    pj = np.array([n if j < 0 else j for _, j in tpl.pairs], dtype=int)
+    touching[:, :, pi, pj] = per_frame
+    obj = pj < n
+    touching[:, :, pj[obj], pi[obj]] = per_frame[:, :, obj]
+    edges = np.diff(np.pad(touching, ((0, 0), (1, 1), (0, 0), (0, 0))).astype(np.int8), axis=1)  # (B, T+1, N, N+1)
+    starts, ends = np.nonzero(edges == 1), np.nonzero(edges == -1)
 
-    names = scene.names
-    contacts = []
-    for i in range(n):
-        for j in range(n + 1):
-            if j == i:
-                continue
-            other = "floor" if j == n else names[j]
-            for a, b in _intervals(touching[:, i, j]):
-                contacts.append(Contact(names[i], other, float(t[a]), float(t[b])))
-
-    cam = camlib.matrices(scene.camera)
-    radii = np.array([bounding_radius(o) for o in scene.objects])
-    with np.errstate(invalid="ignore"):
-        in_view = camlib.sphere_in_view(cam, position, radii)
-
-    valid, reason = _check(scene, position, v, nwarning, t)
-    speed = np.linalg.norm(v[..., :3], axis=-1)
+    speed = np.linalg.norm(v[..., :3], axis=-1)  # (B, T, N)
     spin = np.linalg.norm(v[..., 3:], axis=-1)
-    rest = []
-    for i in range(n):
-        moving = (speed[:, i] > REST_LINEAR) | (spin[:, i] > REST_ANGULAR) | ~np.isfinite(speed[:, i])
-        idx = np.flatnonzero(moving)
-        if not valid or (len(idx) and idx[-1] == frames):
-            rest.append(None)
-        else:
-            rest.append(0.0 if len(idx) == 0 else float(t[idx[-1] + 1]))
+    moving = (speed > REST_LINEAR) | (spin > REST_ANGULAR) | ~np.isfinite(speed)
+    last_moving = np.where(moving.any(axis=1), frames - np.argmax(moving[:, ::-1], axis=1), -1)  # (B, N)
 
-    return Rollout(
-        names=names,
-        t=t,
-        position=position,
-        orientation=orientation,
-        linear_velocity=v[..., :3],
-        angular_velocity=angular,
-        touching=touching,
-        in_view=in_view,
-        rest_time=tuple(rest),
-        valid=valid,
-        reason=reason,
-        contacts=tuple(contacts),
-    )
+    out = []
+    for k, scene in enumerate(scenes):
+        names = scene.names
+        sel_s, sel_e = starts[0] == k, ends[0] == k
+        contacts = tuple(
+            Contact(names[i], "floor" if j == n else names[j], float(t[a]), float(t[b - 1]))
+            for a, i, j, b in sorted(
+                zip(starts[1][sel_s], starts[2][sel_s], starts[3][sel_s], ends[1][sel_e], strict=True),
+                key=lambda c: (c[1], c[2], c[0]),
+            )
+            if i != j
+        )
+        cam = camlib.matrices(scene.camera)
+        radii = np.array([bounding_radius(o) for o in scene.objects])
+        with np.errstate(invalid="ignore"):
+            in_view = camlib.sphere_in_view(cam, position[k], radii)
+        valid, reason = _check(scene, position[k], v[k], int(raw.warnings[k]), t)
+        rest = tuple(
+            None if not valid or last == frames else (0.0 if last < 0 else float(t[last + 1]))
+            for last in last_moving[k]
+        )
+        out.append(
+            Rollout(
+                names=names,
+                t=t,
+                position=position[k],
+                orientation=orientation[k],
+                linear_velocity=v[k, ..., :3],
+                angular_velocity=angular[k],
+                touching=touching[k],
+                in_view=in_view,
+                rest_time=rest,
+                valid=valid,
+                reason=reason,
+                contacts=contacts,
+            )
+        )
+    return out
 
 
 def _check(scene: Scene, position: np.ndarray, v: np.ndarray, nwarning: int, t: np.ndarray) -> tuple[bool, str | None]:
@@ -596,13 +588,6 @@ def _check(scene: Scene, position: np.ndarray, v: np.ndarray, nwarning: int, t: 
             f"diverged: MuJoCo raised {nwarning} instability warning(s) (bad acceleration or contact overflow)",
         )
     return True, None
-
-
-def _intervals(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Runs of True in a boolean vector as (first, last) index pairs."""
-    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
-    d = np.diff(padded)
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1, strict=True))
 
 
 def _quat_to_mat(q: np.ndarray) -> np.ndarray:

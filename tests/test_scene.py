@@ -1,0 +1,271 @@
+"""The scene language: parsing, validation errors, model-output extraction, canonical round trip."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from aynamics import cli
+from aynamics import scene as S
+
+ASSETS = Path(__file__).parent / "assets"
+EXAMPLE = (ASSETS / "paper_example.yaml").read_text()
+
+
+def test_paper_example_parses_with_documented_meaning():
+    s = S.parse(EXAMPLE)
+    assert s.names == ("box_0", "cylinder_0")
+    box, cyl = s.objects
+    assert isinstance(box, S.Box) and box.size == (1.0, 0.5, 0.4)
+    assert box.state.orientation == (0.97, 0.0, 0.0, 0.23)
+    assert box.physics.friction == (1.1, 0.3) and box.physics.damping == -4.0
+    assert isinstance(cyl, S.Cylinder) and (cyl.radius, cyl.height) == (0.3, 0.5)
+    assert s.camera.fovy == 45.0 and s.camera.orientation == 45.0 and s.camera.position == (0.0, -2.0, 3.5)
+    assert s.gravity == (0.0, 0.0, -7.0)
+    assert s.environment is None
+
+
+def test_paper_example_round_trips_and_canonical_text_is_stable():
+    s = S.parse(EXAMPLE)
+    text = S.dump(s)
+    assert S.parse(text) == s
+    assert S.dump(S.parse(text)) == text
+    # the canonical form keeps the paper's key order; only number formatting differs
+    assert text.splitlines()[:4] == ["- type: box", "  name: box_0", "  size: [1.0, 0.5, 0.4]", "  state:"]
+    assert "    damping: -4.0" in text and "  gravity: [0.0, 0.0, -7.0]" in text
+
+
+def test_defaults_names_and_gravity_filled_in():
+    s = S.parse(
+        """
+- type: sphere
+  radius: 0.2
+  state: {position: [0, 0, 0.2]}
+- type: sphere
+  radius: 0.2
+  state: {position: [1, 0, 0.2]}
+- type: sphere
+  name: sphere_0
+  radius: 0.2
+  state: {position: [2, 0, 0.2]}
+- type: camera
+  position: [0, -3, 3]
+"""
+    )
+    # unnamed objects get {type}_{k}, skipping names already taken
+    assert s.names == ("sphere_1", "sphere_2", "sphere_0")
+    assert s.gravity == (0.0, 0.0, -9.81)
+    assert s.objects[0].physics == S.Physics()
+
+
+def test_extension_item_round_trips_and_is_absent_by_default():
+    text = EXAMPLE + "- type: environment\n  floor_offset: 0.01\n  wind: [1, 0, 0]\n"
+    s = S.parse(text)
+    assert s.environment.floor_offset == 0.01 and s.environment.wind == (1.0, 0.0, 0.0)
+    assert S.parse(S.dump(s)) == s
+    assert "environment" not in S.dump(S.parse(EXAMPLE))
+
+
+# --------------------------------------------------------------------------------------------
+# Model output
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "wrap",
+    [
+        lambda y: f"<answer>{y}</answer>",
+        lambda y: (
+            f"<think>box_0 moves right and stops at t=0.4s.\n- type: box is tricky</think>\n\n<answer>\n{y}</answer>"
+        ),
+        lambda y: f"Here is the scene:\n```yaml\n{y}```\nHope this helps!",
+        lambda y: f"Sure! The scene is:\n{y}\nThat is all.",
+        lambda y: f"<think>reasoning</think><answer>{y}",  # unclosed answer runs to the end
+    ],
+)
+def test_model_output_wrappers(wrap):
+    assert S.parse(wrap(EXAMPLE)) == S.parse(EXAMPLE)
+
+
+# --------------------------------------------------------------------------------------------
+# Malformed and absurd input: one SceneError naming the path, through the API and the CLI
+# --------------------------------------------------------------------------------------------
+OK_BOX = "- type: box\n  name: b\n  size: [0.2, 0.2, 0.2]\n  state: {position: [0, 0, 0.2]}\n"
+CAMERA = "- type: camera\n  position: [0, -3, 3]\n"
+
+
+def _box(**fields) -> str:
+    state = fields.pop("state", "{position: [0, 0, 0.2]}")
+    physics = fields.pop("physics", "{mass: 1.0}")
+    size = fields.pop("size", "[0.2, 0.2, 0.2]")
+    return f"- type: box\n  name: b\n  size: {size}\n  state: {state}\n  physics: {physics}\n" + CAMERA
+
+
+BILLION_LAUGHS = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n"
+    for i in range(20)
+)
+
+MALFORMED = [
+    ("string size", _box(size="big"), "objects[0].size"),
+    ("size not a list of 3", _box(size="[0.2, 0.2]"), "objects[0].size"),
+    ("missing state", "- type: box\n  size: [0.2, 0.2, 0.2]\n" + CAMERA, "objects[0].state"),
+    ("missing position", _box(state="{linear_velocity: [0, 0, 0]}"), "objects[0].state.position"),
+    ("NaN", _box(state="{position: [0, .nan, 0.2]}"), "objects[0].state.position[1]"),
+    ("inf", _box(physics="{mass: .inf}"), "objects[0].physics.mass"),
+    ("negative mass", _box(physics="{mass: -2}"), "objects[0].physics.mass"),
+    ("zero mass", _box(physics="{mass: 0}"), "objects[0].physics.mass"),
+    ("zero size", _box(size="[0.2, 0, 0.2]"), "objects[0].size[1]"),
+    ("negative radius", "- type: sphere\n  radius: -1\n  state: {position: [0, 0, 1]}\n" + CAMERA, "objects[0].radius"),
+    ("unknown type", "- type: pyramid\n  size: 1\n" + OK_BOX + CAMERA, "items[0].type"),
+    ("unknown field", _box(physics="{mass: 1, bounciness: 3}"), "objects[0].physics.bounciness"),
+    ("duplicate names", OK_BOX + OK_BOX + CAMERA, "objects[1].name"),
+    ("two cameras", OK_BOX + CAMERA + CAMERA, "camera"),
+    ("no camera", OK_BOX, "camera"),
+    ("no objects", CAMERA, "objects"),
+    ("huge velocity", _box(state="{position: [0, 0, 0.2], linear_velocity: [1e6, 0, 0]}"), "linear_velocity[0]"),
+    ("zero quaternion", _box(state="{position: [0, 0, 0.2], orientation: [0, 0, 0, 0]}"), "state.orientation"),
+    ("bool as number", _box(physics="{mass: yes}"), "objects[0].physics.mass"),
+    ("quoted number", _box(physics="{mass: '1.0'}"), "objects[0].physics.mass"),
+    ("friction with one value", _box(physics="{friction: [0.5]}"), "objects[0].physics.friction"),
+    ("bad name", OK_BOX.replace("name: b", "name: 'two words'") + CAMERA, "objects[0].name"),
+    ("fovy out of range", OK_BOX + "- type: camera\n  fovy: 500\n  position: [0, -3, 3]\n", "camera.fovy"),
+    ("absurd gravity", OK_BOX + CAMERA + "- type: gravity\n  gravity: [0, 0, -1000]\n", "gravity.gravity[2]"),
+    ("item not a mapping", "- just a string\n" + OK_BOX + CAMERA, "items[0]"),
+    ("top level mapping", "type: box\nsize: [1, 1, 1]\n", "scene"),
+    ("python tag", "- !!python/object/apply:os.system ['echo pwned']\n", "yaml"),
+    ("alias bomb", BILLION_LAUGHS, "yaml"),
+    ("empty text", "", "text"),
+    ("whitespace only", "   \n\n", "text"),
+    ("binary garbage", b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff\xfe", "text"),
+    ("yaml syntax error", "- type: box\n  size: [1, 2\n", "yaml"),
+    ("too many objects", "".join(OK_BOX.replace("name: b", f"name: b{i}") for i in range(40)) + CAMERA, "objects"),
+]
+
+
+@pytest.mark.parametrize("text, path", [m[1:] for m in MALFORMED], ids=[m[0] for m in MALFORMED])
+def test_malformed_input_names_the_path(text, path):
+    with pytest.raises(S.SceneError) as err:
+        S.parse(text)
+    assert any(p.path.endswith(path) or p.path == path for p in err.value.problems), str(err.value)
+
+
+@pytest.mark.parametrize("text, path", [m[1:] for m in MALFORMED], ids=[m[0] for m in MALFORMED])
+def test_malformed_input_through_the_cli_exits_2_without_traceback(text, path, tmp_path, capsys):
+    f = tmp_path / "scene.yaml"
+    f.write_bytes(text if isinstance(text, bytes) else text.encode())
+    assert cli.main(["simulate", str(f), "--json"]) == 2
+    err = capsys.readouterr().err
+    assert path in err and "Traceback" not in err
+    assert err.count("\n") == 1  # one paragraph
+
+
+def test_all_problems_reported_at_once():
+    text = _box(size="[-1, 0.2, 0.2]", physics="{mass: -2, damping: 99}", state="{position: [0, 0, 50]}")
+    with pytest.raises(S.SceneError) as err:
+        S.parse(text)
+    paths = {p.path for p in err.value.problems}
+    assert paths == {
+        "objects[0].size[0]",
+        "objects[0].physics.mass",
+        "objects[0].physics.damping",
+        "objects[0].state.position[2]",
+    }
+    assert "objects[0].physics.mass = -2: must be > 0" in str(err.value)
+
+
+def test_alias_bomb_is_refused_quickly():
+    t = time.perf_counter()
+    with pytest.raises(S.SceneError, match="aliases are not allowed"):
+        S.parse(BILLION_LAUGHS)
+    assert time.perf_counter() - t < 1.0
+
+
+def test_missing_file_is_a_scene_error(tmp_path):
+    with pytest.raises(S.SceneError, match="No such file"):
+        S.load(str(tmp_path / "nope.yaml"))
+
+
+def test_cli_subprocess_reports_invalid_scene_cleanly(tmp_path):
+    f = tmp_path / "bad.yaml"
+    f.write_text(_box(physics="{mass: -2}"))
+    p = subprocess.run(
+        [sys.executable, "-m", "aynamics.cli", "simulate", str(f), "--json"], capture_output=True, text=True
+    )
+    assert p.returncode == 2
+    assert "objects[0].physics.mass = -2: must be > 0" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_cli_usage_error_exits_2(capsys):
+    assert cli.main(["simulate"]) == 2
+    assert cli.main(["no-such-command"]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# Property-based round trip
+# --------------------------------------------------------------------------------------------
+def _in(key: str, i: int = 0):
+    lo, hi = S.RANGES[key].bounds(3)
+    return st.floats(lo[i], hi[i], allow_nan=False)
+
+
+def _vec(key: str, n: int):
+    return st.tuples(*[_in(key, i) for i in range(n)]).map(list)
+
+
+_state = st.fixed_dictionaries(
+    {
+        "position": _vec("state.position", 3),
+        "orientation": st.tuples(*[st.floats(-1, 1)] * 4)
+        .filter(lambda q: sum(x * x for x in q) > 0.05)
+        .map(lambda q: [x / sum(y * y for y in q) ** 0.5 for x in q]),
+        "linear_velocity": _vec("state.linear_velocity", 3),
+        "angular_velocity": _vec("state.angular_velocity", 3),
+    }
+)
+_physics = st.fixed_dictionaries(
+    {"friction": _vec("physics.friction", 2), "mass": _in("physics.mass"), "damping": _in("physics.damping")},
+    optional={"restitution": _in("physics.restitution")},
+)
+_object = st.one_of(
+    st.fixed_dictionaries({"type": st.just("box"), "size": _vec("box.size", 3), "state": _state, "physics": _physics}),
+    st.fixed_dictionaries(
+        {"type": st.just("sphere"), "radius": _in("sphere.radius"), "state": _state, "physics": _physics}
+    ),
+    st.fixed_dictionaries(
+        {
+            "type": st.just("cylinder"),
+            "radius": _in("cylinder.radius"),
+            "height": _in("cylinder.height"),
+            "state": _state,
+            "physics": _physics,
+        }
+    ),
+)
+_camera = st.fixed_dictionaries(
+    {
+        "type": st.just("camera"),
+        "fovy": _in("camera.fovy"),
+        "orientation": _in("camera.orientation"),
+        "position": _vec("camera.position", 3),
+    }
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(objects=st.lists(_object, min_size=1, max_size=5), camera=_camera, gravity=_vec("gravity.gravity", 3))
+def test_round_trip_random_scenes(objects, camera, gravity):
+    s = S.from_items([*objects, camera, {"type": "gravity", "gravity": gravity}])
+    text = S.dump(s)
+    assert S.parse(text) == s
+    assert S.dump(S.parse(text)) == text
+
+
+def test_readme_holds_the_range_table():
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    assert S.ranges_markdown() in readme, "README's scene-format table is stale: paste `aynamics ranges --markdown`"

@@ -1,0 +1,418 @@
+"""MuJoCo simulation against closed-form physics, per-field monotonicity, determinism, divergence, CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from aynamics import cli
+from aynamics import scene as S
+from aynamics import simulate as sim
+
+ASSETS = Path(__file__).parent / "assets"
+DT = 1 / 240
+
+
+def scene(objects, gravity=(0.0, 0.0, -9.81), environment=None, camera=None):
+    items = [*objects, camera or {"type": "camera", "position": [0, -6, 4], "orientation": 60, "fovy": 60}]
+    items.append({"type": "gravity", "gravity": list(gravity)})
+    if environment:
+        items.append({"type": "environment", **environment})
+    return S.from_items(items)
+
+
+def box(x=0.0, y=0.0, v=(3.0, 0.0, 0.0), mu=0.5, crr=0.0, size=(0.3, 0.3, 0.1), mass=1.0, damping=-8.0, name=None):
+    d = {
+        "type": "box",
+        "size": list(size),
+        "state": {"position": [x, y, size[2]], "linear_velocity": list(v)},
+        "physics": {"friction": [mu, crr], "mass": mass, "damping": damping},
+    }
+    return d | ({"name": name} if name else {})
+
+
+def sphere(
+    x=0.0,
+    y=0.0,
+    z=None,
+    v=(0.0, 0.0, 0.0),
+    w=(0.0, 0.0, 0.0),
+    r=0.2,
+    mu=0.5,
+    crr=0.0,
+    mass=1.0,
+    damping=-8.0,
+    name=None,
+    **kw,
+):
+    d = {
+        "type": "sphere",
+        "radius": r,
+        "state": {"position": [x, y, r if z is None else z], "linear_velocity": list(v), "angular_velocity": list(w)},
+        "physics": {"friction": [mu, crr], "mass": mass, "damping": damping, **kw},
+    }
+    return d | ({"name": name} if name else {})
+
+
+def run(s, duration=1.0, fps=30, substeps=8):
+    r = sim.simulate(s, sim.SimConfig(duration=duration, fps=fps, substeps=substeps))
+    assert r.valid, r.reason
+    return r
+
+
+# --------------------------------------------------------------------------------------------
+# Closed-form physics
+# --------------------------------------------------------------------------------------------
+def test_projectile_under_custom_gravity():
+    """x(t) = x0 + v t and z(t) = z0 + vz t + g t²/2. MuJoCo's semi-implicit Euler adds exactly g·dt·t/2 to z:
+    v_k = v0 + g k dt, z_k = z0 + dt Σ v_j = z0 + vz t + g t²/2 + g dt t/2 (t = k dt)."""
+    g = -3.7  # Mars
+    s = scene([sphere(x=-1, z=5.0, v=(1.5, 0.5, 2.0), r=0.1)], gravity=(0, 0, g))
+    r = run(s)
+    t = r.t
+    np.testing.assert_allclose(r.position[:, 0, 0], -1 + 1.5 * t, atol=1e-7)
+    np.testing.assert_allclose(r.position[:, 0, 1], 0.5 * t, atol=1e-7)
+    np.testing.assert_allclose(r.position[:, 0, 2], 5 + 2 * t + 0.5 * g * t**2 + 0.5 * g * DT * t, atol=1e-6)
+    assert abs(r.position[-1, 0, 2] - (5 + 2 + 0.5 * g)) < 0.01  # the continuous law within 1 cm after 1 s
+    np.testing.assert_allclose(r.linear_velocity[:, 0, 2], 2 + g * t, atol=1e-7)
+
+
+@pytest.mark.parametrize("mu", [0.2, 0.5, 1.0])
+def test_sliding_box_stops_after_v2_over_2_mu_g(mu):
+    """A flat box sliding at v = 3 m/s with friction μ stops after d = v² / (2 μ g), at t = v / (μ g)."""
+    s = scene([box(v=(3.0, 0.0, 0.0), mu=mu)])
+    r = run(s, duration=2.5)
+    d = r.position[-1, 0, 0] - r.position[0, 0, 0]
+    expected = 9 / (2 * mu * 9.81)
+    assert abs(d / expected - 1) < 0.03
+    assert abs(r.rest_time[0] - 3 / (mu * 9.81)) < 0.1
+
+
+def test_floor_does_not_override_object_friction():
+    """Slippery and grippy objects both follow their own μ (the floor has priority 0 and friction 0):
+    d(t) = v t - μ g t² / 2 until t_stop = v / (μ g)."""
+    for mu in (0.05, 1.5):
+        r = run(scene([box(v=(2.0, 0.0, 0.0), mu=mu)]), duration=3.0)
+        d = r.position[-1, 0, 0] - r.position[0, 0, 0]
+        t = min(3.0, 2.0 / (mu * 9.81))
+        assert abs(d / (2.0 * t - 0.5 * mu * 9.81 * t * t) - 1) < 0.03
+
+
+def test_sphere_rolls_without_slipping():
+    """v = ω r is kept (no rolling resistance): speed constant, contact point at rest."""
+    r_ = 0.25
+    r = run(scene([sphere(v=(2.0, 0, 0), w=(0, 2.0 / r_, 0), r=r_)]))
+    np.testing.assert_allclose(r.linear_velocity[:, 0, 0], 2.0, rtol=2e-3)
+    np.testing.assert_allclose(r.angular_velocity[:, 0, 1] * r_, r.linear_velocity[:, 0, 0], rtol=2e-3)
+    assert abs(r.position[-1, 0, 0] - 2.0) < 0.01
+
+
+def test_sliding_sphere_ends_rolling_at_five_sevenths():
+    """A sphere launched sliding without spin ends up rolling at 5/7 of its speed, whatever μ (angular momentum
+    about the contact point is conserved: m v0 r = m v r + 2/5 m r² v / r)."""
+    r = run(scene([sphere(v=(2.0, 0, 0), r=0.2, mu=0.4)]), duration=1.5)
+    assert abs(r.linear_velocity[-1, 0, 0] - 2.0 * 5 / 7) < 0.005
+    assert abs(r.angular_velocity[-1, 0, 1] * 0.2 - 2.0 * 5 / 7) < 0.005
+
+
+def test_rolling_resistance_decelerates_at_c_rr_g_over_1_4():
+    """Rolling-resistance torque c_rr·r·N on a rolling sphere: a = c_rr g / (1 + 2/5) (elliptic cones)."""
+    c_rr = 0.05
+    r = run(scene([sphere(v=(2.0, 0, 0), w=(0, 10.0, 0), r=0.2, crr=c_rr)]), duration=0.5)
+    decel = (r.linear_velocity[0, 0, 0] - r.linear_velocity[-1, 0, 0]) / 0.5
+    assert abs(decel / (c_rr * 9.81 / 1.4) - 1) < 0.05
+
+
+def test_world_frame_spin_is_honoured():
+    """A free, tilted box spinning about world z at 3 rad/s (z is a principal axis here only in the world frame
+    if the box is turned about z): the output spin stays (0, 0, 3) in world axes, and the orientation advances by
+    exp(ω t / 2) ⊗ q0 (left-multiplied: a world-frame rotation)."""
+    q0 = np.array([math.cos(0.3), 0, 0, math.sin(0.3)])  # turned 0.6 rad about z: z stays a principal axis
+    s = scene(
+        [
+            {
+                "type": "box",
+                "size": [0.3, 0.2, 0.1],
+                "state": {"position": [0, 0, 2], "orientation": q0.tolist(), "angular_velocity": [0, 0, 3.0]},
+                "physics": {"damping": -8},
+            }
+        ],
+        gravity=(0, 0, 0),
+    )
+    r = run(s)
+    np.testing.assert_allclose(r.angular_velocity[:, 0], np.tile([0, 0, 3.0], (len(r.t), 1)), atol=1e-6)
+    half = 3.0 * r.t[-1] / 2
+    expected = np.zeros(4)
+    mujoco.mju_mulQuat(expected, np.array([math.cos(half), 0, 0, math.sin(half)]), q0 / np.linalg.norm(q0))
+    assert min(np.abs(r.orientation[-1, 0] - expected).max(), np.abs(r.orientation[-1, 0] + expected).max()) < 1e-3
+
+
+def test_world_spin_about_x_of_a_rotated_sphere():
+    """The spin is given in world axes even when the body is rotated: a sphere turned 90° about z spinning about
+    world x reports world x spin (body frame would read y)."""
+    q = [math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)]
+    s = scene([sphere(z=3, w=(4.0, 0, 0)) | {}], gravity=(0, 0, 0))
+    items = S.to_items(s)
+    items[0]["state"]["orientation"] = q
+    r = run(S.from_items(items))
+    np.testing.assert_allclose(r.angular_velocity[-1, 0], [4.0, 0, 0], atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# Every field moves the rollout monotonically
+# --------------------------------------------------------------------------------------------
+def _monotone(values, strictly_increasing=True):
+    d = np.diff(values)
+    return bool(np.all(d > 0)) if strictly_increasing else bool(np.all(d < 0))
+
+
+def test_mass_pushes_the_struck_object_further():
+    """Momentum transfer: a heavier striker sends a resting target further."""
+    out = []
+    for m in (0.5, 1.0, 2.0, 4.0):
+        s = scene([sphere(x=-1.0, v=(3, 0, 0), mass=m, mu=0.3, name="s"), sphere(x=0.0, mass=1.0, mu=0.3)])
+        out.append(run(s).position[-1, 1, 0])
+    assert _monotone(out)
+
+
+def test_sliding_friction_shortens_the_slide():
+    assert _monotone([run(scene([box(mu=mu)])).position[-1, 0, 0] for mu in (0.2, 0.4, 0.8, 1.6)], False)
+
+
+def test_rolling_friction_shortens_the_roll():
+    rolls = [run(scene([sphere(v=(2, 0, 0), w=(0, 10, 0), crr=c)])).position[-1, 0, 0] for c in (0.0, 0.02, 0.1, 0.3)]
+    assert _monotone(rolls, False)
+
+
+def test_damping_slows_free_flight_as_exp_minus_k_t():
+    """Zero gravity: v(t) = v0 exp(-k t) with k = 10^damping, for any mass."""
+    for damping, mass in ((-1.0, 0.3), (0.0, 5.0)):
+        s = scene([sphere(z=3, v=(2, 0, 0), w=(0, 0, 5), damping=damping, mass=mass)], gravity=(0, 0, 0))
+        r = run(s)
+        k = 10.0**damping
+        assert abs(r.linear_velocity[-1, 0, 0] / (2 * math.exp(-k)) - 1) < 0.01
+        assert abs(r.angular_velocity[-1, 0, 2] / (5 * math.exp(-k)) - 1) < 0.01
+    dist = [
+        run(scene([sphere(z=3, v=(2, 0, 0), damping=d)], gravity=(0, 0, 0))).position[-1, 0, 0] for d in (-3, -1, 0, 1)
+    ]
+    assert _monotone(dist, False)
+
+
+def test_gravity_magnitude_speeds_the_fall():
+    z = [run(scene([sphere(z=4.0)], gravity=(0, 0, -g))).position[-1, 0, 2] for g in (1.0, 3.0, 6.0)]
+    assert _monotone(z, False)
+    x = [run(scene([sphere(z=4.0)], gravity=(gx, 0, -1))).position[-1, 0, 0] for gx in (-1.0, 0.0, 1.0)]
+    assert _monotone(x)
+
+
+def test_restitution_raises_the_bounce():
+    peaks = []
+    for e in (0.2, 0.5, 0.8):
+        r = run(scene([sphere(z=1.0, restitution=e)]), duration=1.2, fps=240, substeps=1)
+        peaks.append(r.linear_velocity[:, 0, 2].max())
+    assert _monotone(peaks)
+    assert abs(peaks[-1] / math.sqrt(2 * 9.81 * 0.8) - 0.8) < 0.1  # rebound speed ≈ e × impact speed
+
+
+def test_sizes_raise_the_resting_height():
+    zs = [run(scene([sphere(z=1.0, r=r_)])).position[-1, 0, 2] for r_ in (0.1, 0.2, 0.4)]
+    assert _monotone(zs)
+    hs = [
+        run(scene([{"type": "cylinder", "radius": 0.2, "height": h, "state": {"position": [0, 0, 1.5]}}])).position[
+            -1, 0, 2
+        ]
+        for h in (0.2, 0.5, 1.0)
+    ]
+    assert _monotone(hs)
+    np.testing.assert_allclose(hs, [0.1, 0.25, 0.5], atol=5e-3)  # `height` is the full height
+    bs = [run(scene([box(v=(0, 0, 0), size=(0.3, 0.3, c))])).position[-1, 0, 2] for c in (0.1, 0.2, 0.3)]
+    np.testing.assert_allclose(bs, [0.1, 0.2, 0.3], atol=5e-3)  # `size` is half-extents
+
+
+def test_initial_state_fields_move_the_rollout():
+    base = run(scene([box(v=(1, 0, 0))])).position[-1, 0]
+    assert run(scene([box(x=0.5, v=(1, 0, 0))])).position[-1, 0, 0] > base[0]
+    assert run(scene([box(v=(2, 0, 0))])).position[-1, 0, 0] > base[0]
+    assert run(scene([box(v=(1, 1, 0))])).position[-1, 0, 1] > base[1]
+
+
+def test_camera_fields_change_what_is_in_view():
+    """fovy widens and orientation (tilt from straight down) sweeps the view: counted objects in view move
+    monotonically."""
+    row = [sphere(x=0.0, y=float(y), name=f"s{k}") for k, y in enumerate(range(-2, 12, 2))]
+
+    def seen(cam):
+        return int(run(scene(row, camera={"type": "camera", **cam})).in_view[0].sum())
+
+    fov = [seen({"position": [0, -4, 3], "orientation": 60, "fovy": f}) for f in (15, 30, 60, 100)]
+    assert all(np.diff(fov) >= 0) and fov[-1] > fov[0]
+    tilt = [seen({"position": [0, 0, 2], "orientation": o, "fovy": 30}) for o in (0, 30, 60, 85)]
+    assert tilt[0] < max(tilt)
+
+
+@pytest.mark.parametrize(
+    "env, measure, increasing",
+    [
+        ({"air_density": 1.2}, "range", False),
+        ({"air_viscosity": 1.0}, "range", False),
+        ({"air_density": 1.2, "wind": [5, 0, 0]}, "range", True),
+        ({"floor_offset": 0.2}, "rest_z", True),
+        ({"floor_tilt": [0, 10]}, "slide_x", True),  # normal tilts to +x: the floor falls toward +x
+    ],
+)
+def test_environment_extension_fields(env, measure, increasing):
+    if measure == "range":
+        make = lambda e: scene([sphere(z=3, v=(4, 0, 0), r=0.3, mass=0.2)], environment=e)  # noqa: E731
+        base, changed = (run(make(e)).position[-1, 0, 0] for e in ({}, env))
+    elif measure == "rest_z":
+        make = lambda e: scene([sphere(z=1.0)], environment=e)  # noqa: E731
+        base, changed = (run(make(e)).position[-1, 0, 2] for e in ({}, env))
+    else:
+        make = lambda e: scene([box(v=(0, 0, 0), mu=0.1, size=(0.2, 0.2, 0.2))], environment=e)  # noqa: E731
+        base, changed = (run(make(e)).position[-1, 0, 0] for e in ({}, env))
+    assert (changed > base + 1e-3) if increasing else (changed < base - 1e-3)
+
+
+# --------------------------------------------------------------------------------------------
+# Contacts, rest, view
+# --------------------------------------------------------------------------------------------
+def test_contacts_ground_and_collision_times():
+    """A sphere dropped from z0 touches the floor at sqrt(2 (z0 - r) / g); two spheres 1 m apart (gap 0.6 m)
+    closing at 3 m/s meet at t = 0.2 s."""
+    drop = run(scene([sphere(z=1.2, r=0.2)]))
+    t_hit = math.sqrt(2 * 1.0 / 9.81)
+    first = [c for c in drop.contacts if c.b == "floor"][0]
+    assert abs(first.start - t_hit) <= 1 / 30 + 1e-9
+    two = run(
+        scene(
+            [sphere(x=-0.5, z=1, v=(1.5, 0, 0), mu=0.0), sphere(x=0.5, z=1, v=(-1.5, 0, 0), mu=0.0)], gravity=(0, 0, 0)
+        )
+    )
+    hits = [c for c in two.contacts if c.b == "sphere_1"]
+    assert hits and abs(hits[0].start - 0.6 / 3.0) <= 1 / 30 + 1e-9
+    assert two.touching[:, 0, 1].any() and not two.touching[:, 0, 2].any()  # no floor contact in zero gravity
+
+
+def test_in_view_flags_objects_behind_the_camera():
+    r = run(scene([sphere(x=0, y=3), sphere(x=0, y=-9)]))  # the camera is at y = -6 looking along +y
+    assert r.in_view[:, 0].all() and not r.in_view[:, 1].any()
+
+
+def test_summary_and_npz(tmp_path):
+    s = S.load(str(ASSETS / "paper_example.yaml"))
+    r = run(s)
+    assert r.position.shape == (31, 2, 3) and r.orientation.shape == (31, 2, 4) and r.t.shape == (31,)
+    summary = r.summary()
+    assert set(summary["objects"]) == {"box_0", "cylinder_0"} and summary["valid"]
+    path = tmp_path / "traj.npz"
+    r.to_npz(str(path))
+    z = np.load(path)
+    assert list(z["names"]) == ["box_0", "cylinder_0"]
+    np.testing.assert_array_equal(z["position"], r.position)
+    np.testing.assert_array_equal(z["position"][0], [[-5.0, -0.3, 0.4], [-0.5, 0.8, 0.3]])  # frame 0 = initial state
+
+
+def test_cli_simulate_json_and_npz(tmp_path, capsys):
+    out = tmp_path / "traj.npz"
+    assert cli.main(["simulate", str(ASSETS / "paper_example.yaml"), "--out", str(out), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["valid"] is True and set(data["objects"]["box_0"]) == {"final_position", "rest_time", "contacts"}
+    assert np.load(out)["t"].shape == (31,)
+
+
+# --------------------------------------------------------------------------------------------
+# Determinism and batching
+# --------------------------------------------------------------------------------------------
+def _mixed_scenes():
+    return [
+        S.load(str(ASSETS / "paper_example.yaml")),
+        scene([box(v=(2, 1, 0)), sphere(x=1.0, v=(-1, 0, 0))]),
+        scene([box(v=(1, 0, 0), mu=0.9)]),
+        scene([box(x=-1, v=(2, 0.5, 0), mu=0.3), sphere(x=1.0, v=(-1, 0, 0), crr=0.1)]),
+    ]
+
+
+def _same(a: sim.Rollout, b: sim.Rollout) -> bool:
+    return all(
+        np.array_equal(getattr(a, f), getattr(b, f))
+        for f in ("position", "orientation", "linear_velocity", "angular_velocity", "touching", "in_view")
+    ) and (a.rest_time, a.contacts, a.valid) == (b.rest_time, b.contacts, b.valid)
+
+
+def test_rollouts_are_bit_identical_and_batched_equals_one_by_one():
+    scenes = _mixed_scenes()
+    singles = [sim.simulate(s) for s in scenes]
+    assert all(_same(a, b) for a, b in zip(singles, [sim.simulate(s) for s in scenes], strict=True))
+    for nthread in (1, 2):
+        batched = sim.simulate_batch(scenes, nthread=nthread)
+        assert all(_same(a, b) for a, b in zip(singles, batched, strict=True))
+
+
+def test_template_parameters_match_a_model_compiled_from_the_numbers():
+    """Writing a scene's numbers into the shared template gives the same physics as compiling an MJCF that holds
+    them (MuJoCo computes the inertia itself there)."""
+    s = S.load(str(ASSETS / "paper_example.yaml"))
+    model, tpl = sim.compile_scene(s)
+    box_, cyl = s.objects
+    spec = mujoco.MjSpec()
+    spec.option.timestep = DT
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.gravity = list(s.gravity)
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=[0, 0, 0])
+    for o, gtype, size in (
+        (box_, mujoco.mjtGeom.mjGEOM_BOX, list(box_.size)),
+        (cyl, mujoco.mjtGeom.mjGEOM_CYLINDER, [cyl.radius, cyl.height / 2, 0]),
+    ):
+        b = spec.worldbody.add_body()
+        b.add_freejoint()
+        rr = min(o.size) if o.type == "box" else o.radius
+        b.add_geom(
+            type=gtype,
+            size=size,
+            mass=o.physics.mass,
+            priority=1,
+            condim=6,
+            friction=[o.physics.friction[0], 0, o.physics.friction[1] * rr],
+        )
+    ref = spec.compile()
+    for b in (1, 2):
+        np.testing.assert_allclose(model.body_inertia[b], ref.body_inertia[b], rtol=1e-9)
+        np.testing.assert_allclose(model.body_mass[b], ref.body_mass[b])
+    for g in (1, 2):
+        np.testing.assert_allclose(model.geom_rbound[g], ref.geom_rbound[g], rtol=1e-9)
+        np.testing.assert_allclose(model.geom_size[g], ref.geom_size[g])
+
+
+# --------------------------------------------------------------------------------------------
+# Divergence
+# --------------------------------------------------------------------------------------------
+def test_divergence_is_an_invalid_rollout_with_a_reason():
+    """Absurd timing (one physics step per 1/2 s) with stiff bouncy contact blows up; it is reported, not raised."""
+    s = scene([sphere(z=0.3, v=(0, 0, -20), r=0.05, restitution=0.95, mass=0.01)] + [sphere(x=0.09, z=0.05, r=0.05)])
+    r = sim.simulate(s, sim.SimConfig(duration=10, fps=2, substeps=1))
+    assert not r.valid and r.reason and any(w in r.reason for w in ("blew up", "diverged", "tunnelled"))
+    assert all(t is None for t in r.rest_time)
+
+
+def test_check_names_the_object_and_time():
+    s = scene([sphere(name="a"), sphere(x=1.0)])
+    t = np.arange(3) / 30
+    pos = np.zeros((3, 2, 3))
+    vel = np.zeros((3, 2, 6))
+    pos[2, 1, 0] = np.nan
+    ok, reason = sim._check(s, pos, vel, 0, t)
+    assert not ok and "sphere_0" in reason and "t=0.067" in reason
+    pos[2, 1, 0] = 0.0
+    pos[1, 0, 2] = -1.0
+    ok, reason = sim._check(s, pos, vel, 0, t)
+    assert not ok and reason.startswith("tunnelled: a")
+
+
+def test_invalid_timing_is_refused():
+    with pytest.raises(ValueError, match="duration"):
+        sim.SimConfig(duration=-1)
