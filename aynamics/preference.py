@@ -1,0 +1,105 @@
+"""Preference objectives for the PRO stage: pure functions of sequence log-likelihoods and simulator rewards.
+
+Shapes: `seq_logps` and `rewards` are (B, N): B input videos, N sampled candidates each. `seq_logps[b, n]` is the
+length-normalised log-likelihood of candidate n, i.e. the mean per-token log-probability of its response tokens
+given the input (`aynamics.processor.mean_token_logprob`). `rewards[b, n]` is the simulator's score (IoU in
+[0, 1]; 0 for an invalid response).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def _check(seq_logps: torch.Tensor, rewards: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    if seq_logps.ndim != 2 or seq_logps.shape != rewards.shape:
+        raise ValueError(f"seq_logps {tuple(seq_logps.shape)} and rewards {tuple(rewards.shape)}: both must be (B, N)")
+    if mask is None:
+        return torch.ones_like(rewards, dtype=torch.bool)
+    if mask.shape != rewards.shape:
+        raise ValueError(f"mask {tuple(mask.shape)}: must match rewards {tuple(rewards.shape)}")
+    if not mask.any(dim=1).all():
+        raise ValueError("mask: every row needs at least one candidate")
+    return mask.bool()
+
+
+def soft_targets(rewards: torch.Tensor, temperature: float, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """w = softmax(s / τ) over the N candidates of each row (masked candidates get 0).
+
+    τ → 0 gives the one-hot of the best candidate (ties share equally: τ = 0 is that limit exactly);
+    τ → ∞ gives the uniform distribution over the candidates.
+    """
+    if temperature < 0:
+        raise ValueError(f"temperature = {temperature}: must be >= 0")
+    keep = _check(rewards, rewards, mask)
+    s = rewards.detach().to(torch.float64)
+    if temperature == 0:
+        best = s.masked_fill(~keep, float("-inf")).amax(dim=1, keepdim=True)
+        w = ((s == best) & keep).to(torch.float64)
+        return (w / w.sum(dim=1, keepdim=True)).to(rewards.dtype)
+    logits = (s / temperature).masked_fill(~keep, float("-inf"))
+    return torch.softmax(logits, dim=1).to(rewards.dtype)
+
+
+def soft_preference_loss(
+    seq_logps: torch.Tensor, rewards: torch.Tensor, temperature: float, mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Reward-weighted soft-label cross-entropy between the simulator's preference and the model's.
+
+    With ℓ_bn the length-normalised log-likelihood of candidate n for input b and s_bn its simulator score:
+
+        w_bn = exp(s_bn / τ) / Σ_m exp(s_bm / τ)          (targets; no gradient)
+        q_bn = exp(ℓ_bn) / Σ_m exp(ℓ_bm)                  (the model's distribution over its own candidates)
+        L    = -(1/B) Σ_b Σ_n w_bn log q_bn
+
+    dL/dℓ_bn = (q_bn - w_bn) / B: probability moves toward candidates the simulator scores above the model's
+    current preference. L is minimal (= the entropy of w) when q = w.
+
+    Args:
+        seq_logps: (B, N) length-normalised sequence log-likelihoods (with gradient).
+        rewards: (B, N) simulator scores (treated as constants).
+        temperature: τ > 0 (τ = 0: hard best-candidate targets, ties shared).
+        mask: optional (B, N) bool, False for padding candidates.
+
+    Returns:
+        Scalar loss.
+    """
+    keep = _check(seq_logps, rewards, mask)
+    w = soft_targets(rewards, temperature, keep).to(seq_logps.dtype)
+    log_q = torch.log_softmax(seq_logps.masked_fill(~keep, float("-inf")), dim=1)
+    return -(w * log_q.masked_fill(~keep, 0.0)).sum(dim=1).mean()
+
+
+def pro_ranking_loss(seq_logps: torch.Tensor, rewards: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The original hard-ranking PRO loss (Song et al., 2024): a Plackett-Luce likelihood of the reward ranking.
+
+    Order each row's candidates by reward, best first: π(1), ..., π(N). Then
+
+        L = -(1/B) Σ_b Σ_{k=1}^{N-1} log( exp(ℓ_bπ(k)) / Σ_{i≥k} exp(ℓ_bπ(i)) )
+
+    Each candidate is pushed above every candidate ranked below it. Ties keep the sampling order (stable sort).
+    """
+    keep = _check(seq_logps, rewards, mask)
+    order = torch.sort(rewards.detach().masked_fill(~keep, float("-inf")), dim=1, descending=True, stable=True)
+    lp = torch.gather(seq_logps, 1, order.indices)  # (B, N), best first
+    valid = torch.gather(keep, 1, order.indices)
+    lp = lp.masked_fill(~valid, float("-inf"))
+    # log Σ_{i≥k} exp(lp_i): reverse cumulative logsumexp
+    tail = torch.flip(torch.logcumsumexp(torch.flip(lp, [1]), dim=1), [1])
+    terms = (lp - tail).masked_fill(~valid, 0.0)
+    # the last valid candidate of a row contributes log 1 = 0; exclude it explicitly for clarity
+    return -terms.sum(dim=1).mean()
+
+
+def sft_on_best(token_logps: torch.Tensor, token_mask: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:
+    """Optional SFT term: the mean negative log-likelihood per token of each row's best-scored candidate.
+
+    Args:
+        token_logps: (B, N, L) per-token log-probabilities of the responses.
+        token_mask: (B, N, L) bool, True on response tokens.
+        rewards: (B, N) simulator scores.
+    """
+    best = rewards.argmax(dim=1)  # (B,)
+    idx = torch.arange(len(best))
+    lp, m = token_logps[idx, best], token_mask[idx, best].to(token_logps.dtype)
+    return -((lp * m).sum(dim=1) / m.sum(dim=1).clamp(min=1)).mean()

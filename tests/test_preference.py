@@ -1,0 +1,93 @@
+"""Preference losses against hand computation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss, soft_targets
+
+LN = math.log
+# model: q = softmax(ℓ) = [1/4, 2/4, 1/4]
+LOGPS = torch.tensor([[LN(1.0), LN(2.0), LN(1.0)]], dtype=torch.float64)
+
+
+def test_soft_preference_hand_worked():
+    """s = [1, 0, 0], τ = 1/ln 3: w ∝ 3^s = [3, 1, 1] / 5 = [0.6, 0.2, 0.2].
+    L = -(0.6 ln 1/4 + 0.2 ln 1/2 + 0.2 ln 1/4) = 0.8 ln 4 + 0.2 ln 2 = 1.2476649...
+    dL/dℓ = q - w = [0.25 - 0.6, 0.5 - 0.2, 0.25 - 0.2] = [-0.35, 0.3, 0.05]."""
+    logps = LOGPS.clone().requires_grad_()
+    rewards = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
+    loss = soft_preference_loss(logps, rewards, temperature=1 / LN(3))
+    assert loss.item() == pytest.approx(0.8 * LN(4) + 0.2 * LN(2), abs=1e-12)
+    loss.backward()
+    torch.testing.assert_close(logps.grad, torch.tensor([[-0.35, 0.3, 0.05]], dtype=torch.float64))
+
+
+def test_temperature_limits_and_ties():
+    """τ → 0: the best candidate only, L = -ln q_best = ln 4; a tie at the top shares: -(ln 1/4 + ln 1/2)/2;
+    τ → ∞: uniform targets, L = (2 ln 4 + ln 2) / 3."""
+    best = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
+    assert soft_preference_loss(LOGPS, best, 0.0).item() == pytest.approx(LN(4))
+    assert soft_preference_loss(LOGPS, best, 1e-4).item() == pytest.approx(LN(4))
+    tie = torch.tensor([[1.0, 1.0, 0.0]], dtype=torch.float64)
+    assert soft_preference_loss(LOGPS, tie, 0.0).item() == pytest.approx((LN(4) + LN(2)) / 2)
+    torch.testing.assert_close(soft_targets(tie, 0.0), torch.tensor([[0.5, 0.5, 0.0]], dtype=torch.float64))
+    assert soft_preference_loss(LOGPS, best, 1e6).item() == pytest.approx((2 * LN(4) + LN(2)) / 3, abs=1e-6)
+
+
+def test_loss_is_minimal_when_the_model_matches_the_targets():
+    rewards = torch.tensor([[0.9, 0.3, 0.1, 0.0]])
+    w = soft_targets(rewards, 0.2)
+    at_target = soft_preference_loss(torch.log(w), rewards, 0.2)
+    entropy = -(w * torch.log(w)).sum()
+    assert at_target.item() == pytest.approx(entropy.item(), abs=1e-6)
+    assert soft_preference_loss(torch.zeros(1, 4), rewards, 0.2) > at_target
+
+
+def test_batch_mean_and_mask():
+    """Two rows average; a masked candidate neither receives target mass nor model mass."""
+    logps = torch.cat([LOGPS, LOGPS])
+    rewards = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 5.0]], dtype=torch.float64)
+    mask = torch.tensor([[True, True, True], [True, True, False]])
+    # row 2 without its third candidate: q = [1/3, 2/3], best = candidate 1 at τ = 0 -> -ln 2/3
+    got = soft_preference_loss(logps, rewards, 0.0, mask)
+    assert got.item() == pytest.approx((LN(4) + LN(3 / 2)) / 2)
+
+
+def test_pro_ranking_hand_worked():
+    """ℓ = [0, ln 2, 0], rewards [1, 0.5, 0] (already best first):
+    L = -[(0 - ln 4) + (ln 2 - ln 3)] = ln 6."""
+    rewards = torch.tensor([[1.0, 0.5, 0.0]], dtype=torch.float64)
+    assert pro_ranking_loss(LOGPS, rewards).item() == pytest.approx(LN(6))
+    # order comes from the rewards, not the positions: reversing both gives the same loss
+    assert pro_ranking_loss(LOGPS.flip(1), rewards.flip(1)).item() == pytest.approx(LN(6))
+
+
+def test_gradient_descent_moves_probability_to_the_best_candidate():
+    logps = torch.zeros(1, 4, requires_grad=True)
+    rewards = torch.tensor([[0.1, 0.8, 0.4, 0.0]])
+    opt = torch.optim.SGD([logps], lr=1.0)
+    for loss_fn in (lambda: soft_preference_loss(logps, rewards, 0.1), lambda: pro_ranking_loss(logps, rewards)):
+        logps.data.zero_()
+        for _ in range(20):
+            opt.zero_grad()
+            loss_fn().backward()
+            opt.step()
+        assert logps.argmax().item() == 1 and logps[0, 1] > logps[0, 3]
+
+
+def test_sft_on_best_picks_the_top_candidate():
+    """Best candidate (index 1) has token log-probs [-1, -3] on 2 response tokens: NLL = 2."""
+    token_logps = torch.tensor([[[-5.0, -5.0, -5.0], [-1.0, -3.0, -9.0]]])
+    token_mask = torch.tensor([[[True, True, True], [True, True, False]]])
+    assert sft_on_best(token_logps, token_mask, torch.tensor([[0.2, 0.7]])).item() == pytest.approx(2.0)
+
+
+def test_bad_shapes_and_temperature_are_refused():
+    with pytest.raises(ValueError, match=r"must be \(B, N\)"):
+        soft_preference_loss(torch.zeros(3), torch.zeros(3), 1.0)
+    with pytest.raises(ValueError, match="temperature = -1"):
+        soft_preference_loss(torch.zeros(1, 2), torch.zeros(1, 2), -1.0)
