@@ -1,0 +1,152 @@
+"""The `render` and `score` subcommands of the `aynamics` console script.
+
+    aynamics render SCENE.yaml --out DIR [--seed 0] [--width 480 --height 320] [--textures DIR]
+    aynamics score PRED.yaml [PRED2.yaml ...] --observed SCENE.yaml|DIR [--json]
+
+`render` writes, for the 30 video frames (rollout states 0..29):
+    frames/frame_0000.png ...   RGB
+    flow/flow_0000.png ...      flow maps 0..28 on the standard colour wheel (the model's flow input)
+    segmentation.npy            (T, H, W) int16, -1 floor and sky, else object index
+    depth.npy                   (T, H, W) float32 metres along the optical axis, inf for sky
+    flow.npy, occlusion.npy     (T-1, H, W, 2) float32 pixels and (T-1, H, W) bool
+    camera.json                 OpenCV K, R, t (x_cam = R x_world + t)
+    meta.json                   object names, fps, states, seed, validity of the rollout
+    scene.yaml                  the scene (canonical YAML)
+    video.gif                   RGB next to colour-coded flow, for people
+The folder is accepted by `aynamics score --observed DIR`.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from aynamics.cli import UsageError
+
+
+def _add_render(sub) -> None:
+    p = sub.add_parser("render", help="render a scene: RGB, segmentation, depth, exact flow, camera, GIF")
+    p.add_argument("scene", help="scene YAML file")
+    p.add_argument("--out", required=True, help="folder to write (created)")
+    p.add_argument("--seed", type=int, default=0, help="appearance seed: lights, textures, floor and sky (default 0)")
+    p.add_argument("--width", type=int, default=480, help="image width in pixels (default 480)")
+    p.add_argument("--height", type=int, default=320, help="image height in pixels (default 320)")
+    p.add_argument("--textures", help="folder of photographs for floor and sky (default: scikit-image's samples)")
+    p.add_argument("--no-gif", action="store_true", help="skip the preview video.gif")
+    p.set_defaults(run=_run_render)
+
+
+def _run_render(args) -> int:
+    from aynamics import flow as flowlib
+    from aynamics import render as renderlib
+    from aynamics import scene as scenelib
+    from aynamics import simulate as sim
+
+    scene = scenelib.load(args.scene)
+    if not (16 <= args.width <= 4096 and 16 <= args.height <= 4096):
+        raise UsageError(f"render: --width {args.width} --height {args.height}: each must be in [16, 4096]")
+    out = Path(args.out)
+    try:
+        (out / "frames").mkdir(parents=True, exist_ok=True)
+        (out / "flow").mkdir(exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"render: cannot create --out {str(out)!r}: {e.strerror or e}") from None
+    rollout = sim.simulate(scene)
+    try:
+        frames = renderlib.render(
+            scene, rollout, width=args.width, height=args.height, seed=args.seed, textures_dir=args.textures
+        )
+    except renderlib.RenderError as e:
+        raise UsageError(f"render: {e}") from None
+    except ValueError as e:
+        raise UsageError(f"render: --textures {args.textures!r}: {e}") from None
+    flow, occluded = flowlib.motion_flow(scene, rollout, frames.depth, frames.camera, frames.segmentation)
+    colours = flowlib.flow_to_color(flow)
+    _write_outputs(out, scene, rollout, frames, flow, occluded, colours, args.seed, not args.no_gif)
+    sys.stdout.write(f"wrote {len(frames.rgb)} frames and {len(flow)} flow maps to {out}\n")
+    return 0 if rollout.valid else 1
+
+
+def _write_outputs(out: Path, scene, rollout, frames, flow, occluded, colours, seed: int, gif: bool) -> None:
+    import imageio.v3 as iio
+
+    from aynamics import scene as scenelib
+
+    for k, img in enumerate(frames.rgb):
+        iio.imwrite(out / "frames" / f"frame_{k:04d}.png", img)
+    for k, img in enumerate(colours):
+        iio.imwrite(out / "flow" / f"flow_{k:04d}.png", img)
+    np.save(out / "segmentation.npy", frames.segmentation)
+    np.save(out / "depth.npy", frames.depth)
+    np.save(out / "flow.npy", flow)
+    np.save(out / "occlusion.npy", occluded)
+    (out / "camera.json").write_text(json.dumps(frames.camera.to_json(), indent=1))
+    meta = {
+        "names": list(scene.names),
+        "fps": int(round(1 / (rollout.t[1] - rollout.t[0]))) if len(rollout.t) > 1 else 30,
+        "states": frames.states.tolist(),
+        "seed": seed,
+        "width": frames.camera.width,
+        "height": frames.camera.height,
+        "valid": rollout.valid,
+        "reason": rollout.reason,
+    }
+    (out / "meta.json").write_text(json.dumps(meta, indent=1))
+    (out / "scene.yaml").write_text(scenelib.dump(scene))
+    if gif:
+        pad = np.concatenate([colours, colours[-1:]]) if len(colours) else np.full_like(frames.rgb, 255)
+        video = np.concatenate([frames.rgb, pad], axis=2)  # RGB | flow, side by side
+        iio.imwrite(out / "video.gif", video, duration=1000 / meta["fps"], loop=0)
+
+
+def _add_score(sub) -> None:
+    p = sub.add_parser("score", help="score predicted scenes against an observed scene or rendered folder")
+    p.add_argument("predictions", nargs="+", help="predicted scene YAML files (model outputs are fine)")
+    p.add_argument("--observed", required=True, help="observed scene YAML, or a folder written by `aynamics render`")
+    p.add_argument("--json", action="store_true", help="print a JSON list, one object per prediction, in order")
+    p.add_argument("--width", type=int, default=120, help="scoring resolution width (default 120)")
+    p.add_argument("--height", type=int, default=80, help="scoring resolution height (default 80)")
+    p.set_defaults(run=_run_score)
+
+
+def _run_score(args) -> int:
+    from aynamics import scene as scenelib
+    from aynamics import scorer
+
+    if not (8 <= args.width <= 1920 and 8 <= args.height <= 1280):
+        raise UsageError(f"score: --width {args.width} --height {args.height}: must be in [8, 1920] × [8, 1280]")
+    observed = Path(args.observed)
+    try:
+        if observed.is_dir():
+            obs = scorer.Observation.from_dir(observed, width=args.width, height=args.height)
+        else:
+            obs = scorer.Observation.from_scene(scenelib.load(args.observed), width=args.width, height=args.height)
+    except ValueError as e:  # SceneError is a ValueError too; keep its message
+        if isinstance(e, scenelib.SceneError):
+            raise
+        raise UsageError(f"score: --observed {args.observed!r}: {e}") from None
+    texts = []
+    for path in args.predictions:
+        try:
+            texts.append(Path(path).read_text(encoding="utf-8", errors="replace"))
+        except OSError as e:
+            texts.append(f"<unreadable file {path!r}: {e.strerror or e}>")
+    scores = scorer.score(texts, obs)
+    for k, (path, s) in enumerate(zip(args.predictions, scores, strict=True)):
+        if s.reason and s.reason.startswith("invalid scene") and texts[k].startswith("<unreadable file"):
+            scores[k] = scorer._invalid(texts[k][1:-1], obs.flow is not None)
+    if args.json:
+        json.dump([s.to_json() for s in scores], sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        for path, s in zip(args.predictions, scores, strict=True):
+            j = s.to_json()
+            sys.stdout.write(
+                f"{path}: iou {j['iou_first']}/{j['iou_full']} epe {j['epe_first']}/{j['epe_full']}"
+                + ("" if s.valid else f" INVALID: {s.reason}")
+                + "\n"
+            )
+    return 0

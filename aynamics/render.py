@@ -1,0 +1,470 @@
+"""Headless OpenGL rendering of a rollout: RGB, instance segmentation and depth, with randomised appearance.
+
+MuJoCo renders offscreen through EGL or OSMesa (Mesa on the CPU), picked automatically: `MUJOCO_GL=egl|osmesa`
+when set, else EGL when libEGL is installed, else OSMesa. Appearance is randomised by a seed as in the paper:
+1-3 directional lights (direction, intensity, shadows), object textures (checkerboard, gradient or plain
+colours) and natural photographs on the floor and in the sky, so that optical flow has texture to follow. The
+photographs come from `textures_dir` (any .png/.jpg) or, by default, scikit-image's bundled sample images;
+nothing is downloaded.
+
+    rollout = simulate(scene)
+    frames = render(scene, rollout, seed=3)        # 30 frames (states 0..29) at 480×320
+    with Renderer() as r:                          # reuse one GL context across scenes
+        frames = r.render(scene, rollout, rgb=False)
+
+Segmentation holds the object index in `scene.objects` order, -1 for floor and sky; depth is metres along the
+optical axis, np.inf where no surface is hit.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import functools
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from aynamics import camera as camlib
+from aynamics import simulate as sim
+from aynamics.scene import MAX_OBJECTS, Scene
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+FLOOR_TEXTURE = 512  # pixels per side of the floor photograph texture
+SKY_TEXTURE = 256
+OBJECT_TEXTURE = 64
+SHADOW_EXTENT = 8.0  # m: half-size of the region that shadows cover (also scales the clip planes)
+SHADOW_SIZE = 1024  # shadow map: 512 is ~10 % faster, visibly blockier
+# scikit-image sample photographs shipped inside the wheel (no download): natural textures for floor and sky
+DEFAULT_IMAGES = (
+    "brick.png",
+    "grass.png",
+    "gravel.png",
+    "rocket.jpg",
+    "coffee.png",
+    "chelsea.png",
+    "astronaut.png",
+    "motorcycle_left.png",
+    "color.png",
+    "hubble_deep_field.jpg",
+)
+
+
+class RenderError(RuntimeError):
+    """OpenGL rendering is unavailable or failed; the message says which backend and what to install."""
+
+
+# --------------------------------------------------------------------------------------------
+# OpenGL backend
+# --------------------------------------------------------------------------------------------
+def gl_backend() -> str:
+    """The headless OpenGL backend to use: 'egl' or 'osmesa'.
+
+    Raises:
+        RenderError: when neither library is installed, or `MUJOCO_GL` names something else.
+    """
+    chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
+    if chosen in ("egl", "osmesa"):
+        return chosen
+    if chosen not in ("", "1", "true", "on", "enable", "enabled"):
+        raise RenderError(f"MUJOCO_GL = {chosen!r}: headless rendering needs 'egl' or 'osmesa'")
+    pyopengl = os.environ.get("PYOPENGL_PLATFORM", "").strip().lower()
+    if pyopengl in ("egl", "osmesa"):
+        return pyopengl
+    if ctypes.util.find_library("EGL"):
+        return "egl"
+    if ctypes.util.find_library("OSMesa"):
+        return "osmesa"
+    raise RenderError(
+        "no headless OpenGL found: install Mesa's EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri "
+        "libopengl0) or OSMesa (libosmesa6), or run `make mesa`; then MUJOCO_GL=egl or MUJOCO_GL=osmesa"
+    )
+
+
+def _gl_context(width: int, height: int):
+    backend = gl_backend()
+    try:
+        if backend == "egl":
+            from mujoco.egl import GLContext
+        else:
+            from mujoco.osmesa import GLContext
+        ctx = GLContext(width, height)
+        ctx.make_current()
+    except Exception as e:  # ImportError, RuntimeError, OpenGL errors: all mean "this backend does not work here"
+        other = "osmesa" if backend == "egl" else "egl"
+        raise RenderError(
+            f"OpenGL backend {backend!r} failed ({type(e).__name__}: {e}); install its Mesa packages or start "
+            f"Python with MUJOCO_GL={other} PYOPENGL_PLATFORM={other}"
+        ) from None
+    return ctx
+
+
+def gl_available() -> tuple[bool, str]:
+    """Whether a headless GL context can be made here, and why not (for test skips and messages)."""
+    try:
+        ctx = _gl_context(16, 16)
+    except RenderError as e:
+        return False, str(e)
+    ctx.free()
+    return True, ""
+
+
+# --------------------------------------------------------------------------------------------
+# Appearance
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Light:
+    """A directional light: unit direction it shines along (world), diffuse intensity, shadow casting."""
+
+    direction: tuple[float, float, float]
+    diffuse: float
+    castshadow: bool
+
+
+@dataclass(frozen=True)
+class ObjectLook:
+    """Texture of one object: 'checker' (2×2 per face), 'gradient' or 'plain'; colours rgb in [0, 1]."""
+
+    kind: str
+    rgb1: tuple[float, float, float]
+    rgb2: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Appearance:
+    """Everything randomised about how a scene looks; `sample_appearance(seed)` draws one."""
+
+    lights: tuple[Light, ...]
+    ambient: float
+    objects: tuple[ObjectLook, ...]  # object i wears objects[i % len(objects)]
+    floor_image: Path
+    sky_image: Path
+    floor_repeat: float  # photograph repeats per metre of floor
+
+
+def default_texture_dir() -> Path:
+    """Folder of scikit-image's bundled sample photographs (part of the installed wheel)."""
+    import skimage.data
+
+    return Path(skimage.data.__file__).parent
+
+
+def texture_images(textures_dir: str | Path | None = None) -> list[Path]:
+    """The photographs to draw floor and sky textures from: every image in `textures_dir`, or the default set.
+
+    Raises:
+        FileNotFoundError: `textures_dir` does not exist.
+        ValueError: it holds no .png/.jpg/.jpeg/.bmp image.
+    """
+    if textures_dir is None:
+        root = default_texture_dir()
+        paths = [root / name for name in DEFAULT_IMAGES if (root / name).is_file()]
+        if not paths:
+            raise ValueError(f"no default textures found in {root}; pass textures_dir")
+        return paths
+    root = Path(textures_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(2, f"textures_dir {str(root)!r} is not a folder", str(root))
+    paths = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not paths:
+        raise ValueError(f"textures_dir {str(root)!r}: no images ({', '.join(IMAGE_SUFFIXES)}) in it")
+    return paths
+
+
+def sample_appearance(seed: int, textures_dir: str | Path | None = None, n_objects: int = MAX_OBJECTS) -> Appearance:
+    """Draw lighting, object textures and floor/sky photographs from `seed` (same seed, same look)."""
+    rng = np.random.default_rng(seed)
+    images = texture_images(textures_dir)
+    lights = []
+    n_lights = int(rng.integers(1, 4))
+    for k in range(n_lights):
+        elevation = np.radians(rng.uniform(35, 85))  # angle above the horizon
+        azimuth = rng.uniform(0, 2 * np.pi)
+        direction = -np.array(
+            [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
+        )
+        diffuse = float(rng.uniform(0.4, 0.9) / np.sqrt(n_lights))
+        lights.append(Light(tuple(float(x) for x in direction), diffuse, bool(k == 0 or rng.random() < 0.3)))
+    looks = []
+    for _ in range(n_objects):
+        kind = str(rng.choice(["checker", "gradient", "plain"]))
+        rgb1 = tuple(float(x) for x in rng.uniform(0.05, 1.0, 3))
+        rgb2 = tuple(float(x) for x in rng.uniform(0.05, 1.0, 3))
+        looks.append(ObjectLook(kind, rgb1, rgb2))
+    floor, sky = rng.choice(len(images), size=2, replace=len(images) < 2)
+    return Appearance(
+        lights=tuple(lights),
+        ambient=float(rng.uniform(0.15, 0.35)),
+        objects=tuple(looks),
+        floor_image=images[int(floor)],
+        sky_image=images[int(sky)],
+        floor_repeat=float(rng.uniform(0.2, 0.6)),
+    )
+
+
+@functools.lru_cache(maxsize=32)
+def _load_texture(path: Path, size: int) -> bytes:
+    """RGB bytes of an image, centre-cropped to a square and resized to size × size."""
+    from PIL import Image
+
+    try:
+        img = Image.open(path)
+        img.load()
+    except (OSError, ValueError) as e:
+        raise ValueError(f"texture image {str(path)!r} cannot be read: {e}") from None
+    img = img.convert("RGB")
+    w, h = img.size
+    s = min(w, h)
+    img = img.crop(((w - s) // 2, (h - s) // 2, (w - s) // 2 + s, (h - s) // 2 + s)).resize((size, size))
+    return np.asarray(img, np.uint8).tobytes()
+
+
+def render_model(scene: Scene, appearance: Appearance, width: int, height: int) -> tuple[mujoco.MjModel, sim.Template]:
+    """The scene's MuJoCo model with the appearance's lights, materials and textures (same ids as simulation)."""
+    spec = sim._spec(scene.structure)
+    spec.visual.global_.offwidth = max(width, 64)
+    spec.visual.global_.offheight = max(height, 64)
+    spec.visual.quality.shadowsize = SHADOW_SIZE
+    spec.visual.quality.offsamples = 0  # no MSAA: crisp ids at object borders, 3× faster RGB
+    spec.visual.headlight.active = 0
+    spec.visual.headlight.ambient = [appearance.ambient] * 3
+    spec.visual.headlight.diffuse = [0.0] * 3
+    spec.visual.headlight.specular = [0.0] * 3
+    spec.visual.map.znear = 0.002  # × extent: 1.6 cm
+    spec.visual.map.zfar = 20.0  # × extent: 160 m
+
+    def image_texture(name: str, kind: mujoco.mjtTexture, path: Path, size: int) -> None:
+        tex = spec.add_texture(name=name, type=kind)
+        tex.width, tex.height, tex.nchannel = size, size, 3
+        tex.data = _load_texture(path, size)
+
+    rgb_role = int(mujoco.mjtTextureRole.mjTEXROLE_RGB)
+    image_texture("floor_tex", mujoco.mjtTexture.mjTEXTURE_2D, appearance.floor_image, FLOOR_TEXTURE)
+    image_texture("sky_tex", mujoco.mjtTexture.mjTEXTURE_SKYBOX, appearance.sky_image, SKY_TEXTURE)
+    floor_mat = spec.add_material(name="floor_mat", texrepeat=[appearance.floor_repeat] * 2, texuniform=True)
+    floor_mat.textures[rgb_role] = "floor_tex"
+    builtin = {
+        "checker": mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        "gradient": mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+        "plain": mujoco.mjtBuiltin.mjBUILTIN_FLAT,
+    }
+    for i in range(len(scene.objects)):
+        look = appearance.objects[i % len(appearance.objects)]
+        spec.add_texture(
+            name=f"obj{i}_tex",
+            type=mujoco.mjtTexture.mjTEXTURE_CUBE,
+            builtin=builtin[look.kind],
+            width=OBJECT_TEXTURE,
+            height=OBJECT_TEXTURE,
+            rgb1=list(look.rgb1),
+            rgb2=list(look.rgb2 if look.kind != "plain" else look.rgb1),
+        )
+        mat = spec.add_material(name=f"obj{i}_mat", specular=0.3, shininess=0.3)
+        mat.textures[rgb_role] = f"obj{i}_tex"
+        spec.geom(f"obj{i}_geom").material = f"obj{i}_mat"
+    spec.geom("floor").material = "floor_mat"
+    for k, light in enumerate(appearance.lights):
+        spec.worldbody.add_light(
+            name=f"light{k}",
+            type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+            dir=list(light.direction),
+            pos=[-light.direction[0] * 10, -light.direction[1] * 10, -light.direction[2] * 10],
+            diffuse=[light.diffuse] * 3,
+            specular=[0.2] * 3,
+            castshadow=light.castshadow,
+        )
+    try:
+        model = spec.compile()
+    except ValueError as e:
+        raise RenderError(f"cannot build the render model: {e}") from None
+    tpl = sim.template(scene.structure)
+    sim._write_params(model, sim.scene_params(scene, tpl))
+    mujoco.mj_setConst(model, mujoco.MjData(model))
+    # shadow maps of directional lights cover stat.extent around stat.center: centre them where the camera looks
+    cam = scene.camera
+    down = np.radians(90.0 - cam.orientation)  # optical axis below the horizon
+    reach = cam.position[2] / np.tan(down) if down > 0.05 else SHADOW_EXTENT
+    model.stat.center[:] = [cam.position[0], cam.position[1] + min(reach, SHADOW_EXTENT), 0.0]
+    model.stat.extent = SHADOW_EXTENT
+    return model, tpl
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Frames:
+    """A rendered video. Frame k shows rollout state `states[k]` (default: states 0..T-1 of T + 1).
+
+    Attributes:
+        rgb: (T, H, W, 3) uint8, or None when not asked for.
+        segmentation: (T, H, W) int16: object index in `scene.objects` order, -1 for floor and sky.
+        depth: (T, H, W) float32 metres along the optical axis; np.inf where nothing is hit.
+        camera: OpenCV intrinsics/extrinsics at this resolution.
+        states: (T,) rollout state index of each frame.
+    """
+
+    rgb: np.ndarray | None
+    segmentation: np.ndarray | None
+    depth: np.ndarray | None
+    camera: camlib.CameraMatrices | None = None
+    states: np.ndarray | None = None
+
+
+def video_states(n_states: int) -> np.ndarray:
+    """Rollout states shown as video frames: all but the last (31 states at 30 FPS -> frames 0..29)."""
+    return np.arange(max(1, n_states - 1))
+
+
+def rollout_qpos(rollout, tpl: sim.Template) -> np.ndarray:
+    """(T, nq) qpos of every rollout state."""
+    qpos = np.zeros((len(rollout.t), tpl.model.nq))
+    for i, a in enumerate(tpl.qpos_adr):
+        qpos[:, a : a + 3] = rollout.position[:, i]
+        qpos[:, a + 3 : a + 7] = rollout.orientation[:, i]
+    return qpos
+
+
+class Renderer:
+    """An offscreen OpenGL context reused across scenes. Close it (or use `with`) to free the context.
+
+    Args:
+        width, height: image size in pixels (default 480×320).
+    """
+
+    def __init__(self, width: int = camlib.WIDTH, height: int = camlib.HEIGHT):
+        if not (1 <= width <= 4096 and 1 <= height <= 4096):
+            raise ValueError(f"image size {width}×{height}: width and height must be in [1, 4096]")
+        self.width, self.height = width, height
+        self._ctx = _gl_context(max(width, 64), max(height, 64))
+        self._rect = mujoco.MjrRect(0, 0, width, height)
+
+    def close(self) -> None:
+        if self._ctx is not None:
+            self._ctx.free()
+            self._ctx = None
+
+    def __enter__(self) -> Renderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def render(
+        self,
+        scene: Scene,
+        rollout,
+        *,
+        seed: int = 0,
+        textures_dir: str | Path | None = None,
+        appearance: Appearance | None = None,
+        rgb: bool = True,
+        segmentation: bool = True,
+        depth: bool = True,
+        states: np.ndarray | None = None,
+    ) -> Frames:
+        """Render the rollout's states (default `video_states`) from the scene's camera."""
+        if self._ctx is None:
+            raise RenderError("Renderer.render called after close()")
+        if appearance is None:
+            appearance = sample_appearance(seed, textures_dir, n_objects=max(1, len(scene.objects)))
+        states = video_states(len(rollout.t)) if states is None else np.asarray(states, int)
+        if len(states) and (states.min() < 0 or states.max() >= len(rollout.t)):
+            raise ValueError(f"states {states.tolist()}: must index the rollout's {len(rollout.t)} states")
+        model, tpl = render_model(scene, appearance, self.width, self.height)
+        data = mujoco.MjData(model)
+        qpos = rollout_qpos(rollout, tpl)
+        geom_to_obj = np.full(model.ngeom, -2, np.int16)  # -2: floor (drawn, not an object)
+        geom_to_obj[tpl.geom_ids] = np.arange(len(tpl.geom_ids))
+        n, h, w = len(states), self.height, self.width
+        out_rgb = np.zeros((n, h, w, 3), np.uint8) if rgb else None
+        out_seg = np.zeros((n, h, w), np.int16) if segmentation else None
+        out_depth = np.zeros((n, h, w), np.float32) if depth else None
+
+        self._ctx.make_current()
+        ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+        try:
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, ctx)
+            ctx.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+            scn = mujoco.MjvScene(model, maxgeom=100 + 4 * model.ngeom)
+            opt = mujoco.MjvOption()
+            cam = mujoco.MjvCamera()
+            cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+            cam.fixedcamid = tpl.camera_id
+            extent = model.stat.extent
+            near, far = np.float32(model.vis.map.znear * extent), np.float32(model.vis.map.zfar * extent)
+            rgb_buf = np.empty((h, w, 3), np.uint8)
+            depth_buf = np.empty((h, w), np.float32)
+            geom_type = int(mujoco.mjtObj.mjOBJ_GEOM)  # int once: comparing enum members per geom is slow
+            for f, s in enumerate(states):
+                data.qpos[:] = qpos[s]
+                mujoco.mj_kinematics(model, data)
+                mujoco.mj_camlight(model, data)  # camera and light poses: mj_kinematics leaves them at zero
+                mujoco.mjv_updateScene(model, data, opt, None, cam, mujoco.mjtCatBit.mjCAT_ALL.value, scn)
+                if rgb:
+                    mujoco.mjr_render(self._rect, scn, ctx)
+                    mujoco.mjr_readPixels(rgb_buf, None, self._rect, ctx)
+                    out_rgb[f] = rgb_buf[::-1]
+                if segmentation or depth:
+                    scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
+                    scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
+                    mujoco.mjr_render(self._rect, scn, ctx)
+                    mujoco.mjr_readPixels(rgb_buf, depth_buf, self._rect, ctx)
+                    scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
+                    scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
+                    segid = rgb_buf[::-1].astype(np.int32)
+                    segid = segid[..., 0] + (segid[..., 1] << 8) + (segid[..., 2] << 16)  # 0: nothing drawn
+                    lut = np.full(scn.ngeom + 2, -2, np.int16)  # -2: drawn but not an object geom (floor)
+                    lut[0] = -1
+                    for g in scn.geoms[: scn.ngeom]:
+                        if g.segid >= 0:
+                            lut[g.segid + 1] = geom_to_obj[g.objid] if g.objtype == geom_type else -2
+                    ids = lut[np.minimum(segid, len(lut) - 1)]
+                    if segmentation:
+                        out_seg[f] = np.maximum(ids, -1)
+                    if depth:
+                        z = depth_buf[::-1].astype(np.float64)
+                        c = np.float32(-0.5) * (-(far + near) / (far - near)) - np.float32(0.5)
+                        d = np.float32(-0.5) * (-(np.float32(2) * far * near) / (far - near))
+                        z = d / (z + c)  # reversed-Z buffer -> metres along the optical axis
+                        z[ids == -1] = np.inf
+                        out_depth[f] = z
+        finally:
+            ctx.free()
+        return Frames(out_rgb, out_seg, out_depth, camlib.matrices(scene.camera, w, h), states)
+
+
+def render(
+    scene: Scene,
+    rollout,
+    *,
+    width: int = camlib.WIDTH,
+    height: int = camlib.HEIGHT,
+    seed: int = 0,
+    textures_dir: str | Path | None = None,
+    rgb: bool = True,
+    segmentation: bool = True,
+    depth: bool = True,
+) -> Frames:
+    """Render a rollout once (a fresh GL context; use `Renderer` to render many scenes)."""
+    with Renderer(width, height) as r:
+        return r.render(
+            scene, rollout, seed=seed, textures_dir=textures_dir, rgb=rgb, segmentation=segmentation, depth=depth
+        )
+
+
+def _ensure_backend_env() -> None:
+    """Set MUJOCO_GL/PYOPENGL_PLATFORM for subprocesses and late imports (PyOpenGL reads them once)."""
+    if "OpenGL" in sys.modules:
+        return
+    try:
+        backend = gl_backend()
+    except RenderError:
+        return
+    os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+
+
+_ensure_backend_env()

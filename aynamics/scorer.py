@@ -1,0 +1,333 @@
+"""The fast scorer: K candidate scenes against one observed video, without OpenGL.
+
+Candidates are grouped by structure and simulated together on MuJoCo's threaded `Batch`; the same Batch then
+ray-casts every candidate's segmentation and depth (`Batch.ray`, one ray per pixel centre) at a reduced
+resolution (120×80 by default) at the sampled frames, each candidate from its OWN camera; the exact motion field
+follows from depth and the poses at frames k and k + 1 (see `aynamics.raycast` and `aynamics.flow`). Metrics are
+computed from the object hits alone, equal to `aynamics.metrics` on dense arrays. IoU and EPE are the definitions in
+`aynamics.metrics`. EPE is reported in pixels of a 480-pixel-wide image (the paper's resolution): flow measured at
+width w is multiplied by 480 / w.
+
+    obs = Observation.from_scene(scene)         # or Observation.from_dir("render_out/")
+    scores = score([text1, scene2, ...], obs)   # list[Score], in order; never raises on bad candidates
+
+A candidate that cannot be parsed, validated or simulated gets `Score(iou 0, EPE = EPE_INVALID, valid=False,
+reason=...)`; the others in the batch are scored normally.
+
+Observed folder layout (what `aynamics render --out DIR` writes; all frames are the full video, frame k = state k):
+    segmentation.npy    (T, H, W) int, -1 background, else object index   -- or --
+    segmentation/*.png  one mask per frame in name order: 0 background, v > 0 object v - 1 (8/16-bit grey),
+                        or colour masks where each distinct non-black colour is one object
+    flow.npy            optional (T-1, H, W, 2) float pixels at H×W (dx right, dy down), flow k: frame k -> k+1
+    occlusion.npy       optional (T-1, H, W) bool, True where the observed flow is occluded
+    meta.json           optional {"names": [...], "fps": 30}: object names for matching by name
+The sampled frames are `sample_frames(T)`; masks and flow are resampled to the scorer's resolution by taking the
+pixel nearest each low-resolution pixel centre (flow vectors scaled by the width ratio).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from aynamics import metrics
+from aynamics import simulate as sim
+from aynamics.flow import sample_frames
+from aynamics.raycast import Cast, cast_group
+from aynamics.scene import Scene, SceneError, parse
+
+WIDTH, HEIGHT = 120, 80  # scorer resolution: a quarter of 480×320 per side
+REFERENCE_WIDTH = 480  # EPE is reported in pixels of an image this wide
+EPE_INVALID = 100.0  # px (at 480 wide): the EPE of a candidate that cannot be parsed or simulated
+VIDEO_FRAMES = 30  # frames of an observed video (states 0..29 of a 1 s rollout at 30 FPS)
+
+
+@dataclass(frozen=True)
+class Score:
+    """One candidate's score. EPE fields are None when the observation has no flow."""
+
+    iou_first: float
+    iou_full: float
+    epe_first: float | None
+    epe_full: float | None
+    valid: bool
+    reason: str | None = None
+
+    def to_json(self) -> dict:
+        def r(x):
+            return None if x is None else round(float(x), 4)
+
+        return {
+            "iou_first": r(self.iou_first),
+            "iou_full": r(self.iou_full),
+            "epe_first": r(self.epe_first),
+            "epe_full": r(self.epe_full),
+            "valid": self.valid,
+            "reason": self.reason,
+        }
+
+
+@dataclass(frozen=True)
+class Observation:
+    """An observed video at the scorer's resolution.
+
+    Attributes:
+        segmentation: (F, h, w) int16 at the sampled frames, -1 background.
+        frames: (F,) video frame index of each sampled frame (default 0, 3, ..., 27).
+        width, height: resolution (w, h) of the arrays.
+        flow: (F, h, w, 2) float32 flow from each sampled frame k to k + 1, pixels at this resolution, or None.
+        occluded: (F, h, w) bool, True where the observed flow is occluded, or None.
+        names: object names for matching by name, or None.
+        fps: frames per second of the video.
+    """
+
+    segmentation: np.ndarray
+    frames: np.ndarray
+    width: int
+    height: int
+    flow: np.ndarray | None = None
+    occluded: np.ndarray | None = None
+    names: tuple[str, ...] | None = None
+    fps: int = sim.FPS
+
+    def __post_init__(self):
+        f = len(self.frames)
+        if self.segmentation.shape != (f, self.height, self.width):
+            raise ValueError(
+                f"segmentation shape {self.segmentation.shape} != (frames, h, w) = {(f, self.height, self.width)}"
+            )
+        if self.flow is not None and self.flow.shape != (f, self.height, self.width, 2):
+            raise ValueError(f"flow shape {self.flow.shape} != (frames, h, w, 2) = {(f, self.height, self.width, 2)}")
+        if f == 0 or int(np.min(self.frames)) < 0:
+            raise ValueError(f"frames {list(self.frames)}: need at least one frame, all >= 0")
+
+    @property
+    def config(self) -> sim.SimConfig:
+        """Simulation long enough for the last sampled frame and its flow target (frame + 1)."""
+        frames = max(int(np.max(self.frames)) + 1, VIDEO_FRAMES)
+        return sim.SimConfig(duration=frames / self.fps, fps=self.fps)
+
+    @classmethod
+    def from_scene(
+        cls,
+        scene: Scene,
+        *,
+        width: int = WIDTH,
+        height: int = HEIGHT,
+        frames: Sequence[int] | None = None,
+        nthread: int | None = None,
+    ) -> Observation:
+        """Observe a scene by the scorer's own ray casting (so a scene scored against itself is exact).
+
+        Raises:
+            ValueError: the scene's rollout is invalid (diverged), with the simulator's reason.
+        """
+        frames = sample_frames(VIDEO_FRAMES) if frames is None else np.asarray(frames, int)
+        shell = cls(np.zeros((len(frames), height, width), np.int16), frames, width, height)
+        out = cast_group([scene], scene.structure, frames, width, height, shell.config, nthread, with_next=True)
+        if out.reasons[0] is not None:
+            raise ValueError(f"observed scene cannot be simulated: {out.reasons[0]}")
+        return cls(out.seg[0], frames, width, height, out.dense_flow[0], out.occluded[0], scene.names)
+
+    @classmethod
+    def from_dir(cls, path: str | Path, *, width: int = WIDTH, height: int = HEIGHT) -> Observation:
+        """Load an observed video folder (layout in the module docstring).
+
+        Raises:
+            FileNotFoundError: the folder or its segmentation is missing.
+            ValueError: arrays of the wrong shape or type, naming the file.
+        """
+        root = Path(path)
+        if not root.is_dir():
+            raise FileNotFoundError(2, f"observed folder {str(root)!r} does not exist", str(root))
+        seg = _load_segmentation(root)  # (T, H, W)
+        n_frames, full_h, full_w = seg.shape
+        frames = sample_frames(n_frames)
+        rows = ((np.arange(height) + 0.5) * full_h / height).astype(int)
+        cols = ((np.arange(width) + 0.5) * full_w / width).astype(int)
+        sub = np.ix_(frames, rows, cols)
+        flow = occluded = None
+        if (root / "flow.npy").is_file():
+            full_flow = _load_npy(root / "flow.npy", float)
+            if full_flow.ndim != 4 or full_flow.shape[1:] != (full_h, full_w, 2) or len(full_flow) < frames[-1] + 1:
+                raise ValueError(
+                    f"{root / 'flow.npy'}: shape {full_flow.shape}, "
+                    f"expected (>= {frames[-1] + 1}, {full_h}, {full_w}, 2)"
+                )
+            flow = (full_flow[sub] * (width / full_w)).astype(np.float32)
+            if (root / "occlusion.npy").is_file():
+                occ = _load_npy(root / "occlusion.npy", bool)
+                if occ.shape != full_flow.shape[:-1]:
+                    raise ValueError(f"{root / 'occlusion.npy'}: shape {occ.shape}, expected {full_flow.shape[:-1]}")
+                occluded = occ[sub]
+        names, fps = None, sim.FPS
+        if (root / "meta.json").is_file():
+            try:
+                meta = json.loads((root / "meta.json").read_text())
+                names = tuple(meta["names"]) if meta.get("names") is not None else None
+                fps = int(meta.get("fps", sim.FPS))
+            except (ValueError, TypeError, AttributeError) as e:
+                raise ValueError(f"{root / 'meta.json'}: not a JSON object with names/fps ({e})") from None
+        return cls(seg[sub].astype(np.int16), frames, width, height, flow, occluded, names, fps)
+
+
+def _load_npy(path: Path, kind: type) -> np.ndarray:
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable .npy array ({e})") from None
+    if kind is bool:
+        return a.astype(bool)
+    if not np.issubdtype(a.dtype, np.number):
+        raise ValueError(f"{path}: dtype {a.dtype}, expected numbers")
+    return a
+
+
+def _load_segmentation(root: Path) -> np.ndarray:
+    if (root / "segmentation.npy").is_file():
+        seg = _load_npy(root / "segmentation.npy", int)
+        if seg.ndim != 3 or not np.issubdtype(seg.dtype, np.integer):
+            raise ValueError(
+                f"{root / 'segmentation.npy'}: shape {seg.shape} dtype {seg.dtype}, expected (T, H, W) int"
+            )
+        return seg
+    folder = root / "segmentation"
+    files = sorted(p for p in folder.glob("*.png")) if folder.is_dir() else []
+    if not files:
+        raise FileNotFoundError(2, f"{str(root)!r} has neither segmentation.npy nor segmentation/*.png", str(root))
+    import imageio.v3 as iio
+
+    masks = [iio.imread(p) for p in files]
+    if len({m.shape for m in masks}) != 1:
+        raise ValueError(f"{folder}: masks differ in size: {sorted({m.shape for m in masks})}")
+    stack = np.stack(masks)
+    if stack.ndim == 3:  # grey: value v > 0 is object v - 1
+        return stack.astype(np.int32) - 1
+    rgb = stack[..., :3].astype(np.int64)
+    code = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+    colours, ids = np.unique(code, return_inverse=True)
+    ids = ids.reshape(code.shape).astype(np.int32)
+    return ids - 1 if colours[0] == 0 else ids  # black is background
+
+
+# --------------------------------------------------------------------------------------------
+# Scoring
+# --------------------------------------------------------------------------------------------
+def _invalid(reason: str, has_flow: bool) -> Score:
+    return Score(0.0, 0.0, EPE_INVALID if has_flow else None, EPE_INVALID if has_flow else None, False, reason)
+
+
+@dataclass(frozen=True)
+class _ObservedSums:
+    """Per-frame quantities of the observation that every candidate's sparse metrics reuse."""
+
+    seg: np.ndarray  # (F, h*w)
+    area: np.ndarray  # (F, No) pixels of each observed object
+    flow: np.ndarray | None  # (F, h*w, 2)
+    valid: np.ndarray | None  # (F, h*w) flow not occluded
+    fg_index: np.ndarray | None  # (M,) flat f * h*w + pixel of observed object pixels whose flow is not occluded
+    fg_norm: np.ndarray | None  # (M,) |observed flow| there (float64)
+
+    @classmethod
+    def of(cls, obs: Observation) -> _ObservedSums:
+        f_count = len(obs.frames)
+        seg = obs.segmentation.reshape(f_count, -1)
+        n_obs = _n_observed(obs)
+        ids = np.where(seg >= 0, seg, n_obs).astype(np.int64)
+        area = np.stack([np.bincount(row, minlength=n_obs + 1)[:n_obs] for row in ids])
+        if obs.flow is None:
+            return cls(seg, area, None, None, None, None)
+        flow = obs.flow.reshape(f_count, -1, 2).astype(np.float64)
+        valid = np.ones(seg.shape, bool) if obs.occluded is None else ~obs.occluded.reshape(f_count, -1)
+        index = np.flatnonzero((seg >= 0) & valid)
+        fl = flow.reshape(-1, 2)[index]
+        return cls(seg, area, flow, valid, index, np.hypot(fl[:, 0], fl[:, 1]))
+
+
+def _score_hits(
+    cast: Cast, sel: slice, reason: str | None, scene: Scene, obs: Observation, sums: _ObservedSums
+) -> Score:
+    """Metrics of one candidate from its hits alone; equal to `metrics` on the dense arrays (see tests)."""
+    if reason is not None:
+        return _invalid(reason, obs.flow is not None)
+    f_count = len(obs.frames)
+    f, pix, p = cast.hits.f[sel], cast.hits.pix[sel], cast.hits.obj[sel].astype(np.int64)
+    o = sums.seg[f, pix].astype(np.int64)  # observed id under each predicted object pixel
+    n_pred, n_obs = len(scene.objects), sums.area.shape[1]
+    code = (f * (n_pred + 1) + p + 1) * (n_obs + 1) + np.clip(o + 1, 0, n_obs)
+    counts = np.bincount(code, minlength=f_count * (n_pred + 1) * (n_obs + 1)).reshape(f_count, n_pred + 1, n_obs + 1)
+    counts[:, 0, 1:] = sums.area - counts[:, 1:, 1:].sum(1)  # observed object pixels the prediction leaves empty
+    per_frame = metrics.iou_from_counts(counts, scene.names, obs.names)
+    epe_first = epe_full = None
+    if sums.flow is not None:
+        ok = sums.valid[f, pix]
+        d = cast.flow[sel][ok] - sums.flow[f[ok], pix[ok]]
+        err = np.bincount(f[ok], weights=np.hypot(d[:, 0], d[:, 1]), minlength=f_count)
+        cnt = np.bincount(f[ok], minlength=f_count).astype(float)
+        # observed object pixels the prediction leaves empty: predicted flow 0 there, error |observed flow|
+        hw = sums.seg.shape[1]
+        empty = ~np.isin(sums.fg_index, f * hw + pix, assume_unique=True)
+        frame_of = sums.fg_index[empty] // hw
+        err += np.bincount(frame_of, weights=sums.fg_norm[empty], minlength=f_count)
+        cnt += np.bincount(frame_of, minlength=f_count)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per = np.where(cnt > 0, err / np.maximum(cnt, 1), np.nan) * (REFERENCE_WIDTH / obs.width)
+        finite = per[np.isfinite(per)]
+        epe_first = float(per[0]) if np.isfinite(per[0]) else 0.0
+        epe_full = float(finite.mean()) if len(finite) else 0.0
+    return Score(float(per_frame[0]), float(per_frame.mean()), epe_first, epe_full, True, None)
+
+
+def _n_observed(obs: Observation) -> int:
+    n = int(obs.segmentation.max(initial=-1)) + 1
+    return max(n, len(obs.names)) if obs.names is not None else n
+
+
+def score(candidates: Sequence[Scene | str], observed: Observation, *, nthread: int | None = None) -> list[Score]:
+    """Score candidate scenes (or YAML texts) against one observation; one `Score` per candidate, in order.
+
+    Never raises for a bad candidate: parse/validation errors and diverging simulations give an invalid Score
+    with the reason. Candidates of one structure are simulated and ray-cast in one batch; if a batch fails as a
+    whole, its candidates are retried one by one so a single broken candidate cannot spoil the others.
+    """
+    out: list[Score | None] = [None] * len(candidates)
+    scenes: dict[int, Scene] = {}
+    for k, c in enumerate(candidates):
+        if isinstance(c, Scene):
+            scenes[k] = c
+            continue
+        try:
+            scenes[k] = parse(c)
+        except SceneError as e:
+            out[k] = _invalid(str(e), observed.flow is not None)
+    groups: dict[tuple[str, ...], list[int]] = {}
+    for k, s in scenes.items():
+        groups.setdefault(s.structure, []).append(k)
+    sums = _ObservedSums.of(observed)
+    for structure, idx in groups.items():
+        try:
+            cast = cast_group(
+                [scenes[k] for k in idx],
+                structure,
+                observed.frames,
+                observed.width,
+                observed.height,
+                observed.config,
+                nthread,
+            )
+            bounds = np.searchsorted(cast.hits.c, np.arange(len(idx) + 1))  # hits are sorted by candidate
+            for j, k in enumerate(idx):
+                sel = slice(bounds[j], bounds[j + 1])
+                out[k] = _score_hits(cast, sel, cast.reasons[j], scenes[k], observed, sums)
+        except (mujoco.FatalError, RuntimeError, ValueError, FloatingPointError) as e:
+            if len(idx) == 1:
+                out[idx[0]] = _invalid(f"simulation failed: {type(e).__name__}: {e}", observed.flow is not None)
+                continue
+            for k in idx:  # isolate the broken candidate
+                out[k] = score([scenes[k]], observed, nthread=1)[0]
+    return out  # type: ignore[return-value]

@@ -1,0 +1,123 @@
+"""Metric functions on hand-worked cases (expected values derived in each docstring)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from aynamics import metrics
+from aynamics import scene as scenelib
+
+
+def _seg(*frames):
+    return np.array(frames, dtype=np.int16)
+
+
+def test_iou_hand_case():
+    """Predicted mask 4 px, observed 4 px, 2 shared: IoU = 2 / (4 + 4 - 2) = 1/3."""
+    obs = _seg([[0, 0, 0, 0, -1, -1]])
+    pred = _seg([[-1, -1, 0, 0, 0, 0]])
+    first, full = metrics.segmentation_iou(pred, obs)
+    assert first == pytest.approx(1 / 3) and full == pytest.approx(1 / 3)
+
+
+def test_iou_matching_by_overlap_and_by_name():
+    """Swapped ids match by overlap (IoU 1); forced by names to the wrong partner, IoU is 0."""
+    obs = _seg([[0, 0, 1, 1]])
+    pred = _seg([[1, 1, 0, 0]])
+    assert metrics.segmentation_iou(pred, obs) == (1.0, 1.0)
+    first, _ = metrics.segmentation_iou(pred, obs, pred_names=("a", "b"), obs_names=("a", "b"))
+    assert first == 0.0
+    first, _ = metrics.segmentation_iou(pred, obs, pred_names=("b", "a"), obs_names=("a", "b"))
+    assert first == 1.0
+
+
+def test_iou_per_frame_average_and_missing_objects():
+    """Frame 0: one object, exact (1). Frame 1: observed object 1 is missing from the prediction:
+    (1 + 0) / 2 = 0.5. Full = (1 + 0.5) / 2 = 0.75. Frames where nothing is visible on either side score 1."""
+    obs = _seg([[0, 0, -1, -1]], [[0, 0, 1, 1]], [[-1, -1, -1, -1]])
+    pred = _seg([[0, 0, -1, -1]], [[0, 0, -1, -1]], [[-1, -1, -1, -1]])
+    counts = metrics.overlap_counts(pred, obs, 1, 2)
+    per_frame = metrics.iou_from_counts(counts)
+    np.testing.assert_allclose(per_frame, [1.0, 0.5, 1.0])
+    assert counts[:, 0, 0].tolist() == [2, 0, 4]  # background-background pixels per frame
+
+
+def test_iou_falls_with_shift():
+    obs = np.full((1, 20, 40), -1, np.int16)
+    obs[0, 5:15, 10:20] = 0
+    values = []
+    for shift in range(0, 12, 2):
+        pred = np.full_like(obs, -1)
+        pred[0, 5:15, 10 + shift : 20 + shift] = 0
+        values.append(metrics.segmentation_iou(pred, obs)[0])
+    assert values[0] == 1.0 and values[-1] == 0.0
+    assert all(a > b for a, b in zip(values, values[1:-1], strict=False))
+
+
+def test_epe_hand_case():
+    """4 masked pixels, one off by (3, 4), the rest exact: EPE = 5 / 4 = 1.25 px. Unmasked errors do not count."""
+    obs = np.zeros((1, 2, 3, 2))
+    pred = np.zeros((1, 2, 3, 2))
+    pred[0, 0, 0] = (3.0, 4.0)
+    pred[0, 1, 2] = (100.0, 0.0)  # outside the mask
+    mask = np.array([[[True, True, False], [True, True, False]]])
+    assert metrics.flow_epe(pred, obs, mask) == (1.25, 1.25)
+
+
+def test_epe_empty_frames_are_skipped():
+    """Frame 0 has no masked pixel (nan), frame 1 an error of 2: first = nan, full = 2."""
+    obs = np.zeros((2, 1, 2, 2))
+    pred = np.zeros((2, 1, 2, 2))
+    pred[1, 0, 0] = (0.0, 2.0)
+    mask = np.array([[[False, False]], [[True, False]]])
+    first, full = metrics.flow_epe(pred, obs, mask)
+    assert math.isnan(first) and full == 2.0
+    with pytest.raises(ValueError, match="flow shapes differ"):
+        metrics.flow_epe(pred, obs[:1], mask)
+
+
+def test_epe_mask_union_minus_occluded():
+    pred = _seg([[0, -1, -1, 0]])
+    obs = _seg([[-1, 0, -1, 0]])
+    occ = np.array([[[False, False, False, True]]])
+    assert metrics.epe_mask(pred, obs, occ).tolist() == [[[True, True, False, False]]]
+
+
+def _scene(objects: str) -> scenelib.Scene:
+    return scenelib.parse(objects + "- type: camera\n  position: [0, -2, 3.5]\n")
+
+
+def test_state_mae_and_matching_by_position():
+    """Names differ, so pairs come from nearest initial positions. Errors: positions (0.3, 0, 0) and (0, 0, 0),
+    velocities (0, 0.6, 0) and (0, 0, 0) -> MAE over 2 objects x 3 components: 0.3 / 6 = 0.05, 0.6 / 6 = 0.1."""
+    obs = _scene(
+        "- {type: sphere, name: a, radius: 0.2, state: {position: [0, 0, 0.2]}}\n"
+        "- {type: box, name: b, size: [0.2, 0.2, 0.2], state: {position: [3, 0, 0.2], linear_velocity: [1, 0, 0]}}\n"
+    )
+    pred = _scene(
+        "- {type: box, name: x, size: [0.2, 0.2, 0.2], state: {position: [3, 0, 0.2], linear_velocity: [1, 0.6, 0]}}\n"
+        "- {type: sphere, name: y, radius: 0.2, state: {position: [0.3, 0, 0.2]}}\n"
+    )
+    pos, vel = metrics.state_mae(pred, obs)
+    assert pos == pytest.approx(0.05) and vel == pytest.approx(0.1)
+    assert metrics.state_mae_batch(["not: a scene"], [obs]) == [
+        (metrics.POSITION_MAE_INVALID, metrics.VELOCITY_MAE_INVALID)
+    ]
+
+
+def test_composition_accuracy():
+    obs = _scene("- {type: sphere, radius: 0.2, state: {position: [0, 0, 0.2]}}\n")
+    same = _scene("- {type: sphere, radius: 0.5, state: {position: [1, 0, 0.5]}}\n")
+    other = _scene("- {type: box, size: [0.2, 0.2, 0.2], state: {position: [1, 0, 0.2]}}\n")
+    count, shapes = metrics.composition_accuracy([same, other, "]]"], [obs, obs, obs])
+    assert count == [1.0, 1.0, 0.0] and shapes == [1.0, 0.0, 0.0]
+
+
+def test_match_objects_names_first():
+    score = np.array([[0.0, 0.9], [0.8, 0.0]])
+    # "a" pairs by name despite zero overlap; "b" and "c" do not overlap, so they stay unmatched
+    assert metrics.match_objects(["a", "b"], ["a", "c"], score) == [(0, 0)]
+    assert metrics.match_objects(None, None, score) == [(0, 1), (1, 0)]

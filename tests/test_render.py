@@ -1,0 +1,147 @@
+"""OpenGL rendering (skipped with a message where no headless OpenGL works), and the render/score commands."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from aynamics import cli, raycast, scorer
+from aynamics import flow as flowlib
+from aynamics import render as renderlib
+from aynamics import scene as scenelib
+from aynamics import simulate as sim
+
+GL_OK, GL_WHY = renderlib.gl_available()
+needs_gl = pytest.mark.skipif(not GL_OK, reason=f"no headless OpenGL: {GL_WHY}")
+PAPER = "tests/assets/paper_example.yaml"
+SCENE = scenelib.parse(
+    """
+- {type: box, name: box_0, size: [0.3, 0.25, 0.2], state: {position: [-0.4, 1.0, 0.2], linear_velocity: [1.5, 0.5, 0]}}
+- {type: sphere, name: sphere_0, radius: 0.2, state: {position: [0.6, 1.5, 0.2], linear_velocity: [-0.5, 0, 0]}}
+- {type: cylinder, name: cyl_0, radius: 0.15, height: 0.5,
+   state: {position: [0.0, 2.3, 0.25], angular_velocity: [0, 0, 3]}}
+- type: camera
+  position: [0, -2, 3.5]
+"""
+)
+
+
+@pytest.fixture(scope="module")
+def rollout():
+    return sim.simulate(SCENE)
+
+
+@needs_gl
+def test_render_shapes_and_determinism(rollout):
+    with renderlib.Renderer(96, 64) as r:
+        a = r.render(SCENE, rollout, seed=1, states=[0, 10])
+        b = r.render(SCENE, rollout, seed=1, states=[0, 10])
+        c = r.render(SCENE, rollout, seed=2, states=[0, 10], segmentation=False, depth=False)
+    assert a.rgb.shape == (2, 64, 96, 3) and a.rgb.dtype == np.uint8
+    assert a.segmentation.dtype == np.int16 and a.depth.dtype == np.float32
+    assert set(np.unique(a.segmentation).tolist()) == {-1, 0, 1, 2}
+    assert np.isfinite(a.depth).all()  # the floor fills the view: no sky pixel here
+    assert (a.depth > 0).all()
+    np.testing.assert_array_equal(a.rgb, b.rgb)
+    assert np.abs(a.rgb.astype(int) - c.rgb).mean() > 5  # another seed, another look
+    assert c.segmentation is None and c.depth is None
+
+
+@needs_gl
+def test_default_render_has_30_frames_and_29_flows(rollout):
+    frames = renderlib.render(SCENE, rollout, width=64, height=48, rgb=False)
+    assert frames.segmentation.shape == (30, 48, 64) and frames.states.tolist() == list(range(30))
+    flow, occluded = flowlib.motion_flow(SCENE, rollout, frames.depth, frames.camera, frames.segmentation)
+    assert flow.shape == (29, 48, 64, 2) and occluded.shape == (29, 48, 64)
+
+
+@needs_gl
+@pytest.mark.parametrize("size", [(120, 80), (480, 320)])
+def test_raycast_segmentation_agrees_with_opengl(rollout, size):
+    """Ray-cast (scorer) and OpenGL segmentation agree on >= 99.5 % of pixels; depth on objects within 1 cm."""
+    w, h = size
+    obs = scorer.Observation.from_scene(SCENE, width=w, height=h)
+    cast = raycast.cast_group([SCENE], SCENE.structure, obs.frames, w, h, obs.config, 1)
+    with renderlib.Renderer(w, h) as r:
+        frames = r.render(SCENE, rollout, rgb=False, states=obs.frames)
+    agree = (frames.segmentation == obs.segmentation).mean()
+    assert agree >= 0.995, agree
+    both = (frames.segmentation >= 0) & (obs.segmentation >= 0)
+    assert np.median(np.abs(frames.depth[both] - cast.depth[0][both])) < 0.01
+
+
+@needs_gl
+def test_opengl_flow_matches_raycast_flow(rollout):
+    """Flow from OpenGL depth equals the scorer's ray-cast flow where both see the same object (< 0.1 px)."""
+    w, h = 120, 80
+    obs = scorer.Observation.from_scene(SCENE, width=w, height=h)
+    with renderlib.Renderer(w, h) as r:
+        frames = r.render(SCENE, rollout, rgb=False)
+    flow, _ = flowlib.motion_flow(SCENE, rollout, frames.depth, frames.camera, frames.segmentation)
+    gl = flow[obs.frames]
+    same = (frames.segmentation[obs.frames] == obs.segmentation) & (obs.segmentation >= 0)
+    err = np.linalg.norm(gl[same] - obs.flow[same], axis=-1)
+    assert same.sum() > 500 and np.mean(err) < 0.1, np.mean(err)
+
+
+def test_appearance_from_user_folder(tmp_path):
+    import imageio.v3 as iio
+
+    assert renderlib.sample_appearance(3) == renderlib.sample_appearance(3)
+    assert renderlib.sample_appearance(3) != renderlib.sample_appearance(4)
+    with pytest.raises(FileNotFoundError, match="not a folder"):
+        renderlib.sample_appearance(0, tmp_path / "nope")
+    with pytest.raises(ValueError, match="no images"):
+        renderlib.sample_appearance(0, tmp_path)
+    iio.imwrite(tmp_path / "a.png", np.zeros((8, 8, 3), np.uint8))
+    look = renderlib.sample_appearance(0, tmp_path)
+    assert look.floor_image == look.sky_image == tmp_path / "a.png"
+    assert 1 <= len(look.lights) <= 3 and {o.kind for o in renderlib.sample_appearance(0).objects} == {
+        "checker",
+        "gradient",
+        "plain",
+    }
+
+
+def test_bad_backend_gives_clear_message(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "glx-please")
+    with pytest.raises(renderlib.RenderError, match="MUJOCO_GL = 'glx-please'"):
+        renderlib.gl_backend()
+
+
+def _main(argv: list[str]) -> int:
+    """The real `main` (error handling included) with only this module's subcommands registered."""
+    saved = list(cli.COMMANDS)
+    cli.COMMANDS[:] = [cli._add_render_score]
+    try:
+        return cli.main(argv)
+    finally:
+        cli.COMMANDS[:] = saved
+
+
+@needs_gl
+def test_cli_render_then_score(tmp_path, capsys):
+    out = tmp_path / "obs"
+    assert _main(["render", PAPER, "--out", str(out), "--width", "96", "--height", "64", "--no-gif"]) == 0
+    for name in ("segmentation.npy", "depth.npy", "flow.npy", "occlusion.npy", "camera.json", "meta.json"):
+        assert (out / name).is_file(), name
+    assert len(list((out / "frames").glob("*.png"))) == 30 and len(list((out / "flow").glob("*.png"))) == 29
+    assert json.loads((out / "camera.json").read_text())["K"][0][2] == 48.0
+    capsys.readouterr()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- type: box\n  size: [1, -1, 1]\n")
+    assert _main(["score", PAPER, str(bad), "--observed", str(out), "--json", "--width", "48", "--height", "32"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [r["valid"] for r in result] == [True, False]
+    assert result[0]["iou_full"] > 0.8 and result[1]["iou_full"] == 0.0 and "size" in result[1]["reason"]
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert _main(["score", PAPER, "--observed", str(tmp_path / "none")]) == 2
+    assert "none" in capsys.readouterr().err
+    assert _main(["render", str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "o")]) == 2
+    assert "No such file" in capsys.readouterr().err
+    assert _main(["score", PAPER, "--observed", PAPER, "--width", "2"]) == 2
+    assert "--width 2" in capsys.readouterr().err

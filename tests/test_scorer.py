@@ -1,0 +1,141 @@
+"""The fast scorer: self-consistency, monotonicity, invalid candidates, observed folders."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from aynamics import raycast, scorer
+from aynamics import scene as scenelib
+
+SCENE = scenelib.parse(
+    """
+- type: box
+  name: box_0
+  size: [0.3, 0.25, 0.2]
+  state: {position: [-0.4, 1.0, 0.2], linear_velocity: [1.5, 0.5, 0.0]}
+  physics: {friction: [0.3, 0.0]}
+- type: sphere
+  name: sphere_0
+  radius: 0.2
+  state: {position: [0.6, 1.5, 0.2], linear_velocity: [-0.5, 0.0, 0.0]}
+- type: camera
+  position: [0, -2, 3.5]
+"""
+)
+W, H = 96, 64
+
+
+@pytest.fixture(scope="module")
+def observed() -> scorer.Observation:
+    return scorer.Observation.from_scene(SCENE, width=W, height=H)
+
+
+def _moved(scene: scenelib.Scene, dx: float) -> scenelib.Scene:
+    box = scene.objects[0]
+    x, y, z = box.state.position
+    box = box.model_copy(update={"state": box.state.model_copy(update={"position": (x + dx, y, z)})})
+    return scene.model_copy(update={"objects": (box, *scene.objects[1:])})
+
+
+def test_self_score_is_perfect(observed):
+    assert len(observed.frames) == 10 and observed.segmentation.shape == (10, H, W)
+    assert {0, 1} <= set(np.unique(observed.segmentation).tolist())
+    (s,) = scorer.score([SCENE], observed)
+    assert (s.iou_first, s.iou_full, s.epe_first, s.epe_full, s.valid, s.reason) == (1.0, 1.0, 0.0, 0.0, True, None)
+    (t,) = scorer.score([scenelib.dump(SCENE)], observed)  # text candidates are parsed
+    assert t == s
+
+
+def test_iou_falls_monotonically_with_position_error(observed):
+    scores = scorer.score([_moved(SCENE, dx) for dx in (0.0, 0.05, 0.1, 0.2, 0.4, 0.8)], observed)
+    ious = [s.iou_full for s in scores]
+    assert ious[0] == 1.0
+    assert all(a > b for a, b in zip(ious, ious[1:], strict=False)), ious
+    assert scores[-1].epe_full > scores[1].epe_full > 0
+
+
+def test_invalid_candidates_score_zero_with_reason_and_do_not_spoil_others(observed):
+    tunnelled = SCENE.model_copy(
+        update={
+            "objects": (
+                SCENE.objects[0],
+                SCENE.objects[1].model_copy(
+                    update={
+                        "radius": 0.05,
+                        "state": SCENE.objects[1].state.model_copy(update={"position": (0, 1, -0.4)}),
+                    }
+                ),
+            )
+        }
+    )
+    good = _moved(SCENE, 0.1)
+    alone = scorer.score([good], observed)[0]
+    batch = scorer.score(["- type: box\n  size: [1, 1, 1]\n", good, "{{{", tunnelled, SCENE], observed)
+    assert [s.valid for s in batch] == [False, True, False, False, True]
+    for s in (batch[0], batch[2], batch[3]):
+        assert s.iou_first == s.iou_full == 0.0 and s.epe_full == scorer.EPE_INVALID and s.reason
+    assert "objects[0].state" in batch[0].reason
+    assert "tunnelled" in batch[3].reason
+    assert batch[1] == alone  # same numbers as when scored alone
+    assert batch[4].iou_full == 1.0
+    assert json.loads(json.dumps([s.to_json() for s in batch]))[2]["valid"] is False
+
+
+def test_candidate_with_other_structure_and_camera(observed):
+    """A candidate missing the sphere scores below 1; one seen from another camera differs too."""
+    only_box = SCENE.model_copy(update={"objects": SCENE.objects[:1]})
+    other_cam = SCENE.model_copy(update={"camera": SCENE.camera.model_copy(update={"position": (0.3, -2.0, 3.5)})})
+    a, b = scorer.score([only_box, other_cam], observed)
+    assert a.valid and b.valid and 0 < a.iou_full < 1 and 0 < b.iou_full < 1
+
+
+def test_observation_from_dir_npy_and_png(tmp_path, observed):
+    """A folder of the full video's masks (every frame) scores the scene perfectly, as .npy and as PNG."""
+    full = scorer.Observation.from_scene(SCENE, width=W, height=H, frames=range(30))
+    npy = tmp_path / "npy"
+    npy.mkdir()
+    np.save(npy / "segmentation.npy", full.segmentation)
+    (npy / "meta.json").write_text(json.dumps({"names": list(SCENE.names), "fps": 30}))
+    png = tmp_path / "png" / "segmentation"
+    png.mkdir(parents=True)
+    for k, m in enumerate(full.segmentation):
+        iio.imwrite(png / f"{k:03d}.png", (m + 1).astype(np.uint8))
+    for root in (npy, tmp_path / "png"):
+        obs = scorer.Observation.from_dir(root, width=W, height=H)
+        np.testing.assert_array_equal(obs.segmentation, observed.segmentation)
+        assert obs.flow is None
+        (s,) = scorer.score([SCENE], obs)
+        assert (s.iou_first, s.iou_full, s.epe_full, s.valid) == (1.0, 1.0, None, True)
+
+
+def test_observation_from_dir_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        scorer.Observation.from_dir(tmp_path / "missing")
+    with pytest.raises(FileNotFoundError, match="segmentation"):
+        scorer.Observation.from_dir(tmp_path)
+    np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.float32))
+    with pytest.raises(ValueError, match="segmentation.npy.*expected"):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.int16))
+    np.save(tmp_path / "flow.npy", np.zeros((29, 8, 4, 2), np.float32))
+    with pytest.raises(ValueError, match="flow.npy"):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+
+
+def test_sparse_scores_equal_dense_metrics(observed):
+    """The scorer's sparse metrics equal `aynamics.metrics` on the dense arrays of the same candidates."""
+    from aynamics import metrics
+
+    cands = [_moved(SCENE, dx) for dx in (0.03, 0.15, 0.5)]
+    cast = raycast.cast_group(cands, SCENE.structure, observed.frames, W, H, observed.config, 1)
+    seg, flow = cast.seg, cast.dense_flow
+    for k, s in enumerate(scorer.score(cands, observed)):
+        iou = metrics.segmentation_iou(seg[k], observed.segmentation, pred_names=SCENE.names, obs_names=SCENE.names)
+        mask = metrics.epe_mask(seg[k], observed.segmentation, observed.occluded)
+        epe = metrics.flow_epe(flow[k], observed.flow, mask)
+        assert (s.iou_first, s.iou_full) == pytest.approx(iou, abs=1e-12)
+        assert (s.epe_first, s.epe_full) == pytest.approx(tuple(x * 480 / W for x in epe), abs=1e-6)
