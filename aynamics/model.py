@@ -203,7 +203,10 @@ def _find_visual(model: torch.nn.Module) -> torch.nn.Module:
 
 def enable_gradient_checkpointing(model: torch.nn.Module) -> None:
     """Non-reentrant activation checkpointing (works with frozen embeddings and LoRA); disables the KV cache."""
-    model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+    if hasattr(model, "activation_checkpointing_enable"):  # transformers >= 5.x name
+        model.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
+    else:
+        model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
     model.config.use_cache = False
 
 
@@ -244,10 +247,10 @@ def apply_lora(
         bias="none",
         task_type="CAUSAL_LM",
     )
-    peft_model = get_peft_model(model, config)
-    if not any("lora_" in n for n, _ in peft_model.named_parameters()):
-        raise ValueError(f"LoRA target_modules = {list(target_modules)} matched no module of the language model")
-    return peft_model
+    try:
+        return get_peft_model(model, config)
+    except ValueError as e:  # peft: "Target modules ... not found in the base model"
+        raise ValueError(f"LoRA target_modules = {list(target_modules)}: no such module in language_model") from e
 
 
 def count_parameters(model: torch.nn.Module) -> tuple[int, int]:

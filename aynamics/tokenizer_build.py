@@ -24,7 +24,10 @@ from tokenizers import AddedToken, Regex, Tokenizer, decoders, models, normalize
 TINY_ASSET_DIR = Path(__file__).parent / "assets" / "tokenizer"
 
 # Qwen2's pre-tokenizer regex: `\p{N}` alone means every digit is its own pre-token.
-PRETOKENIZE_REGEX = r"""(?i:'s|'t|'re|'ve|'m|'ll|'d)|[^\r\n\p{L}\p{N}]?\p{L}+|\p{N}| ?[^\s\p{L}\p{N}]+[\r\n]*|\s*[\r\n]+|\s+(?!\S)|\s+"""
+PRETOKENIZE_REGEX = (
+    r"""(?i:'s|'t|'re|'ve|'m|'ll|'d)|[^\r\n\p{L}\p{N}]?\p{L}+|\p{N}"""
+    r"""| ?[^\s\p{L}\p{N}]+[\r\n]*|\s*[\r\n]+|\s+(?!\S)|\s+"""
+)
 
 # Special tokens, in Qwen2.5-VL's order (ids 0.. here; Qwen's start at 151643). The vision ones are what the
 # processor and the model config need; the rest keep prompts written for the real model tokenisable.
@@ -168,7 +171,8 @@ def reasoning(rng: random.Random) -> str:
         if rng.random() < 0.6:
             text += f"Collides with {other} at t={t0:.1f}s. "
         if rng.random() < 0.3:
-            text += f"Friction looks {rng.choice(['low', 'high', 'moderate'])}; it decelerates by {_num(rng, 0, 9, 1)} m/s^2. "
+            level = rng.choice(["low", "high", "moderate"])
+            text += f"Friction looks {level}; it decelerates by {_num(rng, 0, 9, 1)} m/s^2. "
         out.append(text.strip())
     return "\n".join(out)
 
@@ -187,8 +191,7 @@ _PROMPTS = [
 def corpus(n_scenes: int = 600, seed: int = 0) -> Iterator[str]:
     """Procedural training text: scenes, reasoning, chat-formatted targets and prompt sentences."""
     rng = random.Random(seed)
-    for p in _PROMPTS:
-        yield p
+    yield from _PROMPTS
     for i in range(n_scenes):
         y = scene_yaml(rng)
         if i % 3 == 0:

@@ -1,0 +1,208 @@
+"""The tiny Qwen2.5-VL: forward/backward, generation, LoRA placement, freezing, adapter and checkpoint round trips."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from peft import PeftModel
+
+from aynamics.model import (
+    DEFAULT_LORA_TARGETS,
+    apply_lora,
+    build_tiny_model,
+    count_parameters,
+    load_pretrained,
+    set_vision_trainable,
+)
+from aynamics.processor import (
+    IGNORE_INDEX,
+    append_completions,
+    build_prompt,
+    build_sft_example,
+    collate,
+    load_processor,
+    mean_token_logprob,
+    model_inputs,
+)
+from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+PROMPTS = {"system_prompt": "You are a physics expert.", "user_prompt": "Write the scene as YAML."}
+
+
+@pytest.fixture(scope="module")
+def proc():
+    return load_processor(TINY_ASSET_DIR)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    rng = np.random.default_rng(0)
+    return [rng.integers(0, 255, (56, 84, 3), dtype=np.uint8) for _ in range(3)]
+
+
+@pytest.fixture(scope="module")
+def batches(proc, frames):
+    """Two-example SFT batches (different lengths, left-padded): frames as images, and as one video."""
+    pad = proc.tokenizer.pad_token_id
+    out = {}
+    for as_video in (False, True):
+        a = build_sft_example(proc, frames, "<answer>\n- type: box\n</answer>", as_video=as_video, **PROMPTS)
+        b = build_sft_example(
+            proc, frames[:2], "<think>slides</think>\n\n<answer>x</answer>", as_video=as_video, **PROMPTS
+        )
+        out["video" if as_video else "images"] = ([a, b], collate([a, b], pad))
+    return out
+
+
+def test_tiny_model_config(proc):
+    model = build_tiny_model()
+    cfg = model.config
+    trainable, total = count_parameters(model)
+    assert trainable == total < 400_000
+    assert cfg.text_config.vocab_size >= len(proc.tokenizer)
+    assert cfg.image_token_id == proc.image_token_id and cfg.video_token_id == proc.video_token_id
+    assert cfg.vision_config.out_hidden_size == cfg.text_config.hidden_size
+    assert sum(cfg.text_config.rope_parameters["mrope_section"]) * 2 == 64 // 4  # head_dim
+    assert torch.equal(build_tiny_model().lm_head.weight, model.lm_head.weight)  # seeded
+
+
+@pytest.mark.parametrize("kind", ["images", "video"])
+def test_forward_backward(batches, kind):
+    model = build_tiny_model().train()
+    _, batch = batches[kind]
+    out = model(**model_inputs(batch), labels=batch["labels"])
+    assert torch.isfinite(out.loss)
+    out.loss.backward()
+    grads = [p.grad for p in model.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert model.model.visual.patch_embed.proj.weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kind", ["images", "video"])
+def test_left_padding_gives_unpadded_logits(proc, batches, kind):
+    """3-D positions come from the attention mask, so a padded row reproduces its unpadded logits."""
+    model = build_tiny_model()
+    examples, batch = batches[kind]
+    pad = proc.tokenizer.pad_token_id
+    with torch.no_grad():
+        logits = model(**model_inputs(batch)).logits
+        for row, ex in enumerate(examples):
+            alone = model(**model_inputs(collate([ex], pad))).logits[0]
+            keep = batch["attention_mask"][row].bool()
+            torch.testing.assert_close(logits[row][keep], alone, atol=1e-5, rtol=1e-5)
+        # without mm_token_type_ids the model silently falls back to 1-D positions: different logits
+        one = model_inputs(collate(examples[-1:], pad))
+        no_mm = {k: v for k, v in one.items() if k != "mm_token_type_ids"}
+        assert not torch.allclose(model(**no_mm).logits[0], alone, atol=1e-4)
+
+
+@pytest.mark.parametrize("as_video", [False, True])
+def test_generate(proc, frames, as_video):
+    model = build_tiny_model()
+    pad = proc.tokenizer.pad_token_id
+    prompts = [build_prompt(proc, frames, as_video=as_video, **PROMPTS), build_prompt(proc, frames[:2], **PROMPTS)]
+    if as_video:
+        prompts[1] = build_prompt(proc, frames[:2], as_video=True, **PROMPTS)
+    batch = collate(prompts, pad)
+    out = model.generate(**model_inputs(batch), max_new_tokens=4, do_sample=False)
+    assert out.shape == (2, batch["input_ids"].shape[1] + 4)
+    alone = model.generate(**model_inputs(collate(prompts[:1], pad)), max_new_tokens=4, do_sample=False)
+    assert torch.equal(out[0, -4:], alone[0, -4:])
+
+
+def test_lora_hits_only_the_language_model():
+    model = apply_lora(build_tiny_model(), rank=4, alpha=8, dropout=0.0)
+    lora = [n for n, _ in model.named_parameters() if "lora_" in n]
+    assert lora and not any("visual" in n for n in lora)
+    assert all("language_model" in n for n in lora)
+    assert len(lora) == 2 * len(DEFAULT_LORA_TARGETS) * 2  # A and B x 7 projections x 2 layers
+    trainable = [n for n, p in model.named_parameters() if p.requires_grad]
+    assert set(trainable) == set(lora)  # vision tower, embeddings, lm_head frozen
+    only_q = apply_lora(build_tiny_model(), target_modules=["q_proj"])
+    assert sum("lora_A" in n for n, _ in only_q.named_parameters()) == 2
+    with pytest.raises(ValueError, match="nope_proj"):
+        apply_lora(build_tiny_model(), target_modules=["nope_proj"])
+
+
+def test_vision_trainable_flag():
+    model = apply_lora(build_tiny_model(), train_vision=True)
+    vis = [(n, p) for n, p in model.named_parameters() if "visual" in n and p.requires_grad]
+    assert vis and not any("lora_" in n for n, _ in vis)
+    assert any("modules_to_save" in n for n, _ in vis)
+    base = build_tiny_model()
+    set_vision_trainable(base, False)
+    assert not any(p.requires_grad for p in base.model.visual.parameters())
+    assert all(p.requires_grad for p in base.model.language_model.parameters())
+    set_vision_trainable(base, True)
+    assert all(p.requires_grad for p in base.model.visual.parameters())
+
+
+def _train_steps(model, batch, steps=2):
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-2, weight_decay=0.0)
+    model.train()
+    for _ in range(steps):  # two steps: LoRA's B starts at 0, so A gets a gradient only from step 2
+        loss = model(**model_inputs(batch), labels=batch["labels"]).loss
+        loss.backward()
+        opt.step()
+        opt.zero_grad()
+    return model.eval()
+
+
+@pytest.mark.parametrize("train_vision", [False, True])
+def test_training_changes_trainable_only_and_adapter_round_trips(batches, tmp_path, train_vision):
+    _, batch = batches["images"]
+    model = apply_lora(build_tiny_model(), rank=4, alpha=8, dropout=0.0, train_vision=train_vision)
+    before = {n: p.detach().clone() for n, p in model.named_parameters()}
+    _train_steps(model, batch)
+    for n, p in model.named_parameters():
+        changed = not torch.equal(p, before[n])
+        assert changed == p.requires_grad, n
+    with torch.no_grad():
+        ref = model(**model_inputs(batch)).logits
+    model.save_pretrained(tmp_path)
+    reloaded = PeftModel.from_pretrained(build_tiny_model(), tmp_path).eval()
+    with torch.no_grad():
+        torch.testing.assert_close(reloaded(**model_inputs(batch)).logits, ref, atol=0, rtol=0)
+
+
+def test_gradient_checkpointing_with_lora(batches):
+    _, batch = batches["video"]
+    model = apply_lora(build_tiny_model(), rank=4, gradient_checkpointing=True).train()
+    assert model.base_model.model.model.language_model.gradient_checkpointing
+    model(**model_inputs(batch), labels=batch["labels"]).loss.backward()
+    assert all(p.grad is not None for n, p in model.named_parameters() if "lora_A" in n)
+
+
+def test_save_and_load_pretrained_round_trip(batches, tmp_path):
+    """The real-model path (`from_pretrained` on a directory) loads a saved tiny model unchanged."""
+    _, batch = batches["images"]
+    model = build_tiny_model()
+    model.save_pretrained(tmp_path)
+    loaded = load_pretrained(tmp_path, dtype=torch.float32, local_files_only=True)
+    assert loaded.generation_config.pad_token_id == model.generation_config.pad_token_id
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(**model_inputs(batch)).logits, model(**model_inputs(batch)).logits)
+    with pytest.raises(FileNotFoundError, match="not a directory"):
+        load_pretrained(tmp_path / "missing")
+
+
+def test_completion_logprobs_match_the_sft_loss(proc, frames):
+    """Scoring N completions of one prompt: the mean token log-prob equals minus the model's own SFT loss."""
+    model = build_tiny_model()
+    tok = proc.tokenizer
+    prompt = build_prompt(proc, frames, **PROMPTS)
+    texts = ["<answer>a</answer><|im_end|>", "<think>b</think>\n\n<answer>c</answer><|im_end|>"]
+    batch = append_completions(
+        prompt, [tok(t, add_special_tokens=False)["input_ids"] for t in texts], pad_token_id=tok.pad_token_id
+    )
+    with torch.no_grad():
+        lp = mean_token_logprob(model(**model_inputs(batch)).logits, batch["labels"])
+        for row in range(len(texts)):
+            one = {k: v[row : row + 1] for k, v in batch.items() if v.shape[0] == len(texts) and v.dim() == 2}
+            one |= {"pixel_values": prompt["pixel_values"], "image_grid_thw": prompt["image_grid_thw"]}
+            loss = model(**model_inputs(one), labels=one["labels"]).loss
+            assert lp[row].item() == pytest.approx(-loss.item(), abs=1e-5)
+    assert (batch["labels"] != IGNORE_INDEX).sum(-1).tolist() == [
+        len(tok(t, add_special_tokens=False)["input_ids"]) for t in texts
+    ]

@@ -1,0 +1,223 @@
+"""Processor, chat formatting, batching and log-prob helpers on the tiny tokenizer asset (offline, CPU)."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from aynamics.processor import (
+    IGNORE_INDEX,
+    IMAGE,
+    VIDEO,
+    append_completions,
+    build_messages,
+    build_prompt,
+    build_sft_example,
+    collate,
+    load_processor,
+    mean_token_logprob,
+    sample_frames,
+    token_logprobs,
+    trim_completion,
+)
+from aynamics.tokenizer_build import SPECIAL_TOKENS, TAG_TOKENS, TINY_ASSET_DIR, build_tokenizer
+
+PROMPTS = {"system_prompt": "You are a physics expert.", "user_prompt": "Write the scene as YAML."}
+RESPONSE = "<answer>\n- type: box\n  mass: 1.25\n</answer>"
+
+
+@pytest.fixture(scope="module")
+def proc():
+    return load_processor(TINY_ASSET_DIR)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """Three 56x84 RGB frames: 2x3 merged tokens each (56/28 x 84/28)."""
+    rng = np.random.default_rng(0)
+    return [rng.integers(0, 255, (56, 84, 3), dtype=np.uint8) for _ in range(3)]
+
+
+def test_tokenizer_asset(proc):
+    tok = proc.tokenizer
+    assert sum(p.stat().st_size for p in TINY_ASSET_DIR.iterdir()) < 1_000_000
+    assert len(tok) < 4096
+    for t in SPECIAL_TOKENS + TAG_TOKENS:
+        assert len(tok(t, add_special_tokens=False)["input_ids"]) == 1, t
+    assert tok.eos_token == "<|im_end|>" and tok.pad_token == "<|endoftext|>"
+    # digits are single tokens, as in Qwen
+    pieces = tok.convert_ids_to_tokens(tok("mass: -12.75", add_special_tokens=False)["input_ids"])
+    assert [p for p in pieces if p.strip("Ġ").isdigit()] == ["1", "2", "7", "5"]
+    # <think>/<answer> survive skip_special_tokens (they are added, not special); <|im_end|> does not
+    text = "<think>a</think>\n\n<answer>b</answer>"
+    assert tok.decode(tok(text + "<|im_end|>")["input_ids"], skip_special_tokens=True) == text
+
+
+def test_tokenizer_build_is_reproducible():
+    """The committed asset is what `python -m aynamics.tokenizer_build` produces."""
+    import json
+
+    saved = json.loads((TINY_ASSET_DIR / "tokenizer.json").read_text())["model"]["vocab"]
+    assert build_tokenizer().get_vocab(with_added_tokens=False) == saved
+
+
+def test_chat_template(proc):
+    messages = build_messages(2, examples=["- type: box"], **PROMPTS)
+    text = proc.apply_chat_template(messages, tokenize=False, add_generation_prompt=True)
+    assert text == (
+        "<|im_start|>system\nYou are a physics expert.<|im_end|>\n<|im_start|>user\nExample 1:\n- type: box\n\n"
+        + "<|vision_start|><|image_pad|><|vision_end|>" * 2
+        + "Write the scene as YAML.<|im_end|>\n<|im_start|>assistant\n"
+    )
+    video = build_messages(3, as_video=True, **PROMPTS)
+    assert "<|vision_start|><|video_pad|><|vision_end|>" in proc.apply_chat_template(video, tokenize=False)
+
+
+def test_video_has_half_the_visual_tokens(proc, frames):
+    four = frames + frames[:1]
+    images = build_prompt(proc, four, **PROMPTS)
+    video = build_prompt(proc, four, as_video=True, **PROMPTS)
+    n_img = int((images["mm_token_type_ids"] == IMAGE).sum())
+    n_vid = int((video["mm_token_type_ids"] == VIDEO).sum())
+    assert n_img == 4 * 6 and n_vid == 2 * 6
+    assert images["image_grid_thw"].tolist() == [[1, 4, 6]] * 4
+    assert video["video_grid_thw"].tolist() == [[2, 4, 6]]
+    assert video["pixel_values_videos"].shape == (2 * 24, 3 * 2 * 14 * 14)
+    assert video["second_per_grid_ts"].tolist() == [1.0]  # temporal patch 2 / video_fps 2
+    assert "pixel_values" not in video and "pixel_values_videos" not in images
+
+
+def test_video_patch_layout_matches_qwen_video_processor(proc, frames):
+    """Rebuild the frames from image patches, then patchify them with the code of Qwen2VLVideoProcessor.patchify."""
+    t, p, m = 2, 14, 2
+    padded = frames + frames[-1:]  # odd frame count: the last frame is repeated
+    img = proc.process_images(padded)
+    _, gh, gw = img["image_grid_thw"][0].tolist()
+    x = img["pixel_values"].view(4, gh // m, gw // m, m, m, 3, t, p, p)[..., 0, :, :]
+    video = x.permute(0, 5, 1, 3, 6, 2, 4, 7).reshape(1, 4, 3, gh * p, gw * p)  # (B, F, C, H, W)
+    ref = video.view(1, 2, t, 3, gh // m, m, p, gw // m, m, p).permute(0, 1, 4, 7, 5, 8, 3, 2, 6, 9)
+    ref = ref.reshape(2 * gh * gw, 3 * t * p * p)
+    out = proc.process_video(frames)
+    assert torch.equal(out["pixel_values_videos"], ref)
+    assert out["video_grid_thw"].tolist() == [[2, gh, gw]]
+
+
+def test_sft_labels_mask_prompt_and_images(proc, frames):
+    """Hand count: the response tokenises to R ids; labels keep exactly R + 1 (<|im_end|>) tokens."""
+    tok = proc.tokenizer
+    ex = build_sft_example(proc, frames, RESPONSE, **PROMPTS)
+    prompt = build_prompt(proc, frames, **PROMPTS)
+    r = tok(RESPONSE, add_special_tokens=False)["input_ids"]
+    n_prompt = len(prompt["input_ids"])
+    assert torch.equal(ex["input_ids"][:n_prompt], prompt["input_ids"])
+    keep = ex["labels"] != IGNORE_INDEX
+    assert int(keep.sum()) == len(r) + 1
+    assert not keep[:n_prompt].any()  # system, user text and every <|image_pad|> are masked
+    assert ex["labels"][keep].tolist() == r + [tok.convert_tokens_to_ids("<|im_end|>")]
+    assert torch.equal(ex["labels"][keep], ex["input_ids"][keep])
+    assert ((ex["mm_token_type_ids"] == IMAGE) == (ex["input_ids"] == proc.image_token_id)).all()
+    assert int((ex["mm_token_type_ids"] == IMAGE).sum()) == 3 * 6
+    assert tok.decode(ex["input_ids"][keep]) == RESPONSE + "<|im_end|>"
+
+
+def test_collate_pads_left_and_concatenates_pixels(proc, frames):
+    a = build_sft_example(proc, frames, RESPONSE, **PROMPTS)
+    b = build_sft_example(proc, frames[:2], "<answer>x</answer>", examples=["- type: sphere"], **PROMPTS)
+    pad = proc.tokenizer.pad_token_id
+    batch = collate([a, b], pad)
+    n = batch["input_ids"].shape[1]
+    assert n == max(len(a["input_ids"]), len(b["input_ids"]))
+    short = 0 if len(a["input_ids"]) < n else 1
+    k = n - len((a, b)[short]["input_ids"])
+    assert (batch["input_ids"][short, :k] == pad).all() and (batch["attention_mask"][short, :k] == 0).all()
+    assert (batch["labels"][short, :k] == IGNORE_INDEX).all() and (batch["mm_token_type_ids"][short, :k] == 0).all()
+    assert batch["pixel_values"].shape[0] == a["pixel_values"].shape[0] + b["pixel_values"].shape[0]
+    assert batch["image_grid_thw"].shape == (5, 3)
+    right = collate([a, b], pad, padding_side="right")
+    assert (right["attention_mask"][short, -k:] == 0).all()
+    video = build_sft_example(proc, frames, RESPONSE, as_video=True, **PROMPTS)
+    with pytest.raises(ValueError, match="mixed"):
+        collate([a, video], pad)
+
+
+def test_append_completions_keeps_visual_inputs_aligned(proc, frames):
+    tok = proc.tokenizer
+    pad, im_end = tok.pad_token_id, tok.convert_tokens_to_ids("<|im_end|>")
+    prompt = build_prompt(proc, frames, **PROMPTS)
+    c = [tok("<answer>a</answer>", add_special_tokens=False)["input_ids"], [5, 6, 7, 8, 9, 10, 11]]
+    generated = torch.tensor([c[0] + [im_end, pad, pad, pad], [5, 6, im_end, 9, 9, 9, 9], c[1]])
+    batch = append_completions(prompt, generated, pad_token_id=pad, eos_token_ids=[im_end, pad])
+    n = 3
+    assert batch["input_ids"].shape[0] == n
+    assert torch.equal(batch["pixel_values"], prompt["pixel_values"].repeat(n, 1))
+    assert torch.equal(batch["image_grid_thw"], prompt["image_grid_thw"].repeat(n, 1))
+    for row in range(n):
+        ids, mm = batch["input_ids"][row], batch["mm_token_type_ids"][row]
+        assert ((mm == IMAGE) == (ids == proc.image_token_id)).all()
+        assert int((mm == IMAGE).sum()) == int((prompt["mm_token_type_ids"] == IMAGE).sum())
+    keep = batch["labels"] != IGNORE_INDEX
+    assert keep.sum(-1).tolist() == [len(c[0]) + 1, 3, len(c[1])]
+    assert batch["labels"][1][keep[1]].tolist() == [5, 6, im_end]
+    assert (batch["mm_token_type_ids"][keep] == 0).all()
+
+
+def test_trim_completion():
+    assert trim_completion([4, 5, 2, 7], eos_token_ids=[2]) == [4, 5, 2]
+    assert trim_completion(torch.tensor([4, 5, 0, 0]), pad_token_id=0) == [4, 5]
+    assert trim_completion([4, 5], pad_token_id=0, eos_token_ids=[2]) == [4, 5]
+
+
+def test_mean_token_logprob_hand_computed():
+    """Row 0: labels [-, 1, 0]. logits[0] = [0, 0] gives log p(1) = log 1/2; logits[1] = [ln 3, 0] gives
+    log p(0) = log 3/4. Mean = (log 0.5 + log 0.75) / 2 = -0.4904. Row 1 has no labels: 0."""
+    logits = torch.tensor([[[0.0, 0.0], [math.log(3.0), 0.0], [5.0, -5.0]]] * 2)
+    labels = torch.tensor([[IGNORE_INDEX, 1, 0], [IGNORE_INDEX] * 3])
+    expected = (math.log(0.5) + math.log(0.75)) / 2
+    out = mean_token_logprob(logits, labels)
+    assert out.shape == (2,)
+    assert out[0].item() == pytest.approx(expected, abs=1e-6) and out[1].item() == 0.0
+    lp, mask = token_logprobs(logits, labels)
+    assert mask.tolist() == [[True, True], [False, False]]
+    assert lp[0].tolist() == pytest.approx([math.log(0.5), math.log(0.75)], abs=1e-6)
+
+
+def test_errors_name_the_bad_value(proc, frames):
+    with pytest.raises(ValueError, match="2 <\\|image_pad\\|> placeholders but 1"):
+        proc(text="<|image_pad|><|image_pad|>", images=frames[:1])
+    with pytest.raises(ValueError, match="different sizes"):
+        proc.process_video([frames[0], np.zeros((28, 28, 3), np.uint8)])
+    with pytest.raises(ValueError, match="padding_side = 'middle'"):
+        collate([build_prompt(proc, frames, **PROMPTS)], 0, padding_side="middle")
+
+
+def test_sample_frames_and_processor_options(proc, frames, tmp_path):
+    assert sample_frames(list(range(10)), 4) == [0, 3, 6, 9]
+    assert sample_frames(list(range(3)), None) == [0, 1, 2]
+    small = load_processor(TINY_ASSET_DIR, min_pixels=28 * 28, max_pixels=28 * 28, num_frames=2)
+    ex = build_prompt(small, frames, **PROMPTS)
+    assert ex["image_grid_thw"].tolist() == [[1, 2, 2]] * 2  # two frames, each squeezed to 28x28
+    small.save_pretrained(tmp_path)
+    again = load_processor(tmp_path)
+    assert again.num_frames == 2 and again.image_processor.size["longest_edge"] == 28 * 28
+    assert torch.equal(build_prompt(again, frames, **PROMPTS)["input_ids"], ex["input_ids"])
+    assert "torchvision" not in sys.modules
+
+
+def test_apply_chat_template_tokenize_matches_build_prompt(proc, frames):
+    """transformers' own path (images inside the messages) gives the same ids and pixels as `build_prompt`."""
+    from PIL import Image
+
+    messages = build_messages(len(frames), **PROMPTS)
+    it = iter(frames)
+    for part in messages[1]["content"]:
+        if part["type"] == "image":
+            part["image"] = Image.fromarray(next(it))
+    out = proc.apply_chat_template(messages, tokenize=True, return_dict=True, add_generation_prompt=True)
+    ref = build_prompt(proc, frames, **PROMPTS)
+    assert torch.equal(out["input_ids"][0], ref["input_ids"])
+    assert torch.equal(out["mm_token_type_ids"][0], ref["mm_token_type_ids"])
+    torch.testing.assert_close(out["pixel_values"], ref["pixel_values"])
