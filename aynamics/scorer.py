@@ -267,7 +267,7 @@ def _score_hits(
     if sums.flow is not None:
         ok = sums.valid[f, pix]
         d = cast.flow[sel][ok] - sums.flow[f[ok], pix[ok]]
-        err = np.bincount(f[ok], weights=np.hypot(d[:, 0], d[:, 1]), minlength=f_count)
+        err = np.bincount(f[ok], weights=np.hypot(d[:, 0], d[:, 1]), minlength=f_count).astype(float)  # int when empty
         cnt = np.bincount(f[ok], minlength=f_count).astype(float)
         # observed object pixels the prediction leaves empty: predicted flow 0 there, error |observed flow|
         hw = sums.seg.shape[1]

@@ -1,0 +1,514 @@
+"""Physics editing: change an inferred scene with a plain-English instruction and ask "what if".
+
+A small deterministic instruction language covers the paper's edits and their kin; several clauses can be
+joined with ";" or "then":
+
+    reduce the x-velocity of box_0 by 80%        decrease gravity by 50%
+    increase the y-velocity by 50%  (no object named: every object)
+    set the mass of sphere_1 to 2 kg             double the friction of cylinder_0
+    move box_0 0.5 m left                        reverse the z-velocity of the sphere
+    stop box_0                                   set the velocity of box_0 to [1, 0, 0]
+
+Directions are world axes as the default camera sees them: "left" is -x, "right" +x, "forward"/"away" +y
+(the camera looks along +y), "back"/"toward the camera" -y, "up" +z, "down" -z. A percentage or factor on a
+vector without a component ("the velocity") scales the whole vector; an amount with a unit ("by 1 m/s") changes
+its magnitude along its direction. `damping` is log10 of a decay rate, so "double the damping" doubles the rate
+and "set the damping to 0.5 /s" sets the rate (a plain number sets the log10 value).
+
+    result = apply_instruction(scene, "reduce the x-velocity of box_0 by 80%")
+    result.scene, result.changes   # the validated edited scene; every leaf that changed
+
+`aynamics edit SCENE.yaml "INSTRUCTION" [--out EDITED.yaml] [--render DIR] [--llm MODEL]` runs it; the optional
+language-model editor lives in `aynamics.edit_llm`, rendering of the what-if in `aynamics.edit_render`.
+Instructions it cannot read raise `EditError` listing what it understands; an edit that makes the scene invalid
+is refused with the validation error, and nothing is written.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+from dataclasses import dataclass
+from typing import Any
+
+from aynamics.scene import Scene, SceneError, from_items, to_items
+
+# --------------------------------------------------------------------------------------------
+# Vocabulary
+# --------------------------------------------------------------------------------------------
+UNITS: dict[str, dict[str, float]] = {
+    "length": {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0, "cm": 0.01, "mm": 0.001},
+    "velocity": {"m/s": 1.0, "cm/s": 0.01, "km/h": 1 / 3.6},
+    "angular": {"rad/s": 1.0, "deg/s": math.pi / 180, "rpm": 2 * math.pi / 60},
+    "mass": {"kg": 1.0, "g": 0.001, "kilograms": 1.0, "grams": 0.001},
+    "acceleration": {"m/s^2": 1.0, "m/s²": 1.0, "m/s2": 1.0},
+    "angle": {"deg": 1.0, "degrees": 1.0, "°": 1.0},
+    "none": {},
+}
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """An editable field: where it lives in a scene item and how edits act on it."""
+
+    key: str  # canonical name, e.g. "linear_velocity"
+    words: str  # regex alternatives that name it in an instruction
+    scope: str  # "object" (per object item) or "gravity" / "camera" (the scene item of that type)
+    path: tuple[str, ...]  # keys inside the item
+    index: int | None = None  # element of a vector field (friction[0])
+    dims: int = 1  # 3 for vectors
+    unit: str = "none"
+    signed: bool = False  # may be reversed
+    log_rate: bool = False  # stored as log10 of a rate (damping)
+
+
+QUANTITIES: tuple[Quantity, ...] = (  # longest phrases first: "angular velocity" before "velocity"
+    Quantity(
+        "angular_velocity",
+        r"angular velocity|angular speed|rotational velocity|rotation speed|spin",
+        "object",
+        ("state", "angular_velocity"),
+        dims=3,
+        unit="angular",
+        signed=True,
+    ),
+    Quantity(
+        "linear_velocity",
+        r"linear velocity|velocity|speed",
+        "object",
+        ("state", "linear_velocity"),
+        dims=3,
+        unit="velocity",
+        signed=True,
+    ),
+    Quantity("position", r"position|location", "object", ("state", "position"), dims=3, unit="length", signed=True),
+    Quantity("rolling_resistance", r"rolling resistance|rolling friction", "object", ("physics", "friction"), 1),
+    Quantity("friction", r"sliding friction|friction coefficient|friction", "object", ("physics", "friction"), 0),
+    Quantity("mass", r"mass|weight", "object", ("physics", "mass"), unit="mass"),
+    Quantity("damping", r"damping", "object", ("physics", "damping"), log_rate=True),
+    Quantity("restitution", r"restitution|bounciness", "object", ("physics", "restitution")),
+    Quantity("radius", r"radius", "object", ("radius",), unit="length"),
+    Quantity("height", r"height", "object", ("height",), unit="length"),
+    Quantity("size", r"size|half-extents", "object", ("size",), dims=3, unit="length"),
+    Quantity(
+        "gravity",
+        r"gravity|gravitational acceleration",
+        "gravity",
+        ("gravity",),
+        dims=3,
+        unit="acceleration",
+        signed=True,
+    ),
+    Quantity("fovy", r"field of view|fovy|fov", "camera", ("fovy",), unit="angle"),
+)
+
+DIRECTIONS: dict[str, tuple[int, float]] = {  # word -> (axis, sign); see the module docstring
+    "left": (0, -1.0),
+    "right": (0, 1.0),
+    "forward": (1, 1.0),
+    "forwards": (1, 1.0),
+    "away": (1, 1.0),
+    "away from the camera": (1, 1.0),
+    "back": (1, -1.0),
+    "backward": (1, -1.0),
+    "backwards": (1, -1.0),
+    "toward the camera": (1, -1.0),
+    "towards the camera": (1, -1.0),
+    "up": (2, 1.0),
+    "upward": (2, 1.0),
+    "upwards": (2, 1.0),
+    "down": (2, -1.0),
+    "downward": (2, -1.0),
+    "downwards": (2, -1.0),
+}
+
+UNDERSTOOD = (
+    "I understand (clauses joined by ';' or 'then'): "
+    "'increase|raise|decrease|reduce|lower QUANTITY [of TARGETS] by N% | by N UNIT'; "
+    "'set|change QUANTITY [of TARGETS] to N [UNIT] | to [x, y, z]'; "
+    "'double|triple|halve QUANTITY [of TARGETS]'; 'multiply|scale QUANTITY [of TARGETS] by K'; "
+    "'reverse QUANTITY [of TARGETS]'; 'move TARGETS N m DIRECTION' (left -x, right +x, forward/away +y, "
+    "back/toward the camera -y, up +z, down -z); 'move TARGETS to [x, y, z]'; 'stop TARGETS'. "
+    "QUANTITY: [x-|y-|z-]velocity, [x-|y-|z-]angular velocity (spin), [x-|y-|z-]position, mass, friction, "
+    "rolling resistance, damping, restitution, radius, height, size, [x-|y-|z-]gravity, field of view. "
+    "TARGETS: object names (box_0, sphere_1 and cylinder_0), 'the box', 'all spheres', 'all objects'; "
+    "none named means every object"
+)
+
+_NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:e[-+]?\d+)?"
+_FACTORS = {"double": 2.0, "triple": 3.0, "quadruple": 4.0, "halve": 0.5}
+_UP = ("increase", "raise", "boost")
+_DOWN = ("decrease", "reduce", "lower", "cut")
+
+
+class EditError(ValueError):
+    """An instruction that can't be read, or an edit refused (the message says which and why)."""
+
+
+@dataclass(frozen=True)
+class Change:
+    """One leaf of the scene that an edit changed. `path` uses object names: `box_0.state.position[0]`."""
+
+    path: str
+    before: Any
+    after: Any
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.before} -> {self.after}"
+
+
+@dataclass(frozen=True)
+class EditResult:
+    """The validated edited scene and every leaf that changed."""
+
+    scene: Scene
+    changes: tuple[Change, ...]
+
+
+# --------------------------------------------------------------------------------------------
+# Reading an instruction
+# --------------------------------------------------------------------------------------------
+def _quantity(text: str) -> tuple[Quantity, int | None]:
+    """The quantity a phrase names (`x-velocity`, `velocity along z`, `mass`) and its component or None."""
+    text = re.sub(r"^(?:the|its|their)\s+", "", text.strip())
+    for q in QUANTITIES:
+        m = re.fullmatch(
+            rf"(?:(?P<c1>[xyz])[- ]?|(?P<vert>vertical) )?(?:{q.words})"
+            rf"(?: (?:in|along) (?:the )?(?P<c2>[xyz])(?:[- ]?(?:axis|direction))?)?",
+            text,
+        )
+        if m:
+            comp = m.group("c1") or m.group("c2") or ("z" if m.group("vert") else None)
+            if comp is not None and q.dims != 3:
+                raise EditError(f"{text!r}: {q.key} has no {comp} component")
+            return q, None if comp is None else "xyz".index(comp)
+    raise EditError(f"quantity {text!r} not understood. {UNDERSTOOD}")
+
+
+def _targets(text: str | None, scene: Scene) -> list[int]:
+    """Indices of the objects a target phrase names; None or 'all objects' means every object."""
+    if text is None or re.fullmatch(r"(?:all|every|each)(?: (?:the )?objects?)?|everything|the objects", text):
+        return list(range(len(scene.objects)))
+    out: list[int] = []
+    lower = {n.lower(): i for i, n in enumerate(scene.names)}
+    for part in re.split(r"\s*,\s*(?:and\s+)?|\s+and\s+", text.strip()):
+        part = part.strip()
+        if part in lower:
+            out.append(lower[part])
+            continue
+        m = re.fullmatch(r"(?:(all|every|each|the) )?(box|boxes|sphere|spheres|cylinder|cylinders)", part)
+        if m is None:
+            raise EditError(f"object {part!r} not found; the scene has {list(scene.names)}. {UNDERSTOOD}")
+        kind = {"boxes": "box", "spheres": "sphere", "cylinders": "cylinder"}.get(m.group(2), m.group(2))
+        idx = [i for i, o in enumerate(scene.objects) if o.type == kind]
+        if not idx:
+            raise EditError(f"{part!r}: the scene has no {kind}; its objects are {list(scene.names)}")
+        singular = m.group(2) == kind and m.group(1) in (None, "the")
+        if singular and len(idx) > 1:
+            names = [scene.names[i] for i in idx]
+            raise EditError(f"{part!r} is ambiguous: the scene has {len(idx)} {kind}es {names}; name one")
+        out.extend(idx)
+    return sorted(set(out))
+
+
+def _subject(text: str) -> tuple[str, str | None]:
+    """Split 'x-velocity of box_0' / "box_0's x-velocity" into (quantity phrase, targets phrase or None)."""
+    m = re.fullmatch(r"(?:the )?(?P<t>[\w ,]+?)'s (?P<q>.+)", text)
+    if m:
+        return m.group("q"), m.group("t")
+    m = re.fullmatch(r"(?P<q>.+?) (?:of|for) (?P<t>.+)", text)
+    if m:
+        return m.group("q"), m.group("t")
+    return text, None
+
+
+def _value(text: str, q: Quantity) -> tuple[float | list[float], str]:
+    """Parse 'N [UNIT]' or '[x, y, z]' into SI numbers; returns (value, kind) with kind 'percent', 'abs', 'rate'."""
+    text = text.strip()
+    if text in ("half", "a half"):
+        return 50.0, "percent"
+    if text.startswith("["):
+        parts = text.strip("[] ").split(",")
+        try:
+            vec = [float(p) for p in parts]
+        except ValueError:
+            raise EditError(f"value {text!r}: a vector must be [x, y, z] numbers") from None
+        if len(vec) != 3 or q.dims != 3:
+            raise EditError(f"value {text!r}: {q.key} takes {'[x, y, z]' if q.dims == 3 else 'one number'}")
+        return vec, "abs"
+    m = re.fullmatch(rf"(?P<n>{_NUM})\s*(?P<u>.*)", text)
+    if m is None:
+        raise EditError(f"value {text!r} not understood: expected a number, N%, or [x, y, z]. {UNDERSTOOD}")
+    n, unit = float(m.group("n")), m.group("u").strip()
+    if unit in ("%", "percent", "per cent"):
+        return n, "percent"
+    if q.log_rate and unit in ("/s", "1/s", "per second"):
+        return n, "rate"
+    table = UNITS[q.unit]
+    if unit == "":
+        return n, "abs"
+    if unit not in table:
+        allowed = ", ".join(table) if table else "no unit"
+        raise EditError(f"unit {unit!r} does not fit {q.key}: allowed {allowed}")
+    return n * table[unit], "abs"
+
+
+# --------------------------------------------------------------------------------------------
+# Applying
+# --------------------------------------------------------------------------------------------
+def _items_of(q: Quantity, items: list[dict], targets: list[int], scene: Scene, named: bool) -> list[dict]:
+    if q.scope == "object":
+        return [items[i] for i in targets]
+    if named:
+        raise EditError(f"{q.key} is a property of the whole scene, not of {[scene.names[i] for i in targets]}")
+    for it in items:
+        if it["type"] == q.scope:
+            return [it]
+    raise EditError(f"the scene has no {q.scope} item")
+
+
+def _edit_field(item: dict, q: Quantity, comp: int | None, fn, label: str) -> None:
+    """Replace the field (or its element/component) with fn(old) -> new, in place."""
+    *parents, leaf = q.path
+    holder = item
+    for k in parents:
+        holder = holder[k]
+    name = item.get("name", q.scope)
+    if leaf not in holder or holder[leaf] is None:
+        if q.key == "restitution":
+            holder[leaf] = fn(None)
+            return
+        raise EditError(f"{name} has no {q.key} ({item['type']}); {label} does not apply to it")
+    if q.index is not None:
+        holder[leaf][q.index] = fn(holder[leaf][q.index])
+    elif comp is not None:
+        holder[leaf][comp] = fn(holder[leaf][comp])
+    else:
+        holder[leaf] = fn(holder[leaf])
+
+
+def _magnitude(vec: list[float], new: float, what: str) -> list[float]:
+    norm = math.sqrt(sum(x * x for x in vec))
+    if norm == 0.0:
+        raise EditError(f"{what} is zero, so it has no direction to scale along; give [x, y, z] or a component")
+    return [x * new / norm for x in vec]
+
+
+def _relative(q: Quantity, comp: int | None, sign: float, amount: float | list[float], kind: str, what: str):
+    """The update function for 'increase/decrease by amount'."""
+    if kind == "percent":
+        if sign < 0 and amount > 100:
+            raise EditError(f"{what}: a decrease of {amount:g}% would flip the sign; use 'reverse' or 'set'")
+        return _scale(q, 1.0 + sign * amount / 100.0, what)
+    if isinstance(amount, list):
+        raise EditError(f"{what}: increase/decrease takes N% or N UNIT, not a vector; use 'set ... to [x, y, z]'")
+    if q.log_rate:
+        if kind == "rate":
+            return lambda d: _log_rate(10.0**d + sign * amount, what)
+        return lambda d: d + sign * amount
+    if q.dims == 3 and comp is None:
+        return lambda v: _magnitude(v, math.sqrt(sum(x * x for x in v)) + sign * amount, what)
+    return lambda x: _require(x, what) + sign * amount
+
+
+def _require(x: float | None, what: str) -> float:
+    if x is None:
+        raise EditError(f"{what}: the field is not set, so it can't be changed relatively; use 'set ... to N'")
+    return x
+
+
+def _log_rate(rate: float, what: str) -> float:
+    if rate <= 0:
+        raise EditError(f"{what}: damping is log10 of a decay rate, so the rate must stay > 0 (got {rate:g} /s)")
+    return math.log10(rate)
+
+
+def _scale(q: Quantity, factor: float, what: str):
+    if q.log_rate:
+        return lambda d: _log_rate(10.0**d * factor, what)
+    return lambda x: [v * factor for v in x] if isinstance(x, list) else _require(x, what) * factor
+
+
+def _absolute(q: Quantity, comp: int | None, value: float | list[float], kind: str, what: str):
+    if kind == "percent":
+        raise EditError(f"{what}: 'set' takes a value, not a percentage; use 'increase/decrease ... by N%'")
+    if q.log_rate:
+        return (lambda _: _log_rate(value, what)) if kind == "rate" else (lambda _: value)
+    if q.dims == 3 and comp is None and not isinstance(value, list):
+        return lambda v: _magnitude(v, value, what)
+    return lambda _: list(value) if isinstance(value, list) else value
+
+
+_VERBS_BY = "|".join((*_UP, *_DOWN))
+_MOVE = r"(?:move|shift|push|translate)"
+_DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
+
+
+def _clause(clause: str, scene: Scene, items: list[dict]) -> None:
+    """Apply one clause to the items (in place)."""
+    c = clause
+    if m := re.fullmatch(rf"(?P<v>{_VERBS_BY}) (?:the )?(?P<s>.+?) by (?P<a>.+)", c):
+        q_text, t_text = _subject(m.group("s"))
+        q, comp = _quantity(q_text)
+        amount, kind = _value(m.group("a"), q)
+        sign = 1.0 if m.group("v") in _UP else -1.0
+        fn = _relative(q, comp, sign, amount, kind, clause)
+    elif m := re.fullmatch(r"(?:set|change) (?:the )?(?P<s>.+?) (?:to|=) (?P<a>.+)", c):
+        q_text, t_text = _subject(m.group("s"))
+        q, comp = _quantity(q_text)
+        value, kind = _value(m.group("a"), q)
+        fn = _absolute(q, comp, value, kind, clause)
+    elif m := re.fullmatch(r"(?P<v>double|triple|quadruple|halve) (?:the )?(?P<s>.+)", c):
+        q_text, t_text = _subject(m.group("s"))
+        q, comp = _quantity(q_text)
+        fn = _scale(q, _FACTORS[m.group("v")], clause)
+    elif m := re.fullmatch(rf"(?:multiply|scale) (?:the )?(?P<s>.+?) by (?:a factor of )?(?P<k>{_NUM})", c):
+        q_text, t_text = _subject(m.group("s"))
+        q, comp = _quantity(q_text)
+        fn = _scale(q, float(m.group("k")), clause)
+    elif m := re.fullmatch(r"(?:reverse|negate|flip) (?:the )?(?P<s>.+)", c):
+        q_text, t_text = _subject(m.group("s"))
+        q, comp = _quantity(q_text)
+        if not q.signed:
+            raise EditError(f"{clause!r}: only velocity, spin, position and gravity can be reversed, not {q.key}")
+        fn = _scale(q, -1.0, clause)
+    elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c):
+        q, comp, t_text = QUANTITIES[2], None, m.group("t")
+        value, _ = _value(m.group("a"), q)
+        fn = _absolute(q, None, value, "abs", clause)
+    elif (m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:by )?(?P<n>{_NUM} ?[a-z]*) (?:to the )?(?P<d>{_DIRS})", c)) or (
+        m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:to the )?(?P<d>{_DIRS}) by (?P<n>{_NUM} ?[a-z]*)", c)
+    ):
+        q, t_text = QUANTITIES[2], m.group("t")
+        comp, sign = DIRECTIONS[m.group("d")]
+        amount, kind = _value(m.group("n"), q)
+        if kind != "abs":
+            raise EditError(f"{clause!r}: a move takes a distance like '0.5 m', not {m.group('n')!r}")
+        fn = _relative(q, comp, sign, amount, "abs", clause)
+    elif m := re.fullmatch(r"(?:stop|freeze) (?P<t>.+)", c):
+        idx = _targets(m.group("t"), scene)
+        for i in idx:
+            items[i]["state"]["linear_velocity"] = [0.0, 0.0, 0.0]
+            items[i]["state"]["angular_velocity"] = [0.0, 0.0, 0.0]
+        return
+    else:
+        raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
+    idx = _targets(t_text, scene)
+    for item in _items_of(q, items, idx, scene, t_text is not None):
+        _edit_field(item, q, comp, fn, repr(clause))
+
+
+def _normalise(instruction: str) -> list[str]:
+    text = " ".join(instruction.strip().split()).rstrip(".!").lower()
+    text = text.replace("per cent", "percent")
+    clauses = [c.strip(" ,") for c in re.split(r";|,? then |,? and then ", text)]
+    return [re.sub(r"^(?:please|now) ", "", c) for c in clauses if c.strip(" ,")]
+
+
+def apply_instruction(scene: Scene, instruction: str) -> EditResult:
+    """Apply an instruction of the edit language (see the module docstring) to a scene.
+
+    Raises:
+        EditError: the instruction is not understood (the message lists what is), or the edit makes the
+            scene invalid (the message carries the validation problems).
+    """
+    if not isinstance(instruction, str) or not instruction.strip():
+        raise EditError(f"empty instruction. {UNDERSTOOD}")
+    clauses = _normalise(instruction)
+    items = copy.deepcopy(to_items(scene))
+    for clause in clauses:
+        _clause(clause, scene, items)
+    return finish(scene, items, instruction)
+
+
+def finish(scene: Scene, items: list[dict], instruction: str) -> EditResult:
+    """Validate edited items into a scene; a scene that fails validation refuses the edit."""
+    try:
+        edited = from_items(items)
+    except SceneError as e:
+        problems = "; ".join(str(p) for p in e.problems)
+        raise EditError(f"edit refused: {instruction!r} makes the scene invalid: {problems}") from None
+    return EditResult(edited, tuple(diff(scene, edited)))
+
+
+# --------------------------------------------------------------------------------------------
+# Comparing scenes
+# --------------------------------------------------------------------------------------------
+def _flatten(scene: Scene) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+
+    def walk(prefix: str, value: Any) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(f"{prefix}.{k}" if prefix else k, v)
+        elif isinstance(value, list):
+            for i, v in enumerate(value):
+                walk(f"{prefix}[{i}]", v)
+        else:
+            out[prefix] = value
+
+    for item in to_items(scene):
+        head = item["name"] if item["type"] in ("box", "sphere", "cylinder") else item["type"]
+        walk(head, {k: v for k, v in item.items() if k not in ("type", "name")})
+    if scene.environment is None:
+        out = {k: v for k, v in out.items() if not k.startswith("environment")}
+    return out
+
+
+def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
+    """Every leaf that differs between two scenes of the same objects (paths use object names).
+
+    Raises:
+        EditError: the scenes differ in their objects (count, names or shapes).
+    """
+    if before.names != after.names or before.structure != after.structure:
+        raise EditError(
+            f"the edit changed the objects: {list(zip(before.names, before.structure, strict=False))} -> "
+            f"{list(zip(after.names, after.structure, strict=False))}; edits keep the objects and only change numbers"
+        )
+    a, b = _flatten(before), _flatten(after)
+    out = []
+    for key in [*a, *(k for k in b if k not in a)]:
+        va, vb = a.get(key), b.get(key)
+        same = va == vb or (
+            isinstance(va, float | int) and isinstance(vb, float | int) and abs(float(va) - float(vb)) <= tol
+        )
+        if not same:
+            out.append(Change(key, va, vb))
+    return out
+
+
+def named_fields(instruction: str, scene: Scene) -> set[str]:
+    """Path prefixes of the fields an instruction names (by the vocabulary above), for checking a free editor.
+
+    Objects named in the text (or 'the box', 'all spheres') restrict the per-object fields; none named means
+    every object. A component named ('x-velocity') restricts a vector to that element. Moves name positions,
+    'stop' names both velocities.
+    """
+    text = " ".join(instruction.lower().split())
+    lower = {n.lower(): n for n in scene.names}
+    objs = [n for low, n in lower.items() if re.search(rf"(?<![\w]){re.escape(low)}(?![\w])", text)]
+    for kind in ("box", "sphere", "cylinder"):
+        if re.search(rf"\b{kind}(?:e?s)?\b", text):
+            objs.extend(o.name for o in scene.objects if o.type == kind)
+    objs = sorted(set(objs)) or list(scene.names)
+    fields: set[str] = set()
+    for q in QUANTITIES:
+        for m in re.finditer(rf"(?:\b(?P<c>[xyz])[- ]?)?\b(?:{q.words})\b", text):
+            text_q = m.group(0)
+            comp = m.group("c")
+            suffix = f"[{q.index}]" if q.index is not None else (f"[{'xyz'.index(comp)}]" if comp else "")
+            field = ".".join(q.path) + suffix
+            fields.update(f"{h}.{field}" for h in (objs if q.scope == "object" else [q.scope]))
+            text = text.replace(text_q, " ")  # "angular velocity" must not also count as "velocity"
+    if re.search(r"\b(?:move|shift|push|translate)\b", text) or any(f" {d}" in text for d in DIRECTIONS):
+        fields.update(f"{o}.state.position" for o in objs)
+    if re.search(r"\b(?:stop|freeze)\b", text):
+        fields.update(f"{o}.state.{k}" for o in objs for k in ("linear_velocity", "angular_velocity"))
+    return fields
+
+
+def outside(changes: list[Change] | tuple[Change, ...], allowed: set[str]) -> list[Change]:
+    """The changes whose path does not start with one of the allowed prefixes."""
+    return [c for c in changes if not any(c.path == a or c.path.startswith((a + ".", a + "[")) for a in allowed)]

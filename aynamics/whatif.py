@@ -1,0 +1,216 @@
+"""What-if videos: re-simulate an edited scene, render it, compute its flow, and animate it next to the original.
+
+    paths = render_what_if(original, edited, "out/")   # original/edited YAML, rollouts, flow, side_by_side.gif
+
+The side-by-side animation has the original on the left and the edited scene on the right, RGB on top and the
+exact optical flow (one colour scale for both) below. The paper then turns the edited flow into a photorealistic
+video with a flow-conditioned video-diffusion model; those weights are far too large to ship, so that last step
+is a hook: pass any `VideoSynthesizer` (first RGB frame + flow -> video) and its output is written as
+`synthesized.gif`. Nothing is faked when no synthesiser is given.
+
+The `aynamics edit` subcommand lives here too:
+
+    aynamics edit SCENE.yaml "reduce the x-velocity of box_0 by 80%" --out EDITED.yaml --render DIR [--llm MODEL]
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from aynamics.scene import Scene, dump
+
+ANIMATION_FPS = 15  # playback speed of the GIFs (the video is 30 FPS; half speed is easier to follow)
+
+
+class VideoSynthesizer(Protocol):
+    """A flow-conditioned video model (the paper's last step), e.g. a video-diffusion model with motion control.
+
+    Called with the first RGB frame (H, W, 3) uint8 of the original, the edited scene's forward flow
+    (T-1, H, W, 2) float32 pixels (dx right, dy down) and a text prompt; returns a video (T, H, W, 3) uint8.
+    """
+
+    def __call__(self, first_frame: np.ndarray, flow: np.ndarray, prompt: str) -> np.ndarray: ...
+
+
+def _label(image: np.ndarray, text: str) -> np.ndarray:
+    """Write a small caption in the top-left corner of each frame (T, H, W, 3)."""
+    from PIL import Image, ImageDraw
+
+    out = np.empty_like(image)
+    for k, frame in enumerate(image):
+        pil = Image.fromarray(frame)
+        draw = ImageDraw.Draw(pil)
+        x0, y0, x1, y1 = draw.textbbox((3, 2), text)
+        draw.rectangle((x0 - 2, y0 - 1, x1 + 2, y1 + 1), fill=(0, 0, 0))
+        draw.text((3, 2), text, fill=(255, 255, 255))
+        out[k] = np.asarray(pil)
+    return out
+
+
+def write_animation(path: str | Path, grid: list[list[np.ndarray]], labels: list[list[str]], fps: int = ANIMATION_FPS):
+    """Tile videos into one animated GIF: `grid[row][col]` is (T, H, W, 3) uint8 (T may differ: shorter ones hold
+    their last frame); `labels` caption each tile.
+
+    Raises:
+        ValueError: the path is not a .gif (MP4 needs imageio-ffmpeg, not installed here), or tiles differ in size.
+    """
+    import imageio.v3 as iio
+
+    path = Path(path)
+    if path.suffix.lower() != ".gif":
+        raise ValueError(f"animation path {str(path)!r}: only .gif is written (MP4 would need imageio-ffmpeg)")
+    t = max(v.shape[0] for row in grid for v in row)
+    rows = []
+    for row, names in zip(grid, labels, strict=True):
+        tiles = []
+        for video, name in zip(row, names, strict=True):
+            if video.shape[1:] != grid[0][0].shape[1:]:
+                raise ValueError(f"tile {name!r} is {video.shape[1:]}, the first tile {grid[0][0].shape[1:]}")
+            pad = np.repeat(video[-1:], t - video.shape[0], axis=0)
+            tiles.append(_label(np.concatenate([video, pad]), name))
+        rows.append(np.concatenate(tiles, axis=2))
+    frames = np.concatenate(rows, axis=1)  # (T, rows·H, cols·W, 3)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, frames, duration=1000 / fps, loop=0)
+    return path
+
+
+def render_what_if(
+    original: Scene,
+    edited: Scene,
+    out_dir: str | Path,
+    *,
+    width: int = 240,
+    height: int = 160,
+    seed: int = 0,
+    instruction: str = "",
+    synthesize: VideoSynthesizer | None = None,
+) -> dict[str, object]:
+    """Simulate both scenes, render them with the same appearance, compute flow, write the files.
+
+    Writes `original.yaml`, `edited.yaml`, `original_rollout.npz`, `edited_rollout.npz`, `edited_flow.npz`
+    (flow (T-1, H, W, 2), occluded), `side_by_side.gif`, and `synthesized.gif` when `synthesize` is given.
+
+    Returns:
+        A summary: written paths, and whether each rollout is valid (with the reason when not).
+
+    Raises:
+        aynamics.render.RenderError: no headless OpenGL (the message says what to install).
+    """
+    from aynamics.flow import flow_to_color, motion_flow
+    from aynamics.render import Renderer
+    from aynamics.simulate import simulate_batch
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rollouts = simulate_batch([original, edited], nthread=1)
+    videos, flows = [], []
+    with Renderer(width, height) as r:
+        for scene, rollout in zip((original, edited), rollouts, strict=True):
+            frames = r.render(scene, rollout, seed=seed)
+            flow, occluded = motion_flow(scene, rollout, frames.depth, frames.camera, frames.segmentation)
+            videos.append(frames.rgb)
+            flows.append((flow, occluded))
+    scale = max(float(np.nanmax(np.hypot(f[..., 0], f[..., 1]), initial=0.0)) for f, _ in flows)
+    colours = [flow_to_color(f, max_norm=scale) for f, _ in flows]
+    written = {}
+    for name, scene, rollout in (("original", original, rollouts[0]), ("edited", edited, rollouts[1])):
+        (out / f"{name}.yaml").write_text(dump(scene))
+        rollout.to_npz(str(out / f"{name}_rollout.npz"))
+        written[f"{name}_yaml"] = str(out / f"{name}.yaml")
+        written[f"{name}_rollout"] = str(out / f"{name}_rollout.npz")
+    np.savez_compressed(out / "edited_flow.npz", flow=flows[1][0], occluded=flows[1][1])
+    written["edited_flow"] = str(out / "edited_flow.npz")
+    grid = [[videos[0], videos[1]], [colours[0], colours[1]]]
+    labels = [["original", "edited"], ["original flow", "edited flow"]]
+    written["side_by_side"] = str(write_animation(out / "side_by_side.gif", grid, labels))
+    if synthesize is not None:
+        video = np.asarray(synthesize(videos[0][0], flows[1][0], instruction))
+        if video.ndim != 4 or video.shape[-1] != 3 or video.dtype != np.uint8:
+            raise ValueError(f"the video synthesiser returned {video.shape} {video.dtype}: need (T, H, W, 3) uint8")
+        written["synthesized"] = str(write_animation(out / "synthesized.gif", [[video]], [["synthesized"]]))
+    return {
+        "files": written,
+        "original_valid": rollouts[0].valid,
+        "original_reason": rollouts[0].reason,
+        "edited_valid": rollouts[1].valid,
+        "edited_reason": rollouts[1].reason,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# aynamics edit
+# --------------------------------------------------------------------------------------------
+def add_edit_command(sub) -> None:
+    """Register `aynamics edit`."""
+    p = sub.add_parser("edit", help="edit a scene with an instruction ('reduce the x-velocity of box_0 by 80%%')")
+    p.add_argument("scene", help="scene YAML file")
+    p.add_argument("instruction", help="the edit, e.g. 'decrease gravity by 50%%; move box_0 0.5 m left'")
+    p.add_argument("--out", help="write the edited scene YAML here (default: print it)")
+    p.add_argument("--render", metavar="DIR", help="re-simulate, render, compute flow, write side_by_side.gif")
+    p.add_argument("--llm", metavar="MODEL", help="edit with a transformers chat model (checked against the text)")
+    p.add_argument("--max-new-tokens", type=int, default=2048, help="generation limit for --llm (default 2048)")
+    p.add_argument("--width", type=int, default=240, help="render width in pixels (default 240)")
+    p.add_argument("--height", type=int, default=160, help="render height in pixels (default 160)")
+    p.add_argument("--seed", type=int, default=0, help="appearance seed for --render (default 0)")
+    p.add_argument("--json", action="store_true", help="print changes, validity and the edited YAML as JSON")
+    p.set_defaults(run=run_edit_command)
+
+
+def run_edit_command(args) -> int:
+    """`aynamics edit`: nothing is written unless the edit is understood and the edited scene is valid."""
+    from aynamics.cli import UsageError
+    from aynamics.edit import EditError, apply_instruction
+    from aynamics.scene import load
+
+    scene = load(args.scene)
+    try:
+        if args.llm:
+            from aynamics.edit_llm import LLMEditor
+
+            result = LLMEditor(args.llm, max_new_tokens=args.max_new_tokens).edit(scene, args.instruction)
+        else:
+            result = apply_instruction(scene, args.instruction)
+    except EditError as e:
+        raise UsageError(f"edit: {e}") from None
+    text = dump(result.scene)
+    report: dict[str, object] = {
+        "changes": [{"path": c.path, "before": c.before, "after": c.after} for c in result.changes]
+    }
+    if args.out:
+        try:
+            Path(args.out).write_text(text)
+        except OSError as e:
+            raise UsageError(f"edit: cannot write --out {args.out!r}: {e.strerror or e}") from None
+    if args.render:
+        from aynamics.render import RenderError
+
+        try:
+            report.update(
+                render_what_if(
+                    scene,
+                    result.scene,
+                    args.render,
+                    width=args.width,
+                    height=args.height,
+                    seed=args.seed,
+                    instruction=args.instruction,
+                )
+            )
+        except (RenderError, ValueError, OSError) as e:
+            raise UsageError(f"edit --render {args.render!r}: {e}") from None
+    if args.json:
+        report["edited_yaml"] = text
+        json.dump(report, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        for c in result.changes:
+            sys.stderr.write(f"changed {c}\n")
+        if not args.out:
+            sys.stdout.write(text)
+    return 0

@@ -1,0 +1,258 @@
+"""Physics editing: the instruction grammar on a table of cases, refusals, the LLM editor's checks, what-if files.
+
+Expected values are worked out by hand from tests/assets/paper_example.yaml: box_0 has linear velocity
+[4.3, 2.5, 0], position [-5, -0.3, 0.4], mass 1, friction [1.1, 0.3], damping -4; cylinder_0 has velocity
+[-0.1, -0.5, 0], position [-0.5, 0.8, 0.3]; gravity is [0, 0, -7].
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aynamics import cli
+from aynamics.edit import EditError, apply_instruction, diff, named_fields, outside
+from aynamics.edit_llm import LLMEditor, build_messages, check_output
+from aynamics.scene import dump, load, to_items
+
+ASSET = Path(__file__).parent / "assets" / "paper_example.yaml"
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load(str(ASSET))
+
+
+CASES = [
+    # the paper's three edits
+    ("reduce the x-velocity of box_0 by 80%", {"box_0.state.linear_velocity[0]": 0.86}),  # 4.3 × 0.2
+    ("decrease gravity by 50%", {"gravity.gravity[2]": -3.5}),  # -7 × 0.5
+    (
+        "increase the y-velocity by 50%",  # every object: 2.5 × 1.5, -0.5 × 1.5
+        {"box_0.state.linear_velocity[1]": 3.75, "cylinder_0.state.linear_velocity[1]": -0.75},
+    ),
+    # their kin
+    ("set the mass of cylinder_0 to 2 kg", {"cylinder_0.physics.mass": 2.0}),
+    ("set the mass of cylinder_0 to 500 g", {"cylinder_0.physics.mass": 0.5}),
+    ("halve the friction of cylinder_0", {"cylinder_0.physics.friction[0]": 0.55}),
+    ("double the rolling resistance of the box", {"box_0.physics.friction[1]": 0.6}),
+    ("move box_0 0.5 m left", {"box_0.state.position[0]": -5.5}),  # left = -x
+    ("move box_0 right by 20 cm", {"box_0.state.position[0]": -4.8}),
+    ("move the cylinder 1 m away from the camera", {"cylinder_0.state.position[1]": 1.8}),  # away = +y
+    ("move the cylinder 0.3 m toward the camera", {"cylinder_0.state.position[1]": 0.5}),
+    ("move box_0 0.1 m up", {"box_0.state.position[2]": 0.5}),
+    ("Reverse the x-velocity of box_0.", {"box_0.state.linear_velocity[0]": -4.3}),
+    (
+        "set the velocity of cylinder_0 to [1, 0, 0]",
+        {"cylinder_0.state.linear_velocity[0]": 1.0, "cylinder_0.state.linear_velocity[1]": 0.0},
+    ),
+    ("stop box_0", {"box_0.state.linear_velocity[0]": 0.0, "box_0.state.linear_velocity[1]": 0.0}),
+    ("set the damping of box_0 to 0.01 /s", {"box_0.physics.damping": -2.0}),  # log10(0.01)
+    ("multiply the damping of box_0 by 10", {"box_0.physics.damping": -3.0}),  # rate 1e-4 × 10
+    ("set the restitution of box_0 to 0.5", {"box_0.physics.restitution": 0.5}),  # absent before
+    ("increase the x-velocity of box_0 by 0.7 m/s", {"box_0.state.linear_velocity[0]": 5.0}),
+    (
+        "decrease gravity by 50%; move box_0 1 m right",
+        {"gravity.gravity[2]": -3.5, "box_0.state.position[0]": -4.0},
+    ),
+]
+
+
+@pytest.mark.parametrize("instruction, expected", CASES, ids=[c[0] for c in CASES])
+def test_instruction_table(scene, instruction, expected):
+    result = apply_instruction(scene, instruction)
+    got = {c.path: c.after for c in result.changes}
+    assert got.keys() == expected.keys()
+    for path, value in expected.items():
+        assert got[path] == pytest.approx(value, abs=1e-4), path
+    # the changes are exactly what the instruction names (the check the LLM editor relies on)
+    assert not outside(result.changes, named_fields(instruction, scene))
+
+
+def test_speed_by_amount_keeps_direction(scene):
+    """|v| = sqrt(4.3² + 2.5²) = 4.974; +1 m/s along the same direction scales v by 5.974 / 4.974."""
+    result = apply_instruction(scene, "increase the speed of box_0 by 1 m/s")
+    v = np.array(result.scene.object("box_0").state.linear_velocity)
+    assert np.linalg.norm(v) == pytest.approx(math.hypot(4.3, 2.5) + 1, abs=1e-3)
+    assert v[0] / v[1] == pytest.approx(4.3 / 2.5, rel=1e-3)
+
+
+REFUSED = [
+    ("make it fly", "not understood"),
+    ("increase the mass of box_9 by 10%", "box_9"),
+    ("reduce the x-velocity of box_0 by 150%", "flip the sign"),
+    ("set the mass of box_0 to 3 furlongs", "unit 'furlongs'"),
+    ("double the friction of box_0", "friction[0] = 2.2"),  # 1.1 × 2 > 2: the validation error
+    ("set the mass of box_0 to -1 kg", "must be > 0"),
+    ("set gravity of box_0 to 3", "whole scene"),
+    ("move box_0 1 m sideways", "not understood"),
+    ("reverse the mass of box_0", "can be reversed"),
+    ("", "empty instruction"),
+]
+
+
+@pytest.mark.parametrize("instruction, message", REFUSED, ids=[r[0] or "empty" for r in REFUSED])
+def test_refused(scene, instruction, message):
+    before = dump(scene)
+    with pytest.raises(EditError) as err:
+        apply_instruction(scene, instruction)
+    assert message in str(err.value)
+    assert dump(scene) == before
+
+
+def test_unknown_instruction_lists_what_it_understands(scene):
+    with pytest.raises(EditError) as err:
+        apply_instruction(scene, "paint the box red")
+    assert "I understand" in str(err.value) and "move TARGETS" in str(err.value)
+
+
+def test_ambiguous_target(scene):
+    two = load(str(ASSET)).model_copy(
+        update={"objects": (scene.objects[0], scene.objects[0].model_copy(update={"name": "box_1"}))}
+    )
+    with pytest.raises(EditError, match="ambiguous"):
+        apply_instruction(two, "double the mass of the box")
+    assert len(apply_instruction(two, "double the mass of all boxes").changes) == 2
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------------
+def test_cli_edit_writes_out(tmp_path, capsys):
+    out = tmp_path / "edited.yaml"
+    rc = cli.main(["edit", str(ASSET), "reduce the x-velocity of box_0 by 80%", "--out", str(out), "--json"])
+    assert rc == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["changes"] == [{"path": "box_0.state.linear_velocity[0]", "before": 4.3, "after": 0.86}]
+    assert load(str(out)).object("box_0").state.linear_velocity[0] == 0.86
+
+
+@pytest.mark.parametrize("instruction", ["make it fly", "double the friction of box_0"])
+def test_cli_edit_refusal_leaves_input_untouched(tmp_path, capsys, instruction):
+    src = tmp_path / "scene.yaml"
+    src.write_text(ASSET.read_text())
+    out = tmp_path / "edited.yaml"
+    rc = cli.main(["edit", str(src), instruction, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("edit: ") and "\n" not in err.strip()
+    assert src.read_text() == ASSET.read_text() and not out.exists()
+
+
+def test_cli_edit_missing_file(capsys):
+    assert cli.main(["edit", "no/such.yaml", "stop box_0"]) == 2
+    assert "no/such.yaml" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# LLM editor: the validation every answer passes through, and the real loading path on a tiny model
+# --------------------------------------------------------------------------------------------
+def _answer(scene, changes: dict) -> str:
+    items = to_items(scene)
+    for (i, *keys), value in changes.items():
+        d = items[i]
+        for k in keys[:-1]:
+            d = d[k]
+        d[keys[-1]] = value
+    from aynamics.scene import from_items
+
+    return f"Here is the scene:\n```yaml\n{dump(from_items(items))}```"
+
+
+def test_check_output_accepts_named_change(scene):
+    text = _answer(scene, {(0, "physics", "mass"): 2.0})
+    result = check_output(scene, "double the mass of box_0", text)
+    assert [c.path for c in result.changes] == ["box_0.physics.mass"]
+
+
+def test_check_output_refuses_unnamed_fields(scene):
+    text = _answer(scene, {(0, "physics", "mass"): 2.0, (1, "physics", "mass"): 5.0})
+    with pytest.raises(EditError, match="cylinder_0.physics.mass"):
+        check_output(scene, "double the mass of box_0", text)
+    text = _answer(scene, {(0, "state", "linear_velocity"): [0.86, 0.0, 0.0]})  # y is not named
+    with pytest.raises(EditError, match=r"linear_velocity\[1\]"):
+        check_output(scene, "reduce the x-velocity of box_0 by 80%", text)
+
+
+def test_check_output_refuses_bad_answers(scene):
+    with pytest.raises(EditError, match="not a valid scene"):
+        check_output(scene, "double the mass of box_0", "I cannot do that.")
+    with pytest.raises(EditError, match="changes nothing"):
+        check_output(scene, "double the mass of box_0", dump(scene))
+    one = dump(scene.model_copy(update={"objects": scene.objects[:1]}))
+    with pytest.raises(EditError, match="changed the objects"):
+        check_output(scene, "double the mass of box_0", one)
+
+
+def test_llm_editor_real_loading_path(tmp_path, scene):
+    """A random-weight Qwen2 built from a config with the project's tiny tokenizer: loads through
+    AutoModelForCausalLM/AutoTokenizer, applies the chat template, generates, and its (garbage) answer is refused."""
+    torch = pytest.importorskip("torch")
+    from transformers import AutoTokenizer, Qwen2Config, Qwen2ForCausalLM
+
+    tok = AutoTokenizer.from_pretrained(Path(__file__).parents[1] / "aynamics" / "assets" / "tokenizer")
+    cfg = Qwen2Config(
+        vocab_size=len(tok),
+        hidden_size=32,
+        intermediate_size=64,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        num_key_value_heads=1,
+        max_position_embeddings=4096,
+        eos_token_id=tok.eos_token_id,
+        pad_token_id=tok.pad_token_id,
+    )
+    torch.manual_seed(0)
+    Qwen2ForCausalLM(cfg).save_pretrained(tmp_path)
+    tok.save_pretrained(tmp_path)
+    editor = LLMEditor(str(tmp_path), max_new_tokens=12)
+    prompt = editor.tokenizer.apply_chat_template(
+        build_messages(scene, "stop box_0"), tokenize=False, add_generation_prompt=True
+    )
+    assert "stop box_0" in prompt and prompt.rstrip().endswith("assistant")
+    assert isinstance(editor.generate(scene, "stop box_0"), str)
+    with pytest.raises(EditError, match="LLM edit refused"):
+        editor.edit(scene, "stop box_0")
+
+
+def test_llm_editor_missing_model(tmp_path):
+    with pytest.raises(EditError, match="cannot load"):
+        LLMEditor(str(tmp_path / "nothing"))
+
+
+# --------------------------------------------------------------------------------------------
+# What-if rendering
+# --------------------------------------------------------------------------------------------
+def test_render_what_if(tmp_path, scene):
+    from aynamics.render import gl_available
+
+    ok, why = gl_available()
+    if not ok:
+        pytest.skip(why)
+    import imageio.v3 as iio
+
+    from aynamics.whatif import render_what_if
+
+    edited = apply_instruction(scene, "increase the y-velocity of cylinder_0 by 2 m/s").scene
+    calls = []
+
+    def synthesize(first, flow, prompt):  # the documented hook's contract; returns the first frame held
+        calls.append((first.shape, flow.shape, prompt))
+        return np.repeat(first[None], len(flow) + 1, axis=0)
+
+    report = render_what_if(scene, edited, tmp_path, width=96, height=64, instruction="faster", synthesize=synthesize)
+    assert report["edited_valid"] and report["original_valid"]
+    assert calls == [((64, 96, 3), (29, 64, 96, 2), "faster")]
+    gif = iio.imread(report["files"]["side_by_side"])
+    assert gif.shape[1:] == (128, 192, 3)  # 2×2 tiles
+    flow = np.load(report["files"]["edited_flow"])["flow"]
+    assert flow.shape == (29, 64, 96, 2) and np.abs(flow).max() > 0  # the cylinder moves in view
+    assert load(report["files"]["edited_yaml"]) == edited
+
+
+def test_diff_names_leaves(scene):
+    edited = apply_instruction(scene, "set the mass of box_0 to 3").scene
+    assert [str(c) for c in diff(scene, edited)] == ["box_0.physics.mass: 1.0 -> 3.0"]
