@@ -510,8 +510,10 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
     touching[:, :, pi, pj] = per_frame
     obj = pj < n
     touching[:, :, pj[obj], pi[obj]] = per_frame[:, :, obj]
-    edges = np.diff(np.pad(touching, ((0, 0), (1, 1), (0, 0), (0, 0))).astype(np.int8), axis=1)  # (B, T+1, N, N+1)
-    starts, ends = np.nonzero(edges == 1), np.nonzero(edges == -1)
+    # interval edges with time as the fastest axis, so that each pair's starts and ends come out in step
+    padded = np.pad(touching.transpose(0, 2, 3, 1), ((0, 0), (0, 0), (0, 0), (1, 1))).astype(np.int8)
+    edges = np.diff(padded, axis=-1)  # (B, N, N+1, T+1)
+    starts, ends = np.nonzero(edges == 1), np.nonzero(edges == -1)  # (k, i, j, frame) each
 
     speed = np.linalg.norm(v[..., :3], axis=-1)  # (B, T, N)
     spin = np.linalg.norm(v[..., 3:], axis=-1)
@@ -524,10 +526,7 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
         sel_s, sel_e = starts[0] == k, ends[0] == k
         contacts = tuple(
             Contact(names[i], "floor" if j == n else names[j], float(t[a]), float(t[b - 1]))
-            for a, i, j, b in sorted(
-                zip(starts[1][sel_s], starts[2][sel_s], starts[3][sel_s], ends[1][sel_e], strict=True),
-                key=lambda c: (c[1], c[2], c[0]),
-            )
+            for i, j, a, b in zip(starts[1][sel_s], starts[2][sel_s], starts[3][sel_s], ends[3][sel_e], strict=True)
             if i != j
         )
         cam = camlib.matrices(scene.camera)

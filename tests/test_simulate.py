@@ -416,3 +416,19 @@ def test_check_names_the_object_and_time():
 def test_invalid_timing_is_refused():
     with pytest.raises(ValueError, match="duration"):
         sim.SimConfig(duration=-1)
+
+
+def test_contact_intervals_of_interleaved_pairs():
+    """Each contact interval agrees with the per-frame `touching` flags, also when intervals of different pairs
+    interleave in time (a sphere rests on the floor throughout while another bounces)."""
+    s = scene([sphere(x=-1.0), sphere(x=1.0, z=1.0, restitution=0.8)])
+    r = run(s, duration=2.0)
+    assert [(c.start, c.end) for c in r.contacts if c.a == "sphere_0" and c.b == "floor"] == [(0.0, 2.0)]
+    n = len(r.names)
+    for c in r.contacts:
+        i, j = r.names.index(c.a), (n if c.b == "floor" else r.names.index(c.b))
+        a, b = round(c.start * 30), round(c.end * 30)
+        assert r.touching[a : b + 1, i, j].all()
+        assert (a == 0 or not r.touching[a - 1, i, j]) and (b == len(r.t) - 1 or not r.touching[b + 1, i, j])
+    bounces = [c for c in r.contacts if c.a == "sphere_1" and c.b == "floor"]
+    assert len(bounces) >= 2

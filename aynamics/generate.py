@@ -1,0 +1,664 @@
+"""Synthetic training data: sampled scenes, simulated, rendered, described, stored as a Hugging Face data set.
+
+    aynamics generate --num 1000 --out data/synth --seed 0 [--shard k --num-shards n] [--config FILE] [key=value ...]
+    path = generate_dataset("data/tiny", num=8, seed=0, config=GenerateConfig(width=96, height=64))
+    ds = datasets.load_from_disk(path)   # DatasetDict: train / validation / test
+
+Scene i is drawn from `sampler.scene_seed(seed, i, attempt)` alone, so a record does not depend on the shard
+that made it, on the number of workers or on earlier runs. Work is cut into chunks of `chunk_size` consecutive
+indices; shard k of n makes the chunks c with c % n == k and writes each one atomically (a temporary folder
+renamed to `chunks/NNNNNN`), so a killed run started again skips finished chunks and redoes the partial one
+(same records): nothing is lost or duplicated. When every chunk of the run is on disk (from one run or from
+all shards writing into the same folder, or folders joined with `assemble(out, sources)`) the chunks are
+concatenated in index order and split by a hash of (seed, index) into the DatasetDict at `out`.
+
+Columns (one row per scene; T = 31 states at 30 FPS, F = 10 sampled frames, N objects):
+- `index` int64, `seed` int64 (global), `attempt` int32 (resamples after a diverged simulation), `split` str.
+- `scene_yaml` str: canonical YAML (`scene.dump`); `reasoning` str: motion-reasoning text (`reasoning.py`);
+  `target_answer` = `<answer>YAML</answer>`; `target_think` = `<think>REASONING</think>\\n\\n<answer>YAML</answer>`.
+- `rgb`: list of F images (PNG, RGB, width × height) of video frames `frame_indices`.
+- `flow`: list of F images: the exact forward flow from frame f to f + 1 on the Middlebury colour wheel, one
+  magnitude scale per scene; `flow_max` float32 is that scale in pixels (saturation 1 = `flow_max`).
+- `segmentation`: list of F images (PNG, mode L): pixel value = object index in `scene.objects` order + 1,
+  0 = floor and sky.
+- `frame_indices` list[int32] and `frame_times` list[float32] (s) of the sampled frames.
+- `states`: struct of the rollout: `names` [N] str, `t` [T] s, `position` [T][N][3] m (world),
+  `orientation` [T][N][4] wxyz, `linear_velocity` [T][N][3] m/s and `angular_velocity` [T][N][3] rad/s (world),
+  `in_view` [T][N] bool (bounding sphere in the frustum), `visible` [F][N] bool (from segmentation),
+  `rest_time` [N] s or null (still moving at the end).
+- `contacts`: list of {`a`, `b` ("floor" or an object name), `start`, `end` (s)}: contact intervals per frame.
+- `camera`: {`fovy` deg, `orientation` deg, `position` [3] m, `width`, `height`, `K` [3][3], `R` [3][3], `t` [3]}:
+  OpenCV convention, x_cam = R @ x_world + t, pixel = K @ x_cam / z.
+- `num_objects` int32, `shapes` list[str], `has_collision` bool (two objects touch at some frame).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import io
+import json
+import multiprocessing as mp
+import os
+import shutil
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from aynamics import reasoning as rs
+from aynamics import sampler as smp
+from aynamics.scene import Scene, dump
+from aynamics.simulate import Rollout, SimConfig, simulate
+
+FORMAT_VERSION = 1
+SPLITS = ("train", "validation", "test")
+MANIFEST = "generate.json"
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """How records are made (not which ones: that is `seed` and `num`).
+
+    Attributes:
+        sampler: scene sampler ranges and shares.
+        width, height: image size in pixels.
+        duration, fps, substeps: simulation timing (1 s at 30 FPS gives 31 states, a 30-frame video).
+        stride: every `stride`-th video frame is sampled (3: 10 of 30).
+        splits: train / validation / test shares, summing to 1.
+        chunk_size: scenes per stored chunk (the unit of resume and sharding).
+        max_attempts: resamples of one index whose simulation diverged before giving up.
+        textures_dir: folder of photographs for floor and sky (None: scikit-image's samples).
+        workers: processes rendering in parallel (each holds one OpenGL context); 0 = in this process.
+        min_pixels: mask pixels for an object to count as visible in a frame.
+    """
+
+    sampler: smp.SamplerConfig = field(default_factory=smp.SamplerConfig)
+    width: int = 480
+    height: int = 320
+    duration: float = 1.0
+    fps: int = 30
+    substeps: int = 8
+    stride: int = 3
+    splits: tuple[float, float, float] = (0.8, 0.1, 0.1)
+    chunk_size: int = 16
+    max_attempts: int = 10
+    textures_dir: str | None = None
+    workers: int = 2
+    min_pixels: int = 1
+
+    def __post_init__(self):
+        if not (8 <= self.width <= 4096 and 8 <= self.height <= 4096):
+            raise ValueError(f"width = {self.width}, height = {self.height}: must be in [8, 4096] pixels")
+        SimConfig(self.duration, self.fps, self.substeps)  # raises ValueError naming the bad value
+        if self.stride < 1 or self.chunk_size < 1 or self.max_attempts < 1 or self.min_pixels < 1:
+            raise ValueError(
+                f"stride = {self.stride}, chunk_size = {self.chunk_size}, max_attempts = {self.max_attempts}, "
+                f"min_pixels = {self.min_pixels}: must be >= 1"
+            )
+        if len(self.splits) != 3 or min(self.splits) < 0 or abs(sum(self.splits) - 1) > 1e-6:
+            raise ValueError(f"splits = {list(self.splits)}: need 3 shares (train, validation, test) >= 0 summing to 1")
+        if not 0 <= self.workers <= 64:
+            raise ValueError(f"workers = {self.workers}: must be in [0, 64]")
+        if abs(self.sampler.aspect - self.width / self.height) > 1e-6 or self.sampler.duration != self.duration:
+            object.__setattr__(
+                self,
+                "sampler",
+                dataclasses.replace(self.sampler, aspect=self.width / self.height, duration=self.duration),
+            )
+
+    @property
+    def sim(self) -> SimConfig:
+        return SimConfig(self.duration, self.fps, self.substeps)
+
+    def to_json(self) -> dict:
+        """The fields that decide the records (not `workers`, which only changes speed)."""
+        data = dataclasses.asdict(self)
+        data.pop("workers")
+        return data
+
+
+# --------------------------------------------------------------------------------------------
+# Config from a file and Hydra-style overrides (plain dataclasses; the package never imports Hydra)
+# --------------------------------------------------------------------------------------------
+def config_from_dict(data: dict, base: GenerateConfig | None = None, where: str = "config") -> GenerateConfig:
+    """A config from a nested mapping ({width: 96, sampler: {max_objects: 2}}), on top of `base`.
+
+    Raises:
+        ValueError: an unknown key (named, with the allowed ones) or a bad value.
+    """
+    base = base or GenerateConfig()
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: must be a mapping of config keys, got {type(data).__name__}")
+    top = {f.name for f in dataclasses.fields(GenerateConfig)}
+    sub = {f.name for f in dataclasses.fields(smp.SamplerConfig)}
+    updates, sampler_updates = {}, {}
+    for key, value in data.items():
+        if key == "sampler":
+            if not isinstance(value, dict):
+                raise ValueError(f"{where}.sampler = {value!r}: must be a mapping")
+            for k, v in value.items():
+                if k not in sub:
+                    raise ValueError(f"{where}.sampler.{k}: unknown key; allowed: {', '.join(sorted(sub))}")
+                sampler_updates[k] = tuple(v) if isinstance(v, list) else v
+        elif key not in top:
+            raise ValueError(f"{where}.{key}: unknown key; allowed: {', '.join(sorted(top))}")
+        else:
+            updates[key] = tuple(value) if isinstance(value, list) else value
+    try:
+        sampler = dataclasses.replace(base.sampler, **sampler_updates)
+        return dataclasses.replace(base, sampler=sampler, **updates)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where}: {e}") from None
+
+
+def apply_overrides(config: GenerateConfig, overrides: list[str]) -> GenerateConfig:
+    """Apply `key=value` overrides (`width=96`, `sampler.max_objects=2`, `sampler.speed=[0.5,3]`); values are YAML."""
+    import yaml
+
+    data: dict = {}
+    for text in overrides:
+        key, sep, raw = text.partition("=")
+        if not sep or not key:
+            raise ValueError(f"override {text!r}: must be key=value, e.g. sampler.max_objects=3")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            raise ValueError(f"override {text!r}: value {raw!r} is not valid YAML") from None
+        parts = key.split(".")
+        node = data
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    return config_from_dict(data, config, where="override")
+
+
+def load_config(path: str | os.PathLike) -> GenerateConfig:
+    """A config from a YAML file (see conf/generate/default.yaml); a missing file raises FileNotFoundError."""
+    import yaml
+
+    with open(path, encoding="utf-8") as f:
+        try:
+            data = yaml.safe_load(f) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"config file {str(path)!r}: invalid YAML: {e}") from None
+    return config_from_dict(data, where=str(path))
+
+
+# --------------------------------------------------------------------------------------------
+# One record
+# --------------------------------------------------------------------------------------------
+def split_of(seed: int, index: int, shares: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> str:
+    """The split of scene `index`: a hash of (seed, index), so independent of sharding and order."""
+    digest = hashlib.sha256(f"{seed}:{index}".encode()).digest()
+    u = int.from_bytes(digest[:8], "big") / 2**64
+    return SPLITS[0] if u < shares[0] else SPLITS[1] if u < shares[0] + shares[1] else SPLITS[2]
+
+
+def sample_simulated(index: int, seed: int, config: GenerateConfig) -> tuple[Scene, Rollout, int]:
+    """Scene `index` and its rollout; resampled (attempt 1, 2, ...) when placement fails or the simulation diverges.
+
+    Raises:
+        RuntimeError: every attempt failed (the reasons are listed).
+    """
+    reasons = []
+    for attempt in range(config.max_attempts):
+        rng = np.random.default_rng(smp.scene_seed(seed, index, attempt))
+        try:
+            scene = smp.sample_scene(rng, config.sampler)
+        except RuntimeError as e:
+            reasons.append(str(e))
+            continue
+        rollout = simulate(scene, config.sim)
+        if rollout.valid:
+            return scene, rollout, attempt
+        reasons.append(str(rollout.reason))
+    raise RuntimeError(f"scene {index} (seed {seed}): all {config.max_attempts} attempts failed: {'; '.join(reasons)}")
+
+
+def _png(image: np.ndarray) -> dict:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG", compress_level=1, compress_type=3)  # zlib Z_RLE: fast, small
+    return {"bytes": buf.getvalue(), "path": None}
+
+
+def _arr(x: np.ndarray) -> list:
+    return np.asarray(x, np.float32).tolist()
+
+
+def render_record_frames(scene: Scene, rollout: Rollout, renderer, config: GenerateConfig, seed: int) -> dict:
+    """RGB, segmentation and flow of the sampled frames (flow f -> f + 1 needs depth/masks at f + 1 too)."""
+    from aynamics import flow as flowlib
+
+    frames = flowlib.sample_frames(len(rollout.t) - 1, config.stride)  # video frames 0..T-2
+    nxt = frames + 1
+    main = renderer.render(scene, rollout, seed=seed, textures_dir=config.textures_dir, states=frames)
+    after = renderer.render(scene, rollout, seed=seed, textures_dir=config.textures_dir, states=nxt, rgb=False)
+    flows = np.stack(
+        [
+            flowlib.motion_field(
+                main.depth[k],
+                main.segmentation[k],
+                main.camera,
+                rollout.position[[f, f + 1]],
+                rollout.orientation[[f, f + 1]],
+                after.depth[k],
+                after.segmentation[k],
+            )[0]
+            for k, f in enumerate(frames)
+        ]
+    )  # (F, H, W, 2)
+    mag = np.hypot(flows[..., 0], flows[..., 1])
+    flow_max = float(mag.max()) if mag.size else 0.0
+    return {
+        "frames": frames,
+        "rgb": main.rgb,
+        "segmentation": main.segmentation,
+        "flow_color": _flow_images(flows, mag, flow_max),
+        "flow_max": flow_max,
+        "camera": main.camera,
+    }
+
+
+def _flow_images(flows: np.ndarray, mag: np.ndarray, flow_max: float) -> np.ndarray:
+    """`flow_to_color` of (F, H, W, 2) flows on one scale, computed only where the flow is not zero.
+
+    Zero flow is white on the wheel, and most pixels (floor, sky) do not move: same images, several times faster.
+    """
+    from aynamics.flow import flow_to_color
+
+    out = np.full((*flows.shape[:-1], 3), 255, np.uint8)
+    moving = mag > 0
+    if moving.any():
+        out[moving] = flow_to_color(flows[moving], max_norm=flow_max)
+    return out
+
+
+def make_record(index: int, seed: int, config: GenerateConfig, renderer) -> dict:
+    """The full record of scene `index` (images PNG-encoded, ready for `datasets`)."""
+    scene, rollout, attempt = sample_simulated(index, seed, config)
+    scene_seed = int(smp.scene_seed(seed, index, attempt).generate_state(1)[0])
+    fr = render_record_frames(scene, rollout, renderer, config, scene_seed)
+    n = len(scene.objects)
+    visible = rs.visibility(fr["segmentation"], n, config.min_pixels)
+    times = rollout.t[fr["frames"]]
+    text = rs.reasoning_text(scene, rollout, visible, times, seed=scene_seed)
+    yaml_text = dump(scene)
+    cam = fr["camera"]
+    return {
+        "index": index,
+        "seed": seed,
+        "attempt": attempt,
+        "split": split_of(seed, index, config.splits),
+        "scene_yaml": yaml_text,
+        "reasoning": text,
+        "target_answer": rs.answer_target(yaml_text),
+        "target_think": rs.think_target(text, yaml_text),
+        "rgb": [_png(im) for im in fr["rgb"]],
+        "flow": [_png(im) for im in fr["flow_color"]],
+        "flow_max": fr["flow_max"],
+        "segmentation": [_png((s + 1).astype(np.uint8)) for s in fr["segmentation"]],
+        "frame_indices": fr["frames"].tolist(),
+        "frame_times": _arr(times),
+        "states": {
+            "names": list(rollout.names),
+            "t": _arr(rollout.t),
+            "position": _arr(rollout.position),
+            "orientation": _arr(rollout.orientation),
+            "linear_velocity": _arr(rollout.linear_velocity),
+            "angular_velocity": _arr(rollout.angular_velocity),
+            "in_view": rollout.in_view.tolist(),
+            "visible": visible.tolist(),
+            "rest_time": list(rollout.rest_time),
+        },
+        "contacts": [{"a": c.a, "b": c.b, "start": c.start, "end": c.end} for c in rollout.contacts],
+        "camera": {
+            "fovy": scene.camera.fovy,
+            "orientation": scene.camera.orientation,
+            "position": list(scene.camera.position),
+            "width": cam.width,
+            "height": cam.height,
+            "K": cam.K.tolist(),
+            "R": cam.R.tolist(),
+            "t": cam.t.tolist(),
+        },
+        "num_objects": n,
+        "shapes": list(scene.structure),
+        "has_collision": any(c.b != "floor" for c in rollout.contacts),
+    }
+
+
+def features():
+    """The `datasets.Features` of a record (see the module docstring)."""
+    from datasets import Features, Image, List, Value
+
+    f32, f64 = Value("float32"), Value("float64")
+    vec = List(List(List(f32)))
+    return Features(
+        {
+            "index": Value("int64"),
+            "seed": Value("int64"),
+            "attempt": Value("int32"),
+            "split": Value("string"),
+            "scene_yaml": Value("string"),
+            "reasoning": Value("string"),
+            "target_answer": Value("string"),
+            "target_think": Value("string"),
+            "rgb": List(Image()),
+            "flow": List(Image()),
+            "flow_max": f32,
+            "segmentation": List(Image()),
+            "frame_indices": List(Value("int32")),
+            "frame_times": List(f32),
+            "states": {
+                "names": List(Value("string")),
+                "t": List(f32),
+                "position": vec,
+                "orientation": vec,
+                "linear_velocity": vec,
+                "angular_velocity": vec,
+                "in_view": List(List(Value("bool"))),
+                "visible": List(List(Value("bool"))),
+                "rest_time": List(f64),
+            },
+            "contacts": List({"a": Value("string"), "b": Value("string"), "start": f32, "end": f32}),
+            "camera": {
+                "fovy": f64,
+                "orientation": f64,
+                "position": List(f64),
+                "width": Value("int32"),
+                "height": Value("int32"),
+                "K": List(List(f64)),
+                "R": List(List(f64)),
+                "t": List(f64),
+            },
+            "num_objects": Value("int32"),
+            "shapes": List(Value("string")),
+            "has_collision": Value("bool"),
+        }
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Chunks, shards, resume
+# --------------------------------------------------------------------------------------------
+def chunk_ranges(num: int, chunk_size: int) -> list[range]:
+    """Index ranges of the chunks of a run of `num` scenes."""
+    return [range(a, min(a + chunk_size, num)) for a in range(0, num, chunk_size)]
+
+
+def shard_chunks(num: int, chunk_size: int, shard: int = 0, num_shards: int = 1) -> list[int]:
+    """Chunk ids made by shard `shard` of `num_shards` (c % num_shards == shard): disjoint, covering all."""
+    if num_shards < 1 or not 0 <= shard < num_shards:
+        raise ValueError(
+            f"shard = {shard}, num_shards = {num_shards}: need num_shards >= 1 and 0 <= shard < num_shards"
+        )
+    return [c for c in range(len(chunk_ranges(num, chunk_size))) if c % num_shards == shard]
+
+
+def _chunk_dir(out: Path, c: int) -> Path:
+    return out / "chunks" / f"{c:06d}"
+
+
+def _write_manifest(out: Path, num: int, seed: int, config: GenerateConfig) -> None:
+    """Write `generate.json`, or check that an existing one describes the same run (else nothing is mixed)."""
+    manifest = {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": json.loads(json.dumps(config.to_json()))}
+    path = out / MANIFEST
+    if path.exists():
+        old = json.loads(path.read_text())
+        for key in ("format", "num", "seed"):
+            if old.get(key) != manifest[key]:
+                raise ValueError(
+                    f"--out {str(out)!r} holds a run with {key} = {old.get(key)!r}, this run has {manifest[key]!r}; "
+                    "use another folder or the same settings to resume"
+                )
+        diff = _first_difference(old.get("config", {}), manifest["config"])
+        if diff:
+            raise ValueError(
+                f"--out {str(out)!r} holds a run with config {diff}; use another folder or the same config"
+            )
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f".{MANIFEST}.{os.getpid()}"
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, path)
+
+
+def _first_difference(a, b, prefix: str = "") -> str | None:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            d = _first_difference(a.get(k), b.get(k), f"{prefix}.{k}" if prefix else k)
+            if d:
+                return d
+        return None
+    return None if a == b else f"{prefix} = {a!r} (this run: {b!r})"
+
+
+@contextlib.contextmanager
+def _quiet_datasets():
+    """Hide `datasets`' own "Saving the dataset" bars under ours."""
+    import datasets
+
+    was = datasets.is_progress_bar_enabled()
+    datasets.disable_progress_bars()
+    try:
+        yield
+    finally:
+        if was:
+            datasets.enable_progress_bars()
+
+
+def _write_chunk(out: Path, c: int, records: list[dict]) -> None:
+    from datasets import Dataset
+
+    final = _chunk_dir(out, c)
+    tmp = final.parent / f".tmp-{c:06d}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    with _quiet_datasets():
+        Dataset.from_list(records, features=features()).save_to_disk(str(tmp))
+    os.replace(tmp, final)  # atomic: a chunk folder exists only when complete
+
+
+_WORKER: dict = {}
+
+
+def _worker_init(config: GenerateConfig) -> None:
+    from aynamics.render import Renderer
+
+    _WORKER["renderer"] = Renderer(config.width, config.height)
+    _WORKER["config"] = config
+
+
+def _worker_record(job: tuple[int, int]) -> dict:
+    index, seed = job
+    return make_record(index, seed, _WORKER["config"], _WORKER["renderer"])
+
+
+def _records(jobs: list[tuple[int, int]], config: GenerateConfig) -> Iterator[dict]:
+    """Records of the jobs in order, made in `config.workers` processes (or here when 0)."""
+    if not jobs:
+        return
+    if config.workers == 0:
+        _worker_init(config)
+        try:
+            yield from map(_worker_record, jobs)
+        finally:
+            _WORKER.pop("renderer").close()
+        return
+    ctx = mp.get_context("spawn")  # a fresh interpreter per worker: no OpenGL state crosses a fork
+    with ctx.Pool(min(config.workers, len(jobs)), initializer=_worker_init, initargs=(config,)) as pool:
+        yield from pool.imap(_worker_record, jobs, chunksize=1)
+
+
+def generate(
+    out_dir: str | os.PathLike,
+    num: int,
+    seed: int = 0,
+    config: GenerateConfig | None = None,
+    shard: int = 0,
+    num_shards: int = 1,
+    progress: bool = True,
+) -> Path | None:
+    """Make this shard's missing chunks of a run; assemble the DatasetDict when every chunk is on disk.
+
+    Returns:
+        The data set folder (`datasets.load_from_disk(path)`), or None while other shards' chunks are missing.
+    """
+    from tqdm.auto import tqdm
+
+    config = config or GenerateConfig()
+    if num < 1 or seed < 0:
+        raise ValueError(f"num = {num}, seed = {seed}: need num >= 1 and seed >= 0")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file, not a folder")
+    _write_manifest(out, num, seed, config)
+    (out / "chunks").mkdir(exist_ok=True)
+    ranges = chunk_ranges(num, config.chunk_size)
+    mine = shard_chunks(num, config.chunk_size, shard, num_shards)
+    for c in mine:  # leftovers of a killed run of this shard
+        for tmp in (out / "chunks").glob(f".tmp-{c:06d}-*"):
+            shutil.rmtree(tmp, ignore_errors=True)
+    todo = [c for c in mine if not _chunk_dir(out, c).exists()]
+    jobs = [(i, seed) for c in todo for i in ranges[c]]
+    bar = tqdm(
+        total=sum(len(ranges[c]) for c in mine),
+        initial=sum(len(ranges[c]) for c in mine) - len(jobs),
+        unit="scene",
+        desc=f"generate shard {shard}/{num_shards}",
+        disable=not progress,
+        smoothing=0.1,
+    )
+    pending: list[dict] = []
+    chunks = iter(todo)
+    current = next(chunks, None)
+    with bar:
+        for record in _records(jobs, config):
+            pending.append(record)
+            bar.update(1)
+            if current is not None and len(pending) == len(ranges[current]):
+                _write_chunk(out, current, pending)
+                pending, current = [], next(chunks, None)
+    if all(_chunk_dir(out, c).exists() for c in range(len(ranges))):
+        return assemble(out)
+    return None
+
+
+def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None = None) -> Path:
+    """Concatenate every chunk (of `out_dir`, or of the `sources` folders of shard runs) into the DatasetDict.
+
+    Raises:
+        ValueError: chunks are missing, or the sources describe different runs.
+    """
+    from datasets import DatasetDict, concatenate_datasets, load_from_disk
+
+    out = Path(out_dir)
+    folders = [Path(s) for s in sources] if sources else [out]
+    manifests = []
+    for folder in folders:
+        path = folder / MANIFEST
+        if not path.is_file():
+            raise ValueError(f"{str(folder)!r}: no {MANIFEST}: not a `aynamics generate` output folder")
+        manifests.append(json.loads(path.read_text()))
+    for folder, m in zip(folders[1:], manifests[1:], strict=True):
+        diff = _first_difference(manifests[0], m)
+        if diff:
+            raise ValueError(f"{str(folder)!r} belongs to a different run than {str(folders[0])!r}: {diff}")
+    manifest = manifests[0]
+    num, chunk_size = manifest["num"], manifest["config"]["chunk_size"]
+    parts, missing = [], []
+    for c in range(len(chunk_ranges(num, chunk_size))):
+        found = [_chunk_dir(f, c) for f in folders if _chunk_dir(f, c).is_dir()]
+        if not found:
+            missing.append(c)
+        else:
+            with _quiet_datasets():
+                parts.append(load_from_disk(str(found[0])))
+    if missing:
+        raise ValueError(f"cannot assemble {str(out)!r}: chunks {missing[:10]} of {len(parts) + len(missing)} missing")
+    full = concatenate_datasets(parts)
+    split_col = full["split"]
+    dd = DatasetDict({s: full.select([i for i, v in enumerate(split_col) if v == s]) for s in SPLITS})
+    if sources:
+        _write_manifest(out, num, manifest["seed"], config_from_dict(_config_dict(manifest["config"])))
+    tmp = out / f".assemble-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    with _quiet_datasets():
+        dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 empty file
+    (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
+    for s in SPLITS:
+        shutil.rmtree(out / s, ignore_errors=True)
+        os.replace(tmp / s, out / s)
+    os.replace(tmp / "dataset_dict.json", out / "dataset_dict.json")
+    shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def _config_dict(data: dict) -> dict:
+    """A stored config (JSON) as `config_from_dict` input (the derived sampler fields dropped)."""
+    data = dict(data)
+    data["sampler"] = {k: v for k, v in data["sampler"].items() if k not in ("aspect", "duration")}
+    return data
+
+
+def generate_dataset(
+    out_dir: str | os.PathLike, num: int, seed: int = 0, config: GenerateConfig | None = None, progress: bool = False
+) -> Path:
+    """Generate a whole data set in one call (e.g. a tiny one for tests) and return its folder."""
+    path = generate(out_dir, num, seed, config, progress=progress)
+    assert path is not None  # one shard makes every chunk
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# Command line: aynamics generate
+# --------------------------------------------------------------------------------------------
+def add_generate_parser(sub) -> None:
+    """Register `aynamics generate` on the CLI's subparsers."""
+    p = sub.add_parser(
+        "generate",
+        help="generate the synthetic data set (scenes, frames, flow, masks, states, reasoning) with HF datasets",
+    )
+    p.add_argument("--num", type=int, required=True, help="number of scenes of the whole run (all shards)")
+    p.add_argument("--out", required=True, help="output folder (chunks, then the DatasetDict for load_from_disk)")
+    p.add_argument("--seed", type=int, default=0, help="global seed; scene i depends only on (seed, i) (default 0)")
+    p.add_argument("--shard", type=int, default=0, help="this shard's number k in [0, n) (default 0)")
+    p.add_argument("--num-shards", type=int, default=1, help="number of shards n (default 1)")
+    p.add_argument("--config", help="YAML config file (see conf/generate/default.yaml)")
+    p.add_argument("--workers", type=int, help="rendering processes (default: config, 2)")
+    p.add_argument("--assemble", nargs="*", metavar="DIR", help="only assemble: join chunks of --out or of DIRs")
+    p.add_argument("--in-context", action="store_true", help="also write in_context/ (3 prompt examples)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. width=96 sampler.max_objects=2")
+    p.set_defaults(run=run_generate)
+
+
+def run_generate(args) -> int:
+    """Run `aynamics generate` (errors become `UsageError`: exit 2 with one message)."""
+    from aynamics.cli import UsageError
+
+    try:
+        config = load_config(args.config) if args.config else GenerateConfig()
+        config = apply_overrides(config, args.overrides)
+        if args.workers is not None:
+            config = dataclasses.replace(config, workers=args.workers)
+        if args.assemble is not None:
+            path = assemble(args.out, args.assemble or None)
+        else:
+            path = generate(args.out, args.num, args.seed, config, args.shard, args.num_shards, not args.quiet)
+        if path is None:
+            print(f"shard {args.shard}/{args.num_shards} done; the data set is assembled by the last shard to finish")
+            print(f"(or run: aynamics generate --num {args.num} --out {args.out} --assemble)")
+            return 0
+        if args.in_context:
+            from aynamics.incontext import write_in_context
+
+            print(f"in-context examples: {write_in_context(path)}")
+        print(f"data set: {path} (datasets.load_from_disk)")
+    except (ValueError, FileNotFoundError, RuntimeError) as e:
+        raise UsageError(f"generate: {e}") from None
+    return 0

@@ -1,0 +1,187 @@
+"""Dataset generation: records, determinism, sharding, resume, load_from_disk, CLI, in-context examples."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+
+import datasets
+import numpy as np
+import pytest
+
+from aynamics import generate as gen
+from aynamics import reasoning as rs
+from aynamics.cli import main
+from aynamics.incontext import coverage_targets, select_in_context, write_in_context
+from aynamics.sampler import SamplerConfig
+from aynamics.scene import parse
+
+try:
+    from aynamics.render import gl_available
+
+    GL, WHY = gl_available()
+except Exception as e:  # noqa: BLE001 - any import/GL failure means: no rendering here
+    GL, WHY = False, str(e)
+needs_gl = pytest.mark.skipif(not GL, reason=f"no headless OpenGL: {WHY}")
+
+CFG = gen.GenerateConfig(width=64, height=48, chunk_size=2, workers=0, sampler=SamplerConfig(max_objects=3))
+NUM, SEED = 4, 11
+
+
+def _rows(path) -> dict:
+    """Every split's rows as Arrow tables (image bytes included), for exact comparison."""
+    dd = datasets.load_from_disk(str(path))
+    return {s: dd[s].with_format("arrow")[:] for s in dd}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref")
+    return gen.generate_dataset(out, NUM, SEED, CFG)
+
+
+@needs_gl
+def test_records_load_with_load_from_disk(reference):
+    dd = datasets.load_from_disk(str(reference))
+    assert set(dd) == {"train", "validation", "test"}
+    assert sum(len(dd[s]) for s in dd) == NUM
+    rows = [r for s in dd for r in dd[s]]
+    assert sorted(r["index"] for r in rows) == list(range(NUM))
+    for r in rows:
+        assert r["split"] in gen.SPLITS and gen.split_of(SEED, r["index"], CFG.splits) == r["split"]
+        scene = parse(r["scene_yaml"])
+        assert parse(r["target_think"]) == scene and parse(r["target_answer"]) == scene
+        assert r["target_think"].startswith("<think>\n" + r["reasoning"])
+        assert len(r["rgb"]) == len(r["flow"]) == len(r["segmentation"]) == 10
+        assert r["rgb"][0].size == (64, 48) and r["rgb"][0].mode == "RGB" and r["segmentation"][0].mode == "L"
+        seg = np.stack([np.asarray(im, np.int16) - 1 for im in r["segmentation"]])
+        vis = rs.visibility(seg, len(scene.objects))
+        assert vis.tolist() == r["states"]["visible"]  # visibility stored = visibility of the stored masks
+        for i, name in enumerate(scene.names):
+            assert (
+                f"{name} visible in {vis[:, i].sum()}/10" in r["reasoning"] or f"{vis[:, i].sum()}/10" in r["reasoning"]
+            )
+        assert r["frame_indices"] == list(range(0, 30, 3))
+        pos = np.array(r["states"]["position"])
+        assert pos.shape == (31, len(scene.objects), 3)
+        assert np.allclose(pos[0], [o.state.position for o in scene.objects], atol=1e-4)
+        assert r["camera"]["width"] == 64 and np.array(r["camera"]["K"]).shape == (3, 3)
+        assert r["has_collision"] == any(c["b"] != "floor" for c in r["contacts"])
+        flow = np.stack([np.asarray(im) for im in r["flow"]])
+        moving = (seg >= 0).any() and r["flow_max"] > 0
+        assert (flow != 255).any() == moving  # colour only where something moves; white elsewhere
+
+
+@needs_gl
+def test_deterministic_and_sharded(reference, tmp_path):
+    """Same seed and config: identical records; two shards in two folders assemble into the same data set."""
+    again = gen.generate_dataset(tmp_path / "again", NUM, SEED, dataclasses.replace(CFG))
+    assert _rows(again) == _rows(reference)
+    assert gen.generate(tmp_path / "s0", NUM, SEED, CFG, shard=0, num_shards=2, progress=False) is None
+    assert gen.generate(tmp_path / "s1", NUM, SEED, CFG, shard=1, num_shards=2, progress=False) is None
+    assert sorted(p.name for p in (tmp_path / "s0" / "chunks").iterdir()) == ["000000"]
+    joined = gen.assemble(tmp_path / "joined", [tmp_path / "s0", tmp_path / "s1"])
+    assert _rows(joined) == _rows(reference)
+
+
+@needs_gl
+def test_resume_after_interruption(reference, tmp_path, monkeypatch):
+    """A run killed in its second chunk restarts, keeps the first chunk, and ends identical to one clean run."""
+    made: list[int] = []
+    real = gen.make_record
+
+    def dying(index, seed, config, renderer):
+        if index == 2:
+            raise KeyboardInterrupt
+        made.append(index)
+        return real(index, seed, config, renderer)
+
+    monkeypatch.setattr(gen, "make_record", dying)
+    with pytest.raises(KeyboardInterrupt):
+        gen.generate(tmp_path / "run", NUM, SEED, CFG, progress=False)
+    assert (tmp_path / "run" / "chunks" / "000000").is_dir() and not (tmp_path / "run" / "chunks" / "000001").exists()
+    (tmp_path / "run" / "chunks" / ".tmp-000001-999").mkdir()  # debris of a kill during a write
+    made.clear()
+    monkeypatch.setattr(gen, "make_record", lambda *a: (made.append(a[0]), real(*a))[1])
+    path = gen.generate(tmp_path / "run", NUM, SEED, CFG, progress=False)
+    assert made == [2, 3]  # chunk 0 (scenes 0, 1) was not redone
+    assert not list((tmp_path / "run" / "chunks").glob(".tmp-*"))
+    assert _rows(path) == _rows(reference)
+
+
+@needs_gl
+def test_resume_refuses_a_different_run(reference, tmp_path):
+    out = tmp_path / "copy"
+    shutil.copytree(reference, out)
+    with pytest.raises(ValueError, match="seed = 11, this run has 12"):
+        gen.generate(out, NUM, 12, CFG, progress=False)
+    with pytest.raises(ValueError, match=r"config max_attempts = 10 \(this run: 5\)"):
+        gen.generate(out, NUM, SEED, dataclasses.replace(CFG, max_attempts=5), progress=False)
+    shutil.rmtree(out / "chunks" / "000001")
+    with pytest.raises(ValueError, match=r"chunks \[1\] of 2 missing"):
+        gen.assemble(out)
+
+
+def test_config_files_and_overrides(tmp_path):
+    cfg = gen.apply_overrides(
+        gen.GenerateConfig(), ["width=96", "height=64", "sampler.max_objects=2", "sampler.speed=[1, 2]"]
+    )
+    assert (cfg.width, cfg.sampler.max_objects, cfg.sampler.speed, cfg.sampler.aspect) == (96, 2, (1, 2), 1.5)
+    with pytest.raises(ValueError, match="override.sampler.bogus: unknown key"):
+        gen.apply_overrides(cfg, ["sampler.bogus=1"])
+    with pytest.raises(ValueError, match=r"sampler.box_size|box_size = \[0.1, 9.0\]"):
+        gen.apply_overrides(cfg, ["sampler.box_size=[0.1, 9.0]"])
+    with pytest.raises(ValueError, match="must be key=value"):
+        gen.apply_overrides(cfg, ["width"])
+    with pytest.raises(FileNotFoundError):
+        gen.load_config(tmp_path / "missing.yaml")
+    path = tmp_path / "c.yaml"
+    path.write_text("width: 128\nsampler:\n  collision_share: 0.2\n")
+    assert gen.load_config(path).sampler.collision_share == 0.2
+    default = gen.load_config("conf/generate/default.yaml")
+    assert default == gen.GenerateConfig()  # the documented file is the defaults
+
+
+def test_shards_are_disjoint_and_cover():
+    chunks = [gen.shard_chunks(50, 4, k, 3) for k in range(3)]
+    assert sorted(c for cs in chunks for c in cs) == list(range(13))
+    with pytest.raises(ValueError, match="shard = 3, num_shards = 3"):
+        gen.shard_chunks(50, 4, 3, 3)
+
+
+@needs_gl
+def test_cli_generate(tmp_path, capsys):
+    out = tmp_path / "cli"
+    argv = ["generate", "--num", "2", "--out", str(out), "--seed", "1", "--workers", "0", "--quiet"]
+    assert main([*argv, "width=48", "height=32", "chunk_size=1"]) == 0
+    assert sum(len(d) for d in datasets.load_from_disk(str(out)).values()) == 2
+    assert json.loads((out / "generate.json").read_text())["num"] == 2
+    assert main([*argv, "sampler.nope=1"]) == 2
+    assert "sampler.nope: unknown key" in capsys.readouterr().err
+    assert main(["generate", "--num", "0", "--out", str(tmp_path / "x"), "--workers", "0"]) == 2
+
+
+def test_in_context_selection_covers_shapes_and_extremes():
+    from aynamics.sampler import sample_scene, scene_seed
+
+    scenes = [sample_scene(np.random.default_rng(scene_seed(3, i))) for i in range(40)]
+    chosen, missed = select_in_context(scenes)
+    assert len(set(chosen)) == 3
+    targets, covered = coverage_targets(scenes)
+    union = set().union(*(covered[i] for i in chosen))
+    assert {"shape:box", "shape:sphere", "shape:cylinder"} <= union
+    assert set(missed) == set(targets) - union
+    greedy_best = max(len(c) for c in covered)
+    assert len(union) >= greedy_best  # at least as good as the single best record
+
+
+@needs_gl
+def test_write_in_context(reference, tmp_path):
+    folder = write_in_context(reference, tmp_path / "ic")
+    data = json.loads((folder / "examples.json").read_text())
+    assert len(data["examples"]) == 3
+    for ex in data["examples"]:
+        assert (folder / ex["frames"][0]).is_file() and (folder / ex["flow"][9]).is_file()
+        assert parse(ex["target"]) == parse(ex["scene_yaml"])
+    assert (folder / "prompt.md").read_text().count("<answer>") == 3

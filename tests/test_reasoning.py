@@ -1,0 +1,140 @@
+"""Motion-reasoning text: every fact agrees with the simulation it describes."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from aynamics import reasoning as rs
+from aynamics.sampler import SamplerConfig, sample_scene, scene_seed
+from aynamics.scene import dump, load, parse
+from aynamics.simulate import simulate_batch
+
+FRAMES = np.arange(0, 30, 3)
+
+
+@pytest.fixture(scope="module")
+def simulated():
+    cfg = SamplerConfig(min_objects=2, max_objects=4, collision_share=0.7)
+    scenes = [sample_scene(np.random.default_rng(scene_seed(7, i)), cfg) for i in range(16)]
+    scenes.append(load("tests/assets/paper_example.yaml"))
+    rollouts = simulate_batch(scenes, nthread=2)
+    return [(s, r) for s, r in zip(scenes, rollouts, strict=True) if r.valid]
+
+
+def test_bins_follow_the_thresholds():
+    """Edges from the paper: x < -2 far left, [-2,-1) moderately, [-1,-0.5) slightly, [-0.5,0.5] centre, ..."""
+    cases = {-2.01: 0, -2.0: 1, -1.01: 1, -1.0: 2, -0.51: 2, -0.5: 3, 0.0: 3, 0.5: 3, 0.51: 4, 1.0: 4, 1.5: 5, 2.0: 5}
+    for v, b in {**cases, 2.01: 6, -7.0: 0, 9.0: 6}.items():
+        assert rs.position_bin(v) == b, v
+    assert rs.position_words(np.array([-5.0, -0.3, 0.4])) == ("far left", "at mid-depth", "close to the surface")
+
+
+def test_direction_words():
+    assert rs.direction_words(np.array([4.3, 2.5, 0.0])) == ["rightward", "forward"]
+    assert rs.direction_words(np.array([-1.0, -0.1, 0.0])) == ["leftward"]
+    assert rs.direction_words(np.array([0.0, 0.0, 0.001])) == []
+
+
+def test_visibility_from_segmentation():
+    seg = np.full((3, 4, 5), -1, np.int16)
+    seg[0, 0, 0] = 0
+    seg[0, 1, 1] = 1
+    seg[2, :, :] = 1
+    vis = rs.visibility(seg, 2)
+    assert vis.tolist() == [[True, True], [False, False], [False, True]]
+    assert rs.visibility(seg, 2, min_pixels=2).tolist() == [[False, False], [False, False], [False, True]]
+    with pytest.raises(ValueError, match=r"segmentation values in \[-1, 1\]: must be in \[-1, 0\]"):
+        rs.visibility(seg, 1)
+
+
+def _object_lines(text: str, n: int) -> list[str]:
+    return text.split("\n")[:n]
+
+
+def _check_facts(scene, rollout, visible, text):
+    times = rollout.t[FRAMES]
+    lines = _object_lines(text, len(scene.objects))
+    for i, (obj, line) in enumerate(zip(scene.objects, lines, strict=True)):
+        name = rollout.names[i]
+        assert line.startswith(name[0].upper() + name[1:] + ":")
+        assert f"{obj.physics.mass:.2f} kg" in line
+        for word in rs.position_words(rollout.position[0, i]):  # bins recomputed from the state
+            assert f" {word}" in line, (word, line)
+        v0 = rollout.linear_velocity[0, i]
+        speeds = re.findall(r"(\d+\.\d+) m/s", line)
+        if np.linalg.norm(v0) >= 0.02:
+            assert abs(float(speeds[0]) - np.linalg.norm(v0)) <= 0.0051
+            for d in rs.direction_words(v0):
+                assert d in line
+        else:
+            assert not speeds
+        rest = rollout.rest_time[i]
+        stop = re.search(r"(?:stops|comes to rest|halts) at t=(\d+\.\d+)s", line)
+        if rest is None or rest == 0.0:
+            assert stop is None
+        else:
+            assert abs(float(stop.group(1)) - rest) < 0.006
+        ground = [(c.start, c.end) for c in rollout.contacts if c.a == name and c.b == "floor"]
+        got = [(float(a), float(b)) for a, b in re.findall(r"(\d+\.\d\d)-(\d+\.\d\d)s", line)]
+        assert np.allclose(got, ground, atol=0.006) if ground else not got
+        hits = [(c.b, c.start) for c in rollout.contacts if c.a == name and c.b != "floor"]
+        said = [
+            (o, float(t))
+            for o, t in re.findall(r"(?:Collides with|Hits|Makes contact with) (\w+) at t=(\d+\.\d+)s", line)
+        ]
+        assert [o for o, _ in said] == [o for o, _ in hits]
+        assert np.allclose([t for _, t in said], [t for _, t in hits], atol=0.006)
+    vis_line = next(ln for ln in text.split("\n") if ln.startswith("Visibility:"))
+    for i, name in enumerate(rollout.names):
+        k = re.search(rf"{name} (?:visible in|is seen in|appears in) (\d+)/(\d+) frames", vis_line)
+        assert (int(k.group(1)), int(k.group(2))) == (int(visible[:, i].sum()), len(FRAMES))
+        start = vis_line.index(f"{name} ")
+        ends = [vis_line.index(f" {m} ") for m in rollout.names[i + 1 :]]
+        sentence = vis_line[start : min(ends, default=len(vis_line))]
+        for j in range(1, len(FRAMES)):
+            if visible[j - 1, i] != visible[j, i]:  # leaves or enters at the first frame of the change
+                assert f"t={times[j]:.2f}s" in sentence, (name, sentence)
+    resting = sum(r is not None for r in rollout.rest_time)
+    assert f"{resting} of {len(scene.objects)}" in text or f"{resting}/{len(scene.objects)}" in text
+
+
+def test_facts_agree_with_the_simulation(simulated):
+    """Bins, speeds, stop times, ground intervals, collisions and visibility recomputed from the rollout."""
+    assert len(simulated) >= 12
+    some_collision = False
+    for k, (scene, rollout) in enumerate(simulated):
+        visible = rollout.in_view[FRAMES].copy()  # stands in for segmentation-based visibility here
+        visible[-3:, 0] = False  # object 0 leaves the view: the text must say when
+        text = rs.reasoning_text(scene, rollout, visible, rollout.t[FRAMES], seed=k)
+        _check_facts(scene, rollout, visible, text)
+        assert "leaves the view" in text or "exits the frame" in text or "goes out of view" in text
+        some_collision |= any(c.b != "floor" for c in rollout.contacts)
+    assert some_collision
+
+
+def test_paraphrases_keep_the_facts(simulated):
+    scene, rollout = simulated[0]
+    visible = rollout.in_view[FRAMES]
+    texts = [rs.reasoning_text(scene, rollout, visible, rollout.t[FRAMES], seed=s) for s in range(6)]
+    assert len(set(texts)) > 1
+    numbers = {tuple(re.findall(r"\d+\.\d+", t)) for t in texts}
+    assert len(numbers) == 1  # same facts, same order, different wording
+    assert rs.reasoning_text(scene, rollout, visible, rollout.t[FRAMES], seed=3) == texts[3]
+
+
+def test_targets_round_trip(simulated):
+    scene, rollout = simulated[0]
+    text = rs.reasoning_text(scene, rollout, rollout.in_view[FRAMES], rollout.t[FRAMES])
+    target = rs.think_target(text, dump(scene))
+    assert target.startswith("<think>\n") and "</think>\n\n<answer>\n" in target and target.endswith("</answer>")
+    assert parse(target) == scene
+    assert parse(rs.answer_target(dump(scene))) == scene
+
+
+def test_bad_input_is_named(simulated):
+    scene, rollout = simulated[0]
+    with pytest.raises(ValueError, match=r"visible shape \(3, 1\)"):
+        rs.reasoning_text(scene, rollout, np.ones((3, 1), bool), np.zeros(3))
