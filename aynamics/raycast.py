@@ -95,13 +95,8 @@ def cast_group(
     n, h, w = len(scenes), height, width
     if int(np.max(frames)) + 1 > config.frames:
         raise ValueError(f"frames up to {int(np.max(frames))} need {int(np.max(frames)) + 1} frames of simulation")
-    b, tpl = sim.prepare_batch(scenes, structure, nthread)
-    qpos0, qvel0 = np.array(b.bind("qpos")), np.array(b.bind("qvel"))
-    sub = config.substeps
-    rec = b.rollout(config.frames * sub, record=("qpos", "qvel"))
-    qpos = np.concatenate([qpos0[:, None], rec["qpos"][:, sub - 1 :: sub]], axis=1)  # (n, T, nq)
-    qvel = np.concatenate([qvel0[:, None], rec["qvel"][:, sub - 1 :: sub]], axis=1)
-    warnings = np.array(b.warning).sum(axis=(1, 2))
+    raw = sim.rollout_raw(scenes, structure, config, nthread, sensors=False)
+    tpl, b, qpos, qvel, warnings = raw.template, raw.batch, raw.qpos, raw.qvel, raw.warnings  # (n, T, nq/nv), (n,)
     cols_p = tpl.qpos_adr[:, None] + np.arange(7)
     cols_v = tpl.dof_adr[:, None] + np.arange(6)
     t = np.arange(config.frames + 1) / config.fps

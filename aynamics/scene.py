@@ -151,7 +151,7 @@ class SceneError(ValueError):
         super().__init__(head + "; ".join(str(p) for p in self.problems))
 
 
-def _show(value: Any, limit: int = 60) -> str:
+def _show(value: Any, limit: int = 200) -> str:
     text = repr(value) if isinstance(value, str) else str(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
 

@@ -263,11 +263,12 @@ def _write_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> None:
             getattr(model, name)[...] = value
 
 
-def compile_scene(scene: Scene) -> tuple[mujoco.MjModel, Template]:
+def compile_scene(scene: Scene, config: SimConfig | None = None) -> tuple[mujoco.MjModel, Template]:
     """A standalone MjModel of the scene (for rendering and single simulations), and its template."""
     tpl = template(scene.structure)
     model = _copy_model(tpl.model)
     _write_params(model, scene_params(scene, tpl))
+    model.opt.timestep = (config or SimConfig()).timestep
     mujoco.mj_setConst(model, mujoco.MjData(model))
     return model, tpl
 
@@ -384,6 +385,11 @@ class SimConfig:
     def frames(self) -> int:
         return int(round(self.duration * self.fps))
 
+    @property
+    def timestep(self) -> float:
+        """Physics step, s: 1 / (fps · substeps)."""
+        return 1.0 / (self.fps * self.substeps)
+
 
 def simulate(scene: Scene, config: SimConfig = SimConfig()) -> Rollout:
     """Simulate one scene."""
@@ -420,7 +426,7 @@ def _cached_batch(tpl: Template, n: int, nthread: int) -> mjbatch.Batch:
     b = cache.pop(key, None)
     if b is None:
         b = mjbatch.Batch(tpl.model, n, nthread=nthread)
-        for name in PARAM_FIELDS:
+        for name in (*PARAM_FIELDS, "opt.timestep"):
             b.expand(name)
     cache[key] = b
     while len(cache) > _BATCH_CACHE_SIZE:
@@ -429,11 +435,12 @@ def _cached_batch(tpl: Template, n: int, nthread: int) -> mjbatch.Batch:
 
 
 def prepare_batch(
-    scenes: list[Scene], structure: tuple[str, ...], nthread: int | None = None
+    scenes: list[Scene], structure: tuple[str, ...], nthread: int | None = None, timestep: float | None = None
 ) -> tuple[mjbatch.Batch, Template]:
     """A Batch over the structure's template with each scene's parameters and initial state written in.
 
-    Batches are cached per (structure, size, threads) and rewritten completely on each call.
+    Batches are cached per (structure, size, threads) and rewritten completely on each call. `timestep` is the
+    physics step in seconds (default 1 / 240: `SimConfig().timestep`).
     """
     tpl = template(structure)
     n = len(scenes)
@@ -441,6 +448,7 @@ def prepare_batch(
     params = [scene_params(s, tpl) for s in scenes]
     for name in PARAM_FIELDS:
         b.expand(name)[...] = np.stack([p[name] for p in params]).reshape(b.expand(name).shape)
+    b.expand("opt.timestep")[...] = SimConfig().timestep if timestep is None else timestep
     b.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
     b.set_const()
     qpos, qvel = b.bind("qpos"), b.bind("qvel")
@@ -458,6 +466,8 @@ class RawRollout:
         qpos: (n, T, nq), qvel: (n, T, nv) per frame, frame 0 the initial state.
         sensor: (n, S, nsensordata) contact counts after every physics step.
         warnings: (n,) MuJoCo warning counts (instability).
+        batch: the (cached) Batch it ran on, holding the scenes' parameters: valid for ray casts until the next
+            call with the same structure and size.
     """
 
     template: Template
@@ -465,21 +475,28 @@ class RawRollout:
     qvel: np.ndarray
     sensor: np.ndarray
     warnings: np.ndarray
+    batch: mjbatch.Batch | None = None
 
 
 def rollout_raw(
-    scenes: list[Scene], structure: tuple[str, ...], config: SimConfig = SimConfig(), nthread: int | None = None
+    scenes: list[Scene],
+    structure: tuple[str, ...],
+    config: SimConfig = SimConfig(),
+    nthread: int | None = None,
+    sensors: bool = True,
 ) -> RawRollout:
-    """Simulate same-structure scenes in one Batch; states per frame, contact sensors per physics step."""
-    b, tpl = prepare_batch(scenes, structure, nthread)
+    """Simulate same-structure scenes in one Batch; states per frame, contact sensors per physics step
+    (`sensors=False` skips recording them: `sensor` is then an empty (n, S, 0) array)."""
+    b, tpl = prepare_batch(scenes, structure, nthread, config.timestep)
     qpos0 = np.array(b.bind("qpos"))
     qvel0 = np.array(b.bind("qvel"))
     sub = config.substeps
-    rec = b.rollout(config.frames * sub, record=("qpos", "qvel", "sensordata"))
+    rec = b.rollout(config.frames * sub, record=("qpos", "qvel", "sensordata") if sensors else ("qpos", "qvel"))
     qpos = np.concatenate([qpos0[:, None], rec["qpos"][:, sub - 1 :: sub]], axis=1)
     qvel = np.concatenate([qvel0[:, None], rec["qvel"][:, sub - 1 :: sub]], axis=1)
     warnings = np.array(b.warning).sum(axis=(1, 2))
-    return RawRollout(tpl, qpos, qvel, rec["sensordata"], warnings)
+    sensor = rec["sensordata"] if sensors else np.zeros((len(scenes), config.frames * sub, 0))
+    return RawRollout(tpl, qpos, qvel, sensor, warnings, b)
 
 
 def _simulate_group(
