@@ -1,0 +1,155 @@
+"""Fitting shared physical parameters to measured trajectories, and the statistics that judge a fit.
+
+    res = fit(scene, tracks, start={"mu": 0.4}, active=["floor_offset"])   # bounded least squares
+    err = track_errors(scene, tracks, res.values, res.active)              # (n,) RMS position error, m
+
+The residual vector is every object's position error (m) at every measured frame. Residuals along one
+trajectory are strongly correlated, so information criteria and standard errors use an effective sample
+size n·(1-ρ)/(1+ρ) from the lag-1 autocorrelation ρ of the residuals.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from aynamics.effects import CANDIDATES, simulate_tracks
+from aynamics.measured import Track
+from aynamics.scene import Scene
+
+MU_BOUNDS = (0.02, 1.5)
+MU_SCALE = 0.1
+MAX_EVALS = 12  # least-squares iterations per fit (each costs 1 + number of parameters simulations)
+STEP = 0.05  # finite-difference step in units of each parameter's typical size
+
+
+@dataclass
+class FitResult:
+    """A fitted model: parameter values, standard errors and goodness of fit on the fit split."""
+
+    values: dict[str, float]
+    active: list[str]
+    sigma: dict[str, float]
+    rss: float
+    n: int
+    n_eff: float
+    k: int
+    evals: int
+    cov: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+    names: list[str] = field(default_factory=list)
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion on the effective sample size."""
+        return self.n_eff * math.log(max(self.rss / self.n, 1e-300)) + self.k * math.log(self.n_eff)
+
+    def mahalanobis(self, name: str) -> float:
+        """Distance (in standard errors, jointly) of a candidate's parameters from its 'absent' value."""
+        c = CANDIDATES[name]
+        idx = [self.names.index(p) for p in c.params]
+        d = np.array([self.values[p] - z for p, z in zip(c.params, c.null, strict=True)])
+        cov = self.cov[np.ix_(idx, idx)]
+        try:
+            return float(math.sqrt(max(d @ np.linalg.solve(cov + 1e-18 * np.eye(len(d)), d), 0.0)))
+        except np.linalg.LinAlgError:
+            return 0.0
+
+
+def residuals(scene: Scene, tracks: list[Track], values: dict, active: list[str]) -> list[np.ndarray]:
+    """Per track, (T, N, 3) simulated minus measured position (NaN where the measurement is missing)."""
+    sim = simulate_tracks(scene, tracks, values, active)
+    return [p - tr.position for p, tr in zip(sim.position, tracks, strict=True)]
+
+
+def track_errors(scene: Scene, tracks: list[Track], values: dict, active: list[str]) -> np.ndarray:
+    """(n,) RMS position error (m) of each track."""
+    return np.array([math.sqrt(np.nanmean(np.sum(r**2, -1))) for r in residuals(scene, tracks, values, active)])
+
+
+def lag1(res: list[np.ndarray]) -> float:
+    """Lag-1 autocorrelation of residuals along the tracks (pooled over coordinates)."""
+    num = den = 0.0
+    for r in res:
+        x = r.reshape(len(r), -1)
+        x = x[np.isfinite(x).all(1)]
+        if len(x) < 3:
+            continue
+        num += float(np.sum(x[1:] * x[:-1]))
+        den += float(np.sum(x * x))
+    return num / den if den > 0 else 0.0
+
+
+def fit(
+    scene: Scene, tracks: list[Track], start: dict[str, float], active: list[str], max_evals: int = MAX_EVALS
+) -> FitResult:
+    """Fit μ plus the parameters of every active candidate (others held at `start`) by bounded least squares."""
+    names, lo, hi, x0, scale = ["mu"], [MU_BOUNDS[0]], [MU_BOUNDS[1]], [start["mu"]], [MU_SCALE]
+    for a in active:
+        c = CANDIDATES[a]
+        for p, a_lo, a_hi, s0, sc in zip(c.params, c.lo, c.hi, c.start, c.scale, strict=True):
+            names.append(p)
+            lo.append(a_lo)
+            hi.append(a_hi)
+            x0.append(float(np.clip(start.get(p, s0), a_lo, a_hi)))
+            scale.append(sc)
+    lo_, hi_, x0_, sc_ = (np.array(v, dtype=float) for v in (lo, hi, x0, scale))
+    fixed = {k: v for k, v in start.items() if k not in names}
+    evals = 0
+
+    def unpack(u: np.ndarray) -> dict:
+        return {**fixed, **dict(zip(names, np.clip(x0_ + u * sc_, lo_, hi_), strict=True))}
+
+    def fun(u: np.ndarray) -> np.ndarray:
+        nonlocal evals
+        evals += 1
+        res = residuals(scene, tracks, unpack(u), active)
+        return np.nan_to_num(np.concatenate([r.ravel() for r in res]), nan=0.0)
+
+    u_lo, u_hi = (lo_ - x0_) / sc_, (hi_ - x0_) / sc_
+    cache: dict[bytes, np.ndarray] = {}
+
+    def fun_cached(u: np.ndarray) -> np.ndarray:
+        key = u.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = fun(u)
+        return cache[key]
+
+    def jac(u: np.ndarray) -> np.ndarray:
+        # forward differences with a fixed step of STEP typical sizes (scipy's relative step is 0 at u = 0)
+        f0 = fun_cached(u)
+        cols = []
+        for j in range(len(u)):
+            h = STEP if u[j] + STEP <= u_hi[j] else -STEP
+            du = np.zeros_like(u)
+            du[j] = h
+            cols.append((fun(u + du) - f0) / h)
+        return np.stack(cols, 1)
+
+    out = least_squares(
+        fun_cached,
+        np.zeros(len(names)),
+        jac=jac,
+        bounds=(u_lo - 1e-9, u_hi + 1e-9),
+        max_nfev=max_evals,
+        x_scale=1.0,
+        xtol=1e-4,
+        ftol=1e-6,
+    )
+    values = unpack(out.x)
+    res = residuals(scene, tracks, values, active)
+    r = np.nan_to_num(np.concatenate([x.ravel() for x in res]), nan=0.0)
+    n, k = int(np.count_nonzero(r)) or 1, len(names)
+    rho = min(max(lag1(res), 0.0), 0.999)
+    n_eff = max(n * (1 - rho) / (1 + rho), float(len(tracks)), k + 2.0)
+    rss = float(r @ r)
+    jac = out.jac / sc_[None, :]  # d r / d x
+    try:
+        cov = np.linalg.pinv(jac.T @ jac) * rss / max(n - k, 1) * (n / n_eff)
+    except np.linalg.LinAlgError:
+        cov = np.full((k, k), np.inf)
+    sigma = {p: float(math.sqrt(max(cov[i, i], 0.0))) for i, p in enumerate(names)}
+    return FitResult(values, list(active), sigma, rss, n, n_eff, k, evals, cov, names)

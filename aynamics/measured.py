@@ -1,0 +1,270 @@
+"""Measured trajectories: the CSV loader, the cube-toss converter, splits, initial states and motion phases.
+
+CSV columns (one row per measured frame, any order, header required):
+    trajectory, t, object, x, y, z              required (s, m; world frame, z up)
+    qw, qx, qy, qz                              optional orientation (body -> world, scalar first)
+    vx, vy, vz, wx, wy, wz                      optional world linear / BODY angular velocity
+
+    data = read_csv("tosses.csv")                # Measured, one Track per trajectory id
+    fit, val, held = split(data.ids, seed=0)     # by whole trajectory
+    cube_tosses_csv("../shared/data/cube_tosses/tosses.csv.gz", "cube.csv")  # ContactNets tosses -> our CSV
+
+Irregular timestamps, dropped frames and noise are expected; rows are sorted by time per trajectory.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+REQUIRED = ("trajectory", "t", "object", "x", "y", "z")
+ORIENTATION = ("qw", "qx", "qy", "qz")
+LINEAR = ("vx", "vy", "vz")
+ANGULAR = ("wx", "wy", "wz")
+INIT_WINDOW = 0.08  # s: frames used to estimate the initial state when velocities are not measured
+PHASES = ("flight", "impact", "sliding", "rolling", "rest")
+CONTACT_GAP = 0.006  # m: lowest point this close to the floor counts as contact
+REST_SPEED = 0.05  # m/s
+ROLL_SLIP = 0.15  # m/s: contact-point slip below this (and moving) is rolling / tumbling
+
+
+class MeasuredError(ValueError):
+    """A measured-data file is malformed; the message names the row, column and value."""
+
+
+@dataclass(frozen=True)
+class Track:
+    """One measured trajectory of N objects over T frames (NaN where an object is missing in a frame).
+
+    Attributes:
+        id: trajectory id from the CSV.
+        t: (T,) s, increasing, first frame at 0 (shifted).
+        position: (T, N, 3) m, world.
+        orientation: (T, N, 4) wxyz or None.
+        velocity: (T, N, 6) world linear + body angular, or None.
+    """
+
+    id: str
+    t: np.ndarray
+    position: np.ndarray
+    orientation: np.ndarray | None
+    velocity: np.ndarray | None
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1])
+
+
+@dataclass(frozen=True)
+class Measured:
+    """All trajectories of a file, with the object names in column order of `Track` arrays."""
+
+    objects: tuple[str, ...]
+    tracks: dict[str, Track]
+
+    @property
+    def ids(self) -> list[str]:
+        return list(self.tracks)
+
+    def subset(self, ids: list[str]) -> list[Track]:
+        return [self.tracks[i] for i in ids]
+
+
+def _float(value: str, row: int, column: str, path: str) -> float:
+    try:
+        x = float(value)
+    except ValueError:
+        raise MeasuredError(f"{path}: row {row}, column {column!r} = {value!r}: must be a number") from None
+    if not math.isfinite(x):
+        raise MeasuredError(f"{path}: row {row}, column {column!r} = {value!r}: must be finite")
+    return x
+
+
+def read_csv(path: str) -> Measured:
+    """Read measured trajectories from a CSV (optionally .gz).
+
+    Raises:
+        MeasuredError: missing file or column, non-numeric or non-finite value, duplicate timestamp.
+    """
+    try:
+        raw = open(path, "rb").read()
+    except OSError as e:
+        raise MeasuredError(f"--measured {path!r}: {e.strerror or e}") from None
+    if path.endswith(".gz"):
+        raw = gzip.decompress(raw)
+    reader = csv.reader(io.StringIO(raw.decode("utf-8", errors="replace")))
+    header = [h.strip() for h in next(reader, [])]
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        raise MeasuredError(f"{path}: missing column(s) {missing}; header is {header}; required: {list(REQUIRED)}")
+    col = {h: i for i, h in enumerate(header)}
+    has_q = all(c in col for c in ORIENTATION)
+    has_lin, has_ang = all(c in col for c in LINEAR), all(c in col for c in ANGULAR)
+    vel_cols = (list(LINEAR) if has_lin else []) + (list(ANGULAR) if has_ang else [])
+    numeric = ["t", "x", "y", "z"] + (list(ORIENTATION) if has_q else []) + vel_cols
+    rows: dict[str, list[tuple[float, str, list[float]]]] = {}
+    objects: list[str] = []
+    for r, line in enumerate(reader, start=2):
+        if not line or all(not c.strip() for c in line):
+            continue
+        if len(line) < len(header):
+            raise MeasuredError(f"{path}: row {r} has {len(line)} values, the header has {len(header)}")
+        vals = [_float(line[col[c]], r, c, path) for c in numeric]
+        obj = line[col["object"]].strip()
+        if obj not in objects:
+            objects.append(obj)
+        rows.setdefault(line[col["trajectory"]].strip(), []).append((vals[0], obj, vals[1:]))
+    if not rows:
+        raise MeasuredError(f"{path}: no data rows")
+    tracks = {tid: _track(tid, rr, objects, has_q, (has_lin, has_ang), path) for tid, rr in rows.items()}
+    return Measured(tuple(objects), tracks)
+
+
+def _track(tid: str, rows: list, objects: list[str], has_q: bool, has_v: tuple[bool, bool], path: str) -> Track:
+    times = np.unique(np.array([r[0] for r in rows]))
+    if len(times) < 4:
+        raise MeasuredError(f"{path}: trajectory {tid!r} has {len(times)} distinct times: at least 4 needed")
+    n, nt = len(objects), len(times)
+    pos = np.full((nt, n, 3), np.nan)
+    quat = np.full((nt, n, 4), np.nan) if has_q else None
+    vel = np.full((nt, n, 6), np.nan) if any(has_v) else None
+    vcols = ([0, 1, 2] if has_v[0] else []) + ([3, 4, 5] if has_v[1] else [])
+    seen = set()
+    for time, obj, v in rows:
+        k, i = int(np.searchsorted(times, time)), objects.index(obj)
+        if (k, i) in seen:
+            raise MeasuredError(f"{path}: trajectory {tid!r}, object {obj!r}: two rows at t = {time}")
+        seen.add((k, i))
+        pos[k, i] = v[:3]
+        if quat is not None:
+            q = np.array(v[3:7])
+            norm = np.linalg.norm(q)
+            if not 0.5 < norm < 1.5:
+                raise MeasuredError(f"{path}: trajectory {tid!r}, t = {time}: quaternion {list(q)} is not unit")
+            quat[k, i] = q / norm
+        if vel is not None:
+            off = 7 if has_q else 3
+            vel[k, i, vcols] = v[off : off + len(vcols)]
+    return Track(tid, times - times[0], pos, quat, vel)
+
+
+def cube_tosses_csv(src: str, dst: str, tosses: list[int] | None = None) -> int:
+    """Convert the ContactNets cube tosses (toss, t, qw.., x.., wx.., vx..) into our CSV; returns rows written."""
+    try:
+        text = gzip.open(src, "rt").read() if src.endswith(".gz") else open(src).read()
+    except OSError as e:
+        raise MeasuredError(f"cube tosses {src!r}: {e.strerror or e}") from None
+    reader = csv.DictReader(io.StringIO(text))
+    keep = None if tosses is None else {str(k) for k in tosses}
+    out = ["trajectory,t,object,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz"]
+    for row in reader:
+        if keep is not None and row["toss"] not in keep:
+            continue
+        vals = [row[c] for c in ("t", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")]
+        out.append(f"{row['toss']},{vals[0]},cube," + ",".join(vals[1:]))
+    with open(dst, "w") as f:
+        f.write("\n".join(out) + "\n")
+    return len(out) - 1
+
+
+def split(ids: list[str], seed: int = 0, fractions: tuple[float, float] = (0.5, 0.25)) -> tuple[list, list, list]:
+    """Shuffle trajectory ids and cut them into fit / validation / held-out (whole trajectories)."""
+    if len(ids) < 3:
+        raise MeasuredError(f"{len(ids)} trajectories: at least 3 are needed to split fit/validation/held-out")
+    order = list(np.random.default_rng(seed).permutation(len(ids)))
+    n = len(ids)
+    a = max(1, int(round(fractions[0] * n)))
+    b = max(a + 1, min(n - 1, a + int(round(fractions[1] * n))))
+    pick = [ids[k] for k in order]
+    return pick[:a], pick[a:b], pick[b:]
+
+
+def quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) wxyz -> (..., 3, 3)."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def initial_state(track: Track, i: int, time_scale: float = 1.0) -> dict[str, np.ndarray]:
+    """Initial position, orientation, world linear and WORLD angular velocity of object i at t = 0.
+
+    Measured velocities are used when the file has them; otherwise a quadratic fit over the first
+    `INIT_WINDOW` s gives position and velocity (spin zero without orientation). `time_scale` s converts
+    data-clock velocities to physical ones (v / s) for the time-scale candidate.
+    """
+    t, p = track.t, track.position[:, i]
+    ok = np.isfinite(p).all(-1)
+    sel = ok & (t <= t[ok][0] + INIT_WINDOW)
+    if sel.sum() < 4:
+        sel = np.flatnonzero(ok)[:4]
+    tt, pp = t[sel] - t[ok][0], p[sel]
+    coef = np.polynomial.polynomial.polyfit(tt, pp, 2)  # (3, 3): c0, c1, c2 per axis
+    k0 = int(np.flatnonzero(ok)[0])
+    quat = track.orientation[k0, i] if track.orientation is not None else np.array([1.0, 0, 0, 0])
+    lin, ang, pos = coef[1], np.zeros(3), coef[0]
+    if track.velocity is not None and np.isfinite(track.velocity[k0, i, :3]).all():
+        lin, pos = track.velocity[k0, i, :3], p[k0]
+    if track.velocity is not None and np.isfinite(track.velocity[k0, i, 3:]).all():
+        ang = quat_to_mat(quat) @ track.velocity[k0, i, 3:]
+    return {"position": pos, "orientation": quat, "linear_velocity": lin / time_scale, "angular": ang / time_scale}
+
+
+def support_height(position: np.ndarray, orientation: np.ndarray | None, kind: str, size: np.ndarray) -> np.ndarray:
+    """(T,) height of the object's lowest point above z = 0. size: box half-extents, (r,) sphere, (r, h) cylinder."""
+    z = position[:, 2]
+    if kind == "sphere":
+        return z - size[0]
+    if orientation is None:
+        return z - (min(size) if kind == "box" else min(size[0], size[1] / 2))
+    rz = quat_to_mat(orientation)[:, 2, :]  # (T, 3): world z row
+    if kind == "box":
+        return z - np.abs(rz) @ np.asarray(size)
+    c = np.abs(rz[:, 2])
+    return z - (c * size[1] / 2 + size[0] * np.sqrt(np.clip(1 - c * c, 0, 1)))
+
+
+def phases(t: np.ndarray, position: np.ndarray, support: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """(T,) phase index into PHASES for one object from its measured motion (independent of any model)."""
+    dt = np.gradient(t)
+    vel = np.gradient(position, axis=0) / np.maximum(dt, 1e-6)[:, None]
+    speed = np.linalg.norm(vel, axis=-1)
+    contact = support - floor < CONTACT_GAP
+    out = np.zeros(len(t), dtype=int)  # flight
+    # slip of the contact point: horizontal speed of the lowest point is unknown without spin; use the
+    # change of horizontal speed instead: sliding decelerates (friction), rolling/tumbling keeps speed
+    acc_h = np.linalg.norm(np.gradient(vel[:, :2], axis=0) / np.maximum(dt, 1e-6)[:, None], axis=-1)
+    out[contact & (acc_h > 1.0)] = PHASES.index("sliding")
+    out[contact & (acc_h <= 1.0)] = PHASES.index("rolling")
+    out[contact & (speed < REST_SPEED)] = PHASES.index("rest")
+    onset = np.flatnonzero(contact[1:] & ~contact[:-1]) + 1
+    for k in onset:
+        out[max(0, k - 1) : k + 2] = PHASES.index("impact")
+    return out
+
+
+def bounces(t: np.ndarray, position: np.ndarray, support: np.ndarray, floor: float = 0.0) -> list[float]:
+    """Vertical restitution at each impact after flight: -vz(after) / vz(before), from finite differences."""
+    contact = support - floor < CONTACT_GAP
+    onset = np.flatnonzero(contact[1:] & ~contact[:-1]) + 1
+    out = []
+    for k in onset:
+        k = int(k + np.argmin(support[k : k + 6]))  # the impact: lowest point of the dip, not the first touch
+        if k < 3 or k + 3 >= len(t):
+            continue
+        vz_in = (position[k - 1, 2] - position[k - 3, 2]) / (t[k - 1] - t[k - 3])
+        vz_out = (position[k + 3, 2] - position[k + 1, 2]) / (t[k + 3] - t[k + 1])
+        if vz_in < -0.3:
+            out.append(float(-vz_out / vz_in))
+    return out

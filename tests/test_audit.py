@@ -1,0 +1,192 @@
+"""Tests of the measured-data audit: loader errors, splits, the hidden-effect cases and the real cube tosses.
+
+The hidden effects come from the sealed generator in tests/audit_hidden.py (its own MJCF, 1 ms steps, forces
+in a Python loop): the audit sees only the CSV and a scene without the effect, with μ off by up to ±20 %.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from audit_hidden import EFFECTS, make_case  # noqa: E402
+
+from aynamics import scene as scenelib  # noqa: E402
+from aynamics.audit import audit, bootstrap  # noqa: E402
+from aynamics.cli import main  # noqa: E402
+from aynamics.effects import NAMES, scene_with  # noqa: E402
+from aynamics.measured import MeasuredError, cube_tosses_csv, initial_state, read_csv, split  # noqa: E402
+
+CUBES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cube_tosses" / "tosses.csv.gz"
+
+
+def recovered(effect: str, p: dict) -> float:
+    """The size of an effect from the audit's parameters, in the generator's terms."""
+    if effect == "wind":
+        return math.hypot(p["wind_x"], p["wind_y"])
+    if effect == "floor_tilt":
+        return math.hypot(p["tilt_x"], p["tilt_y"])
+    if effect == "gravity":
+        return math.dist((p["gx"], p["gy"], p["gz"]), (0.0, 0.0, -9.81))
+    if effect == "time_scale":
+        return p["time_scale"] - 1.0
+    key = {
+        "rolling_resistance": "c_rr",
+        "air_drag_quadratic": "air_density",
+        "air_drag_linear": "air_viscosity",
+        "speed_dependent_friction": "friction_slope",
+    }.get(effect, effect)
+    return p[key]
+
+
+def check_found(effects: tuple[str, ...], seed: int, tmp_path: Path, **kw) -> None:
+    case = make_case(effects, seed, tmp_path, **kw)
+    result = audit(read_csv(case.csv), scenelib.load(case.scene), max_causes=len(effects))
+    msg = f"hidden {case.sizes}, got {result.verdict} {result.causes} {result.parameters}"
+    assert result.verdict in ("found", "ambiguous"), msg
+    for e in effects:
+        assert e in result.causes, msg
+        assert abs(recovered(e, result.parameters) - case.sizes[e]) <= 0.25 * abs(case.sizes[e]), msg
+    assert result.held_out_error_after <= 0.5 * result.held_out_error_before, msg
+
+
+# ------------------------------------------------------------------------------------------------
+# loader, split, pieces
+# ------------------------------------------------------------------------------------------------
+def test_csv_errors_name_row_column_and_value(tmp_path):
+    p = tmp_path / "m.csv"
+    p.write_text("trajectory,t,object,x,y\n0,0,a,1,2\n")
+    with pytest.raises(MeasuredError, match=r"missing column\(s\) \['z'\]"):
+        read_csv(str(p))
+    p.write_text("trajectory,t,object,x,y,z\n0,0,a,1,2,3\n0,0.1,a,1,two,3\n")
+    with pytest.raises(MeasuredError, match=r"row 3, column 'y' = 'two': must be a number"):
+        read_csv(str(p))
+    with pytest.raises(MeasuredError, match="No such file"):
+        read_csv(str(tmp_path / "absent.csv"))
+
+
+def test_split_is_by_whole_trajectory_and_initial_state_recovers_a_parabola(tmp_path):
+    ids = [str(k) for k in range(20)]
+    a, b, c = split(ids, seed=1)
+    assert sorted(a + b + c, key=int) == ids and not (set(a) & set(b)) and not (set(b) & set(c))
+    t = np.sort(np.r_[0, np.random.default_rng(0).uniform(0, 0.5, 40)])
+    x = np.stack([0.1 + 2.0 * t, -1.0 * t, 1.0 + 3.0 * t - 4.905 * t * t], 1)
+    rows = ["trajectory,t,object,x,y,z"] + [f"0,{tt},ball,{p[0]},{p[1]},{p[2]}" for tt, p in zip(t, x, strict=True)]
+    (tmp_path / "p.csv").write_text("\n".join(rows))
+    s = initial_state(read_csv(str(tmp_path / "p.csv")).tracks["0"], 0)
+    np.testing.assert_allclose(s["linear_velocity"], [2.0, -1.0, 3.0], atol=1e-6)  # exact for a parabola
+
+
+def test_candidates_write_scene_fields_and_old_dump_unchanged():
+    text = (Path(__file__).parent / "assets" / "paper_example.yaml").read_text()
+    scene = scenelib.parse(text)
+    assert scenelib.dump(scene_with(scene, {}, [])) == scenelib.dump(scene)
+    ext = scene_with(scene, {"floor_offset": 0.01, "c_rr": 0.05, "mu": 0.2}, ["floor_offset", "rolling_resistance"])
+    again = scenelib.parse(scenelib.dump(ext))
+    assert again.environment.floor_offset == 0.01
+    assert all(o.physics.friction == (0.2, 0.05) for o in again.objects)
+    assert set(NAMES) == set(EFFECTS)
+
+
+def test_bootstrap_interval_brackets_the_gain():
+    before = np.full(30, 0.02) + np.linspace(0, 0.01, 30)
+    diff, ratio = bootstrap(before, before / 2)
+    assert diff[0] > 0 and ratio[0] == pytest.approx(0.5) and ratio[1] == pytest.approx(0.5)
+
+
+def test_cli_bad_input_exits_2_naming_the_file(tmp_path, capsys):
+    scene = tmp_path / "s.yaml"
+    scene.write_text(
+        "- type: sphere\n  radius: 0.1\n  state:\n    position: [0, 0, 0.1]\n- type: camera\n  position: [0, -3, 2]\n"
+    )
+    rc = main(["audit", "--measured", str(tmp_path / "nope.csv"), "--scene", str(scene), "--out", str(tmp_path)])
+    assert rc == 2 and "nope.csv" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------------
+# hidden effects
+# ------------------------------------------------------------------------------------------------
+def test_hidden_floor_offset_is_found_and_the_cli_writes_the_report(tmp_path, capsys):
+    case = make_case("floor_offset", 11, tmp_path / "case")
+    out = tmp_path / "out"
+    rc = main(
+        ["audit", "--measured", case.csv, "--scene", case.scene, "--out", str(out), "--json", "--max-causes", "1"]
+    )
+    assert rc == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["cause"] == "floor_offset" and got["verdict"] == "found", got
+    size = case.sizes["floor_offset"]
+    assert abs(got["parameters"]["floor_offset"] - size) <= 0.25 * abs(size)
+    assert got["held_out_error_after"] <= 0.5 * got["held_out_error_before"]
+    assert scenelib.parse(got["extended_scene"]).environment.floor_offset == pytest.approx(size, rel=0.25)
+    for f in ("report.md", "residuals.png", "phases.png", "worst.png", "extended_scene.yaml"):
+        assert (out / f).stat().st_size > 0
+    assert "floor_offset" in (out / "report.md").read_text()
+
+
+def test_null_control_answers_none_and_leaves_the_error_unchanged(tmp_path):
+    case = make_case(None, 5, tmp_path)
+    result = audit(read_csv(case.csv), scenelib.load(case.scene))
+    assert result.verdict == "none" and result.causes == [], [r for r in result.rows if r.significant]
+    assert result.held_out_error_after == result.held_out_error_before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", [e for e in EFFECTS if e != "floor_offset"])
+def test_every_hidden_effect_is_found(effect, tmp_path):
+    check_found((effect,), 100 + EFFECTS.index(effect), tmp_path)
+
+
+@pytest.mark.slow
+def test_two_effects_at_once(tmp_path):
+    check_found(("floor_tilt", "air_drag_linear"), 7, tmp_path)
+
+
+# ------------------------------------------------------------------------------------------------
+# the real cube tosses
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.skipif(not CUBES.exists(), reason=f"cube tosses not found at {CUBES}")
+def test_cube_toss_converter_reads_through_the_user_loader(tmp_path):
+    n = cube_tosses_csv(str(CUBES), str(tmp_path / "c.csv"), tosses=[0, 1, 2])
+    data = read_csv(str(tmp_path / "c.csv"))
+    assert data.ids == ["0", "1", "2"] and data.objects == ("cube",)
+    assert n == sum(len(tr.t) for tr in data.tracks.values())
+    assert abs(data.tracks["0"].t[1] - 1 / 148) < 1e-5
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not CUBES.exists(), reason=f"cube tosses not found at {CUBES}")
+def test_cube_tosses_report_end_to_end(tmp_path, capsys):
+    cube_tosses_csv(str(CUBES), str(tmp_path / "c.csv"))
+    (tmp_path / "cube.yaml").write_text(
+        "- type: box\n  name: cube\n  size: [0.0524, 0.0524, 0.0524]\n  state:\n    position: [0, 0, 0.0524]\n"
+        "  physics:\n    friction: [0.18, 0.0]\n    mass: 0.37\n    damping: -6\n"
+        "- type: camera\n  position: [0, -1, 1]\n"
+    )
+    out = tmp_path / "out"
+    rc = main(
+        [
+            "audit",
+            "--measured",
+            str(tmp_path / "c.csv"),
+            "--scene",
+            str(tmp_path / "cube.yaml"),
+            "--out",
+            str(out),
+            "--json",
+            "--max-trajectories",
+            "150",
+            "--max-causes",
+            "3",
+        ]
+    )
+    assert rc == 0
+    got = json.loads(capsys.readouterr().out)
+    print(got, (out / "report.md").read_text())
+    assert got["held_out_error_after"] <= got["held_out_error_before"]
