@@ -78,6 +78,35 @@ def carry_points(
     return np.einsum("pij,pj->pi", rot1[body], local) + pos1[body]
 
 
+def body_homographies(
+    cam: CameraMatrices, position: np.ndarray, orientation: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-body maps from a pixel's depth-scaled homogeneous coordinates at frame k to its image at frame k + 1.
+
+    A pixel (u, v) at depth z is the camera-frame point `p = z K⁻¹ [u, v, 1]` and the world point
+    `P = Rcᵀ (p − tc)`. Body b carries it to `P' = M (P − o0) + o1` (`M = R1 R0ᵀ`, centres o0, o1), seen at
+    `p' = Rc P' + tc = (Rc M Rcᵀ) p + Rc (o1 − M o0) + tc − Rc M Rcᵀ tc`. Hence `q = K p' = A (z [u, v, 1]) + c` with
+    `A = K Rc M Rcᵀ K⁻¹` and `c = K (Rc (o1 − M o0) + tc − Rc M Rcᵀ tc)`: the pixel at frame k + 1 is q[:2] / q[2]
+    and q[2] its depth (K's last row is [0, 0, 1]). One 3×3 product per pixel instead of unproject, carry, project.
+
+    Args:
+        cam: the camera.
+        position: (2, N, 3) body centres at frames k and k + 1.
+        orientation: (2, N, 4) w, x, y, z quaternions at frames k and k + 1.
+
+    Returns:
+        A (N, 3, 3) and c (N, 3).
+    """
+    rot = quat_to_mat(np.asarray(orientation, float))  # (2, N, 3, 3)
+    position = np.asarray(position, float)
+    motion = rot[1] @ np.swapaxes(rot[0], -1, -2)  # (N, 3, 3): R1 R0ᵀ
+    cam_motion = cam.R @ motion @ cam.R.T  # (N, 3, 3): the same rotation in camera axes
+    A = cam.K @ cam_motion @ np.linalg.inv(cam.K)
+    shift = position[1] - np.einsum("nij,nj->ni", motion, position[0])  # (N, 3): x1 − M x0 (world)
+    c = (shift @ cam.R.T + cam.t - cam_motion @ cam.t) @ cam.K.T
+    return A, c
+
+
 def motion_field(
     depth: np.ndarray,
     segmentation: np.ndarray,
@@ -87,7 +116,8 @@ def motion_field(
     next_depth: np.ndarray | None = None,
     next_segmentation: np.ndarray | None = None,
     rays: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+    occlusion: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Flow of one frame to the next from depth, segmentation and the two poses of every object.
 
     Args:
@@ -98,32 +128,39 @@ def motion_field(
         orientation: (2, N, 4) w, x, y, z quaternions at frames k and k + 1.
         next_depth, next_segmentation: depth and segmentation at frame k + 1, for the occlusion test; without
             them only points leaving the image or passing behind the camera count as occluded.
-        rays: `pixel_rays(cam)`, when the caller has it already (it depends on the camera only).
+        rays: unused (kept for callers of the ray-based version: pixels are now mapped by `body_homographies`).
+        occlusion: False skips the occlusion mask (returned as None) when only the flow is wanted.
 
     Returns:
-        flow (H, W, 2) float32 pixels (dx right, dy down) and occluded (H, W) bool.
+        flow (H, W, 2) float32 pixels (dx right, dy down) and occluded (H, W) bool (None if `occlusion` is False).
     """
+    del rays
     h, w = segmentation.shape
     flow = np.zeros((h, w, 2), np.float32)
-    occluded = np.zeros((h, w), bool)
-    if next_segmentation is not None:
+    occluded = np.zeros((h, w), bool) if occlusion else None
+    if occlusion and next_segmentation is not None:
         occluded |= (segmentation < 0) & (next_segmentation >= 0)  # static floor point covered by an object
     vv, uu = np.nonzero((segmentation >= 0) & np.isfinite(depth))
     if len(vv) == 0:
         return flow, occluded
     body = segmentation[vv, uu].astype(np.intp)
-    rays = (pixel_rays(cam) if rays is None else rays)[vv, uu]  # (P, 3)
-    points = cam.position + depth[vv, uu, None] * rays
-    rot = quat_to_mat(np.asarray(orientation, float))
-    moved = carry_points(points, body, position[0], rot[0], position[1], rot[1])
-    uv1, z1 = cam.project(moved)
-    uv0 = np.stack([uu + 0.5, vv + 0.5], axis=-1)
-    flow[vv, uu] = uv1 - uv0
-    hidden = (z1 <= 0) | (uv1[:, 0] < 0) | (uv1[:, 0] >= w) | (uv1[:, 1] < 0) | (uv1[:, 1] >= h)
+    A, c = body_homographies(cam, position, orientation)
+    z = depth[vv, uu].astype(np.float64)
+    u0, v0 = uu + 0.5, vv + 0.5
+    zpix = np.stack([z * u0, z * v0, z], axis=-1)  # (P, 3)
+    q = np.einsum("pij,pj->pi", A[body], zpix) + c[body]  # (P, 3): K x1
+    z1 = q[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u1, v1 = q[:, 0] / z1, q[:, 1] / z1
+    flow[vv, uu, 0] = u1 - u0
+    flow[vv, uu, 1] = v1 - v0
+    if not occlusion:
+        return flow, None
+    hidden = (z1 <= 0) | (u1 < 0) | (u1 >= w) | (v1 < 0) | (v1 >= h)
     if next_depth is not None and next_segmentation is not None:
         inside = ~hidden
-        tu = np.clip(uv1[:, 0], 0, w - 1).astype(np.intp)
-        tv = np.clip(uv1[:, 1], 0, h - 1).astype(np.intp)
+        tu = np.clip(u1, 0, w - 1).astype(np.intp)
+        tv = np.clip(v1, 0, h - 1).astype(np.intp)
         nearer = next_depth[tv, tu] < z1 * (1 - OCCLUSION_TOLERANCE)
         other = next_segmentation[tv, tu] != body
         hidden |= inside & (nearer | other)
@@ -164,7 +201,6 @@ def motion_flow(
     h, w = depth.shape[1:]
     flow = np.zeros((max(n_frames - 1, 0), h, w, 2), np.float32)
     occluded = np.zeros((max(n_frames - 1, 0), h, w), bool)
-    rays = pixel_rays(cam)
     for k in range(n_frames - 1):
         flow[k], occluded[k] = motion_field(
             depth[k],
@@ -174,7 +210,6 @@ def motion_flow(
             rollout.orientation[k : k + 2],
             depth[k + 1],
             segmentation[k + 1],
-            rays,
         )
     return flow, occluded
 
@@ -202,25 +237,38 @@ def flow_to_color(flow: np.ndarray, max_norm: float | None = None) -> np.ndarray
     Hue gives the direction (right = red, down = orange-yellow, left = cyan, up = blue-violet, as in Middlebury),
     saturation the magnitude relative to `max_norm` (default: the largest finite magnitude in the array, so a
     whole video shares one scale when passed at once); zero flow is white. Magnitudes above `max_norm` are darkened.
+    Only moving pixels are coloured (zero, NaN and infinite flow are white): a static floor and sky cost nothing.
     """
-    flow = np.nan_to_num(np.asarray(flow, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    if flow.shape[-1] != 2:
+    flow = np.asarray(flow)
+    if flow.ndim == 0 or flow.shape[-1] != 2:
         raise ValueError(f"flow_to_color: last axis must be 2 (dx, dy), got shape {flow.shape}")
-    u, v = flow[..., 0], flow[..., 1]
-    mag = np.hypot(u, v)
+    if flow.ndim == 1:  # one vector
+        return flow_to_color(flow[None], max_norm)[0]
+    out = np.full((*flow.shape[:-1], 3), 255, np.uint8)
+    candidates = (flow[..., 0] != 0) | (flow[..., 1] != 0)  # (...,) moving, NaN or infinite: one pass, no copies
+    sub = flow[candidates].astype(np.float64)  # (P, 2)
+    sub[~np.isfinite(sub)] = 0.0  # NaN and infinite flow count as zero
+    mag = np.hypot(sub[:, 0], sub[:, 1])
     if max_norm is None:
         max_norm = float(mag.max()) if mag.size else 0.0
     if max_norm < 0:
         raise ValueError(f"max_norm = {max_norm}: must be >= 0")
-    rad = mag / max_norm if max_norm > 0 else np.zeros_like(mag)
+    moving = mag > 0
+    if max_norm == 0 or not moving.any():
+        return out
+    where = tuple(ix[moving] for ix in np.nonzero(candidates))
+    u, v, rad = sub[moving, 0], sub[moving, 1], mag[moving] / max_norm  # (P,)
     ncols = len(_WHEEL)
     a = np.arctan2(-v, -u) / np.pi  # in [-1, 1]
     fk = (a + 1) / 2 * (ncols - 1)
     k0 = np.floor(fk).astype(int)
     k1 = (k0 + 1) % ncols
-    f = (fk - k0)[..., None]
-    col = ((1 - f) * _WHEEL[k0] + f * _WHEEL[k1]) / 255.0  # (..., 3)
-    r = rad[..., None]
-    inside = r <= 1
-    col = np.where(inside, 1 - r * (1 - col), col * 0.75)
-    return np.floor(255 * np.clip(col, 0, 1)).astype(np.uint8)
+    f = (fk - k0)[:, None]
+    col = ((1 - f) * _WHEEL[k0] + f * _WHEEL[k1]) / 255.0  # (P, 3)
+    inside = rad <= 1
+    col[inside] = 1 - rad[inside, None] * (1 - col[inside])  # desaturate towards white with the magnitude
+    col[~inside] *= 0.75  # beyond max_norm: darker
+    np.clip(col, 0, 1, out=col)
+    col *= 255
+    out[where] = np.floor(col, out=col).astype(np.uint8)
+    return out

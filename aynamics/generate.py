@@ -10,7 +10,13 @@ indices; shard k of n makes the chunks c with c % n == k and writes each one ato
 renamed to `chunks/NNNNNN`), so a killed run started again skips finished chunks and redoes the partial one
 (same records): nothing is lost or duplicated. When every chunk of the run is on disk (from one run or from
 all shards writing into the same folder, or folders joined with `assemble(out, sources)`) the chunks are
-concatenated in index order and split by a hash of (seed, index) into the DatasetDict at `out`.
+concatenated in index order and split by a hash of (seed, index) into the DatasetDict at `out` (storage:
+`dataset_store.py`).
+
+Per record the only OpenGL work is one pass over the F sampled frames (RGB, segmentation, depth: `render_sampled`);
+the flow of frame f to f + 1 comes from that depth and the poses at f and f + 1, so frames f + 1 are never drawn.
+Images are PNG-encoded in the workers by `png_encode.png_bytes` (lossless; ~1.7× faster than Pillow's encoder).
+`benchmarks/bench_generate.py` measures scenes per minute next to the render-only bound.
 
 Columns (one row per scene; T = 31 states at 30 FPS, F = 10 sampled frames, N objects):
 - `index` int64, `seed` int64 (global), `attempt` int32 (resamples after a diverged simulation), `split` str.
@@ -34,28 +40,38 @@ Columns (one row per scene; T = 31 states at 30 FPS, F = 10 sampled frames, N ob
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
-import io
-import json
 import multiprocessing as mp
 import os
-import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from aynamics import reasoning as rs
 from aynamics import sampler as smp
+from aynamics.dataset_store import (  # noqa: F401 - re-exported: the storage half of `generate`
+    FORMAT_VERSION,
+    MANIFEST,
+    SPLITS,
+    assemble,
+    chunk_dir,
+    chunk_ranges,
+    features,
+    remove_partial_chunks,
+    shard_chunks,
+    write_chunk,
+    write_manifest,
+)
+from aynamics.png_encode import png_bytes
 from aynamics.scene import Scene, dump
 from aynamics.simulate import Rollout, SimConfig, simulate
 
-FORMAT_VERSION = 1
-SPLITS = ("train", "validation", "test")
-MANIFEST = "generate.json"
+if TYPE_CHECKING:  # rendering is imported inside the workers only
+    from aynamics.render import Frames, Renderer
 
 
 @dataclass(frozen=True)
@@ -218,70 +234,75 @@ def sample_simulated(index: int, seed: int, config: GenerateConfig) -> tuple[Sce
     raise RuntimeError(f"scene {index} (seed {seed}): all {config.max_attempts} attempts failed: {'; '.join(reasons)}")
 
 
-def _png(image: np.ndarray) -> dict:
-    from PIL import Image
+def appearance_seed(seed: int, index: int, attempt: int) -> int:
+    """The seed of scene `index`'s randomised look (lights, textures): a function of (seed, index, attempt) alone."""
+    return int(smp.scene_seed(seed, index, attempt).generate_state(1)[0])
 
-    buf = io.BytesIO()
-    Image.fromarray(image).save(buf, format="PNG", compress_level=1, compress_type=3)  # zlib Z_RLE: fast, small
-    return {"bytes": buf.getvalue(), "path": None}
+
+def _png(image: np.ndarray) -> dict:
+    return {"bytes": png_bytes(image), "path": None}
 
 
 def _arr(x: np.ndarray) -> list:
     return np.asarray(x, np.float32).tolist()
 
 
-def render_record_frames(scene: Scene, rollout: Rollout, renderer, config: GenerateConfig, seed: int) -> dict:
-    """RGB, segmentation and flow of the sampled frames (flow f -> f + 1 needs depth/masks at f + 1 too)."""
+def render_sampled(scene: Scene, rollout: Rollout, renderer: Renderer, config: GenerateConfig, seed: int) -> Frames:
+    """The only OpenGL work of a record: RGB, segmentation and depth of the sampled video frames (`Frames`).
+
+    The flow of sampled frame f to f + 1 needs the depth and segmentation at f and the poses at f and f + 1 only:
+    frames f + 1 are not rendered (the record keeps no occlusion mask, the one thing they would add).
+    """
+    from aynamics.flow import sample_frames
+
+    frames = sample_frames(len(rollout.t) - 1, config.stride)  # video frames 0..T-2
+    return renderer.render(scene, rollout, seed=seed, textures_dir=config.textures_dir, states=frames)
+
+
+def flow_images(frames: Frames, rollout: Rollout) -> tuple[np.ndarray, float]:
+    """Colour-coded exact flow of each rendered frame f to f + 1 on one magnitude scale, and that scale (px).
+
+    Returns:
+        (F, H, W, 3) uint8 images (white where nothing moves) and the largest flow magnitude in pixels.
+    """
     from aynamics import flow as flowlib
 
-    frames = flowlib.sample_frames(len(rollout.t) - 1, config.stride)  # video frames 0..T-2
-    nxt = frames + 1
-    main = renderer.render(scene, rollout, seed=seed, textures_dir=config.textures_dir, states=frames)
-    after = renderer.render(scene, rollout, seed=seed, textures_dir=config.textures_dir, states=nxt, rgb=False)
-    flows = np.stack(
-        [
-            flowlib.motion_field(
-                main.depth[k],
-                main.segmentation[k],
-                main.camera,
-                rollout.position[[f, f + 1]],
-                rollout.orientation[[f, f + 1]],
-                after.depth[k],
-                after.segmentation[k],
-            )[0]
-            for k, f in enumerate(frames)
-        ]
-    )  # (F, H, W, 2)
-    mag = np.hypot(flows[..., 0], flows[..., 1])
-    flow_max = float(mag.max()) if mag.size else 0.0
+    flows = np.empty((*frames.segmentation.shape, 2), np.float32)  # (F, H, W, 2)
+    for k, f in enumerate(frames.states):
+        flows[k] = flowlib.motion_field(
+            frames.depth[k],
+            frames.segmentation[k],
+            frames.camera,
+            rollout.position[[f, f + 1]],
+            rollout.orientation[[f, f + 1]],
+            occlusion=False,
+        )[0]
+    on_object = frames.segmentation >= 0  # (F, H, W): the only pixels with flow (floor and sky are exactly zero)
+    moving = flows[on_object]  # (P, 2)
+    flow_max = float(np.hypot(moving[:, 0], moving[:, 1]).max()) if len(moving) else 0.0
+    colours = np.full((*on_object.shape, 3), 255, np.uint8)  # zero flow is white
+    colours[on_object] = flowlib.flow_to_color(moving, max_norm=flow_max)
+    return colours, flow_max
+
+
+def render_record_frames(scene: Scene, rollout: Rollout, renderer: Renderer, config: GenerateConfig, seed: int) -> dict:
+    """RGB, segmentation and colour-coded exact flow (one magnitude scale per scene) of the sampled frames."""
+    main = render_sampled(scene, rollout, renderer, config, seed)
+    flow_color, flow_max = flow_images(main, rollout)
     return {
-        "frames": frames,
+        "frames": main.states,
         "rgb": main.rgb,
         "segmentation": main.segmentation,
-        "flow_color": _flow_images(flows, mag, flow_max),
+        "flow_color": flow_color,
         "flow_max": flow_max,
         "camera": main.camera,
     }
 
 
-def _flow_images(flows: np.ndarray, mag: np.ndarray, flow_max: float) -> np.ndarray:
-    """`flow_to_color` of (F, H, W, 2) flows on one scale, computed only where the flow is not zero.
-
-    Zero flow is white on the wheel, and most pixels (floor, sky) do not move: same images, several times faster.
-    """
-    from aynamics.flow import flow_to_color
-
-    out = np.full((*flows.shape[:-1], 3), 255, np.uint8)
-    moving = mag > 0
-    if moving.any():
-        out[moving] = flow_to_color(flows[moving], max_norm=flow_max)
-    return out
-
-
 def make_record(index: int, seed: int, config: GenerateConfig, renderer) -> dict:
     """The full record of scene `index` (images PNG-encoded, ready for `datasets`)."""
     scene, rollout, attempt = sample_simulated(index, seed, config)
-    scene_seed = int(smp.scene_seed(seed, index, attempt).generate_state(1)[0])
+    scene_seed = appearance_seed(seed, index, attempt)
     fr = render_record_frames(scene, rollout, renderer, config, scene_seed)
     n = len(scene.objects)
     visible = rs.visibility(fr["segmentation"], n, config.min_pixels)
@@ -330,137 +351,6 @@ def make_record(index: int, seed: int, config: GenerateConfig, renderer) -> dict
         "shapes": list(scene.structure),
         "has_collision": any(c.b != "floor" for c in rollout.contacts),
     }
-
-
-def features():
-    """The `datasets.Features` of a record (see the module docstring)."""
-    from datasets import Features, Image, List, Value
-
-    f32, f64 = Value("float32"), Value("float64")
-    vec = List(List(List(f32)))
-    return Features(
-        {
-            "index": Value("int64"),
-            "seed": Value("int64"),
-            "attempt": Value("int32"),
-            "split": Value("string"),
-            "scene_yaml": Value("string"),
-            "reasoning": Value("string"),
-            "target_answer": Value("string"),
-            "target_think": Value("string"),
-            "rgb": List(Image()),
-            "flow": List(Image()),
-            "flow_max": f32,
-            "segmentation": List(Image()),
-            "frame_indices": List(Value("int32")),
-            "frame_times": List(f32),
-            "states": {
-                "names": List(Value("string")),
-                "t": List(f32),
-                "position": vec,
-                "orientation": vec,
-                "linear_velocity": vec,
-                "angular_velocity": vec,
-                "in_view": List(List(Value("bool"))),
-                "visible": List(List(Value("bool"))),
-                "rest_time": List(f64),
-            },
-            "contacts": List({"a": Value("string"), "b": Value("string"), "start": f32, "end": f32}),
-            "camera": {
-                "fovy": f64,
-                "orientation": f64,
-                "position": List(f64),
-                "width": Value("int32"),
-                "height": Value("int32"),
-                "K": List(List(f64)),
-                "R": List(List(f64)),
-                "t": List(f64),
-            },
-            "num_objects": Value("int32"),
-            "shapes": List(Value("string")),
-            "has_collision": Value("bool"),
-        }
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# Chunks, shards, resume
-# --------------------------------------------------------------------------------------------
-def chunk_ranges(num: int, chunk_size: int) -> list[range]:
-    """Index ranges of the chunks of a run of `num` scenes."""
-    return [range(a, min(a + chunk_size, num)) for a in range(0, num, chunk_size)]
-
-
-def shard_chunks(num: int, chunk_size: int, shard: int = 0, num_shards: int = 1) -> list[int]:
-    """Chunk ids made by shard `shard` of `num_shards` (c % num_shards == shard): disjoint, covering all."""
-    if num_shards < 1 or not 0 <= shard < num_shards:
-        raise ValueError(
-            f"shard = {shard}, num_shards = {num_shards}: need num_shards >= 1 and 0 <= shard < num_shards"
-        )
-    return [c for c in range(len(chunk_ranges(num, chunk_size))) if c % num_shards == shard]
-
-
-def _chunk_dir(out: Path, c: int) -> Path:
-    return out / "chunks" / f"{c:06d}"
-
-
-def _write_manifest(out: Path, num: int, seed: int, config: GenerateConfig) -> None:
-    """Write `generate.json`, or check that an existing one describes the same run (else nothing is mixed)."""
-    manifest = {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": json.loads(json.dumps(config.to_json()))}
-    path = out / MANIFEST
-    if path.exists():
-        old = json.loads(path.read_text())
-        for key in ("format", "num", "seed"):
-            if old.get(key) != manifest[key]:
-                raise ValueError(
-                    f"--out {str(out)!r} holds a run with {key} = {old.get(key)!r}, this run has {manifest[key]!r}; "
-                    "use another folder or the same settings to resume"
-                )
-        diff = _first_difference(old.get("config", {}), manifest["config"])
-        if diff:
-            raise ValueError(
-                f"--out {str(out)!r} holds a run with config {diff}; use another folder or the same config"
-            )
-        return
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / f".{MANIFEST}.{os.getpid()}"
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, path)
-
-
-def _first_difference(a, b, prefix: str = "") -> str | None:
-    if isinstance(a, dict) and isinstance(b, dict):
-        for k in sorted(set(a) | set(b)):
-            d = _first_difference(a.get(k), b.get(k), f"{prefix}.{k}" if prefix else k)
-            if d:
-                return d
-        return None
-    return None if a == b else f"{prefix} = {a!r} (this run: {b!r})"
-
-
-@contextlib.contextmanager
-def _quiet_datasets():
-    """Hide `datasets`' own "Saving the dataset" bars under ours."""
-    import datasets
-
-    was = datasets.is_progress_bar_enabled()
-    datasets.disable_progress_bars()
-    try:
-        yield
-    finally:
-        if was:
-            datasets.enable_progress_bars()
-
-
-def _write_chunk(out: Path, c: int, records: list[dict]) -> None:
-    from datasets import Dataset
-
-    final = _chunk_dir(out, c)
-    tmp = final.parent / f".tmp-{c:06d}-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    with _quiet_datasets():
-        Dataset.from_list(records, features=features()).save_to_disk(str(tmp))
-    os.replace(tmp, final)  # atomic: a chunk folder exists only when complete
 
 
 _WORKER: dict = {}
@@ -516,14 +406,12 @@ def generate(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file, not a folder")
-    _write_manifest(out, num, seed, config)
+    write_manifest(out, {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": config.to_json()})
     (out / "chunks").mkdir(exist_ok=True)
     ranges = chunk_ranges(num, config.chunk_size)
     mine = shard_chunks(num, config.chunk_size, shard, num_shards)
-    for c in mine:  # leftovers of a killed run of this shard
-        for tmp in (out / "chunks").glob(f".tmp-{c:06d}-*"):
-            shutil.rmtree(tmp, ignore_errors=True)
-    todo = [c for c in mine if not _chunk_dir(out, c).exists()]
+    remove_partial_chunks(out, mine)  # leftovers of a killed run of this shard
+    todo = [c for c in mine if not chunk_dir(out, c).exists()]
     jobs = [(i, seed) for c in todo for i in ranges[c]]
     bar = tqdm(
         total=sum(len(ranges[c]) for c in mine),
@@ -541,68 +429,11 @@ def generate(
             pending.append(record)
             bar.update(1)
             if current is not None and len(pending) == len(ranges[current]):
-                _write_chunk(out, current, pending)
+                write_chunk(out, current, pending)
                 pending, current = [], next(chunks, None)
-    if all(_chunk_dir(out, c).exists() for c in range(len(ranges))):
+    if all(chunk_dir(out, c).exists() for c in range(len(ranges))):
         return assemble(out)
     return None
-
-
-def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None = None) -> Path:
-    """Concatenate every chunk (of `out_dir`, or of the `sources` folders of shard runs) into the DatasetDict.
-
-    Raises:
-        ValueError: chunks are missing, or the sources describe different runs.
-    """
-    from datasets import DatasetDict, concatenate_datasets, load_from_disk
-
-    out = Path(out_dir)
-    folders = [Path(s) for s in sources] if sources else [out]
-    manifests = []
-    for folder in folders:
-        path = folder / MANIFEST
-        if not path.is_file():
-            raise ValueError(f"{str(folder)!r}: no {MANIFEST}: not a `aynamics generate` output folder")
-        manifests.append(json.loads(path.read_text()))
-    for folder, m in zip(folders[1:], manifests[1:], strict=True):
-        diff = _first_difference(manifests[0], m)
-        if diff:
-            raise ValueError(f"{str(folder)!r} belongs to a different run than {str(folders[0])!r}: {diff}")
-    manifest = manifests[0]
-    num, chunk_size = manifest["num"], manifest["config"]["chunk_size"]
-    parts, missing = [], []
-    for c in range(len(chunk_ranges(num, chunk_size))):
-        found = [_chunk_dir(f, c) for f in folders if _chunk_dir(f, c).is_dir()]
-        if not found:
-            missing.append(c)
-        else:
-            with _quiet_datasets():
-                parts.append(load_from_disk(str(found[0])))
-    if missing:
-        raise ValueError(f"cannot assemble {str(out)!r}: chunks {missing[:10]} of {len(parts) + len(missing)} missing")
-    full = concatenate_datasets(parts)
-    split_col = full["split"]
-    dd = DatasetDict({s: full.select([i for i, v in enumerate(split_col) if v == s]) for s in SPLITS})
-    if sources:
-        _write_manifest(out, num, manifest["seed"], config_from_dict(_config_dict(manifest["config"])))
-    tmp = out / f".assemble-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    with _quiet_datasets():
-        dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 empty file
-    (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
-    for s in SPLITS:
-        shutil.rmtree(out / s, ignore_errors=True)
-        os.replace(tmp / s, out / s)
-    os.replace(tmp / "dataset_dict.json", out / "dataset_dict.json")
-    shutil.rmtree(tmp, ignore_errors=True)
-    return out
-
-
-def _config_dict(data: dict) -> dict:
-    """A stored config (JSON) as `config_from_dict` input (the derived sampler fields dropped)."""
-    data = dict(data)
-    data["sampler"] = {k: v for k, v in data["sampler"].items() if k not in ("aspect", "duration")}
-    return data
 
 
 def generate_dataset(

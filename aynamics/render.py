@@ -37,7 +37,7 @@ FLOOR_TEXTURE = 512  # pixels per side of the floor photograph texture
 SKY_TEXTURE = 256
 OBJECT_TEXTURE = 64
 SHADOW_EXTENT = 8.0  # m: half-size of the region that shadows cover (also scales the clip planes)
-SHADOW_SIZE = 1024  # shadow map: 512 is ~10 % faster, visibly blockier
+SHADOW_SIZE = 512  # shadow map texels per side: each shadow-casting light renders one per frame (1024: 7-15 % slower)
 # scikit-image sample photographs shipped inside the wheel (no download): natural textures for floor and sky
 DEFAULT_IMAGES = (
     "brick.png",
@@ -380,9 +380,9 @@ class Renderer:
         geom_to_obj = np.full(model.ngeom, -2, np.int16)  # -2: floor (drawn, not an object)
         geom_to_obj[tpl.geom_ids] = np.arange(len(tpl.geom_ids))
         n, h, w = len(states), self.height, self.width
-        out_rgb = np.zeros((n, h, w, 3), np.uint8) if rgb else None
-        out_seg = np.zeros((n, h, w), np.int16) if segmentation else None
-        out_depth = np.zeros((n, h, w), np.float32) if depth else None
+        out_rgb = np.empty((n, h, w, 3), np.uint8) if rgb else None
+        out_seg = np.empty((n, h, w), np.int16) if segmentation else None
+        out_depth = np.empty((n, h, w), np.float32) if depth else None
 
         self._ctx.make_current()
         ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100.value)
@@ -396,9 +396,14 @@ class Renderer:
             cam.fixedcamid = tpl.camera_id
             extent = model.stat.extent
             near, far = np.float32(model.vis.map.znear * extent), np.float32(model.vis.map.zfar * extent)
+            # reversed-Z buffer value b -> metres along the optical axis: d / (b + c)
+            c = np.float32(-0.5) * (-(far + near) / (far - near)) - np.float32(0.5)
+            d = np.float32(-0.5) * (-(np.float32(2) * far * near) / (far - near))
             rgb_buf = np.empty((h, w, 3), np.uint8)
             depth_buf = np.empty((h, w), np.float32)
+            z = np.empty((h, w), np.float64)
             geom_type = int(mujoco.mjtObj.mjOBJ_GEOM)  # int once: comparing enum members per geom is slow
+            flag_segment, flag_idcolor = mujoco.mjtRndFlag.mjRND_SEGMENT, mujoco.mjtRndFlag.mjRND_IDCOLOR
             for f, s in enumerate(states):
                 data.qpos[:] = qpos[s]
                 mujoco.mj_kinematics(model, data)
@@ -407,31 +412,31 @@ class Renderer:
                 if rgb:
                     mujoco.mjr_render(self._rect, scn, ctx)
                     mujoco.mjr_readPixels(rgb_buf, None, self._rect, ctx)
-                    out_rgb[f] = rgb_buf[::-1]
-                if segmentation or depth:
-                    scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
-                    scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
-                    mujoco.mjr_render(self._rect, scn, ctx)
-                    mujoco.mjr_readPixels(rgb_buf, depth_buf, self._rect, ctx)
-                    scn.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 0
-                    scn.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 0
-                    segid = rgb_buf[::-1].astype(np.int32)
-                    segid = segid[..., 0] + (segid[..., 1] << 8) + (segid[..., 2] << 16)  # 0: nothing drawn
-                    lut = np.full(scn.ngeom + 2, -2, np.int16)  # -2: drawn but not an object geom (floor)
-                    lut[0] = -1
-                    for g in scn.geoms[: scn.ngeom]:
-                        if g.segid >= 0:
-                            lut[g.segid + 1] = geom_to_obj[g.objid] if g.objtype == geom_type else -2
-                    ids = lut[np.minimum(segid, len(lut) - 1)]
-                    if segmentation:
-                        out_seg[f] = np.maximum(ids, -1)
-                    if depth:
-                        z = depth_buf[::-1].astype(np.float64)
-                        c = np.float32(-0.5) * (-(far + near) / (far - near)) - np.float32(0.5)
-                        d = np.float32(-0.5) * (-(np.float32(2) * far * near) / (far - near))
-                        z = d / (z + c)  # reversed-Z buffer -> metres along the optical axis
-                        z[ids == -1] = np.inf
-                        out_depth[f] = z
+                    out_rgb[f] = rgb_buf[::-1]  # OpenGL rows run bottom-up
+                if not (segmentation or depth):
+                    continue
+                scn.flags[flag_segment] = scn.flags[flag_idcolor] = 1
+                mujoco.mjr_render(self._rect, scn, ctx)
+                mujoco.mjr_readPixels(rgb_buf, depth_buf, self._rect, ctx)
+                scn.flags[flag_segment] = scn.flags[flag_idcolor] = 0
+                # pixel colour = segid + 1 (0: nothing drawn) -> object index; -2: drawn but not an object (floor)
+                lut = np.full(max(256, scn.ngeom + 2), -2, np.int16)
+                lut[0] = -1
+                for g in scn.geoms[: scn.ngeom]:
+                    if g.segid >= 0 and g.objtype == geom_type:
+                        lut[g.segid + 1] = geom_to_obj[g.objid]
+                if scn.ngeom < 255:  # every colour fits the red byte: one uint8 lookup per pixel
+                    ids = lut[rgb_buf[::-1, :, 0]]
+                else:
+                    code = rgb_buf[::-1].astype(np.int32)
+                    ids = lut[np.minimum(code[..., 0] + (code[..., 1] << 8) + (code[..., 2] << 16), len(lut) - 1)]
+                if segmentation:
+                    np.maximum(ids, -1, out=out_seg[f])
+                if depth:
+                    np.add(depth_buf[::-1], c, out=z, dtype=np.float64)
+                    np.divide(d, z, out=z)
+                    z[ids == -1] = np.inf
+                    out_depth[f] = z
         finally:
             ctx.free()
         return Frames(out_rgb, out_seg, out_depth, camlib.matrices(scene.camera, w, h), states)

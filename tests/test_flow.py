@@ -121,3 +121,36 @@ def test_flow_to_color():
     assert half[0] == 255 and 120 <= half[1] <= 135
     with pytest.raises(ValueError, match="last axis"):
         flowlib.flow_to_color(np.zeros((3, 3)))
+
+
+def test_motion_field_equals_carried_and_projected_points():
+    """The per-body homographies give what unprojecting, carrying each point rigidly and projecting gives."""
+    rng = np.random.default_rng(5)
+    cam = camlib.matrices(scenelib.Camera(fovy=50.0, orientation=40.0, position=(0.3, -2.0, 3.0)), 48, 32)
+    seg = rng.integers(-1, 3, (32, 48)).astype(np.int16)
+    depth = rng.uniform(2.0, 6.0, (32, 48))
+    position = rng.normal(size=(2, 3, 3))
+    orientation = rng.normal(size=(2, 3, 4))
+    flow, occluded = flowlib.motion_field(depth, seg, cam, position, orientation)
+    rot = flowlib.quat_to_mat(orientation)
+    vv, uu = np.nonzero(seg >= 0)
+    pix = np.stack([uu + 0.5, vv + 0.5, np.ones(len(uu))], axis=1)
+    world = (depth[vv, uu, None] * (pix @ np.linalg.inv(cam.K).T) - cam.t) @ cam.R  # R^T (x_cam - t)
+    moved = flowlib.carry_points(world, seg[vv, uu].astype(int), position[0], rot[0], position[1], rot[1])
+    uv1, z1 = cam.project(moved)
+    np.testing.assert_allclose(flow[vv, uu], uv1 - pix[:, :2], rtol=1e-5, atol=1e-4)
+    assert (flow[seg < 0] == 0).all()
+    outside = (z1 <= 0) | (uv1[:, 0] < 0) | (uv1[:, 0] >= 48) | (uv1[:, 1] < 0) | (uv1[:, 1] >= 32)
+    np.testing.assert_array_equal(occluded[vv, uu], outside)
+    only_flow, none = flowlib.motion_field(depth, seg, cam, position, orientation, occlusion=False)
+    assert none is None
+    np.testing.assert_array_equal(only_flow, flow)
+
+
+def test_flow_to_color_ignores_non_finite_and_accepts_one_vector():
+    flow = np.array([[[np.nan, 1.0], [np.inf, 0.0], [0.0, 0.0], [0.0, 2.0]]])  # (1, 4, 2)
+    img = flowlib.flow_to_color(flow)
+    assert (img[0, 1:3] == 255).all()  # (inf, 0) counts as (0, 0), and zero flow is white
+    np.testing.assert_array_equal(img[0, 0], flowlib.flow_to_color(np.array([0.0, 1.0]), max_norm=2.0))
+    np.testing.assert_array_equal(img[0, 3], flowlib.flow_to_color(np.array([0.0, 2.0])))
+    assert tuple(flowlib.flow_to_color(np.array([5.0, 0.0]))) == (255, 0, 0)

@@ -185,3 +185,55 @@ def test_write_in_context(reference, tmp_path):
         assert (folder / ex["frames"][0]).is_file() and (folder / ex["flow"][9]).is_file()
         assert parse(ex["target"]) == parse(ex["scene_yaml"])
     assert (folder / "prompt.md").read_text().count("<answer>") == 3
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (5, 7), (48, 64), (6, 4, 1), (6, 4, 2), (32, 48, 3), (9, 3, 4)])
+def test_png_bytes_round_trip(shape):
+    """Any PNG reader (Pillow here) decodes `png_bytes` to the exact pixels, for every channel count."""
+    import io
+
+    from PIL import Image
+
+    from aynamics.png_encode import png_bytes
+
+    image = np.random.default_rng(sum(shape)).integers(0, 256, shape, dtype=np.uint8)
+    for level in (0, 1, 9):
+        decoded = np.asarray(Image.open(io.BytesIO(png_bytes(image, level))))
+        np.testing.assert_array_equal(decoded, image.reshape(decoded.shape))
+        assert decoded.size == image.size
+
+
+def test_png_bytes_errors():
+    from aynamics.png_encode import png_bytes
+
+    with pytest.raises(ValueError, match="dtype float64"):
+        png_bytes(np.zeros((4, 4)))
+    with pytest.raises(ValueError, match=r"shape \(4, 4, 5\)"):
+        png_bytes(np.zeros((4, 4, 5), np.uint8))
+    with pytest.raises(ValueError, match=r"shape \(0, 4\)"):
+        png_bytes(np.zeros((0, 4), np.uint8))
+    with pytest.raises(ValueError, match="level = 10"):
+        png_bytes(np.zeros((4, 4), np.uint8), level=10)
+
+
+@needs_gl
+def test_record_flow_equals_flow_of_the_full_video():
+    """The record renders only the sampled frames, yet its flow images equal those of the full 30-frame video's
+    exact flow (rendered frame by frame, flow with next-frame occlusion) at the sampled indices, on one scale."""
+    from aynamics import flow as flowlib
+    from aynamics.render import Renderer
+
+    config = dataclasses.replace(CFG, width=64, height=48)
+    scene, rollout, attempt = gen.sample_simulated(1, SEED, config)
+    look = gen.appearance_seed(SEED, 1, attempt)
+    with Renderer(64, 48) as r:
+        record = gen.render_record_frames(scene, rollout, r, config, look)
+        video = r.render(scene, rollout, seed=look)
+    assert record["frames"].tolist() == list(range(0, 30, 3))
+    flow, _ = flowlib.motion_flow(scene, rollout, video.depth, video.camera, video.segmentation)
+    sampled = flow[record["frames"]]
+    assert record["flow_max"] == pytest.approx(float(np.hypot(sampled[..., 0], sampled[..., 1]).max()))
+    np.testing.assert_array_equal(record["flow_color"], flowlib.flow_to_color(sampled, record["flow_max"]))
+    np.testing.assert_array_equal(record["rgb"], video.rgb[record["frames"]])
+    np.testing.assert_array_equal(record["segmentation"], video.segmentation[record["frames"]])
+    assert (record["flow_color"] != 255).any()  # something moves in view: the comparison means something

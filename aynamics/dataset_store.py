@@ -1,0 +1,229 @@
+"""On-disk storage of a generated data set: record schema, chunks, shards, the run manifest, final assembly.
+
+A run of `num` scenes is cut into chunks of `chunk_size` consecutive indices. Shard k of n makes the chunks c with
+c % n == k and writes each one atomically (a temporary folder renamed to `chunks/NNNNNN`), so a killed run started
+again skips finished chunks and redoes the partial one. `generate.json` (the manifest) records the settings that
+decide the records; a folder refuses chunks of a different run. `assemble` concatenates every chunk in index order
+and splits the rows by their `split` column into the DatasetDict that `datasets.load_from_disk` opens.
+
+    write_manifest(out, {"format": 1, "num": 8, "seed": 0, "config": {...}})
+    write_chunk(out, 0, records)          # records: dicts of `features()`
+    assemble(out)                         # or assemble(out, [shard_dir_0, shard_dir_1])
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+FORMAT_VERSION = 1
+SPLITS = ("train", "validation", "test")
+MANIFEST = "generate.json"
+
+
+def features():
+    """The `datasets.Features` of a record (see `aynamics.generate` for what each column holds)."""
+    from datasets import Features, Image, List, Value
+
+    f32, f64 = Value("float32"), Value("float64")
+    vec = List(List(List(f32)))
+    return Features(
+        {
+            "index": Value("int64"),
+            "seed": Value("int64"),
+            "attempt": Value("int32"),
+            "split": Value("string"),
+            "scene_yaml": Value("string"),
+            "reasoning": Value("string"),
+            "target_answer": Value("string"),
+            "target_think": Value("string"),
+            "rgb": List(Image()),
+            "flow": List(Image()),
+            "flow_max": f32,
+            "segmentation": List(Image()),
+            "frame_indices": List(Value("int32")),
+            "frame_times": List(f32),
+            "states": {
+                "names": List(Value("string")),
+                "t": List(f32),
+                "position": vec,
+                "orientation": vec,
+                "linear_velocity": vec,
+                "angular_velocity": vec,
+                "in_view": List(List(Value("bool"))),
+                "visible": List(List(Value("bool"))),
+                "rest_time": List(f64),
+            },
+            "contacts": List({"a": Value("string"), "b": Value("string"), "start": f32, "end": f32}),
+            "camera": {
+                "fovy": f64,
+                "orientation": f64,
+                "position": List(f64),
+                "width": Value("int32"),
+                "height": Value("int32"),
+                "K": List(List(f64)),
+                "R": List(List(f64)),
+                "t": List(f64),
+            },
+            "num_objects": Value("int32"),
+            "shapes": List(Value("string")),
+            "has_collision": Value("bool"),
+        }
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Chunks and shards
+# --------------------------------------------------------------------------------------------
+def chunk_ranges(num: int, chunk_size: int) -> list[range]:
+    """Index ranges of the chunks of a run of `num` scenes."""
+    return [range(a, min(a + chunk_size, num)) for a in range(0, num, chunk_size)]
+
+
+def shard_chunks(num: int, chunk_size: int, shard: int = 0, num_shards: int = 1) -> list[int]:
+    """Chunk ids made by shard `shard` of `num_shards` (c % num_shards == shard): disjoint, covering all."""
+    if num_shards < 1 or not 0 <= shard < num_shards:
+        raise ValueError(
+            f"shard = {shard}, num_shards = {num_shards}: need num_shards >= 1 and 0 <= shard < num_shards"
+        )
+    return [c for c in range(len(chunk_ranges(num, chunk_size))) if c % num_shards == shard]
+
+
+def chunk_dir(out: Path, c: int) -> Path:
+    """Folder of chunk `c` of the run in `out` (it exists only once the chunk is complete)."""
+    return out / "chunks" / f"{c:06d}"
+
+
+def remove_partial_chunks(out: Path, chunks: list[int]) -> None:
+    """Delete the temporary folders that a killed run left while writing these chunks."""
+    for c in chunks:
+        for tmp in (out / "chunks").glob(f".tmp-{c:06d}-*"):
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def quiet_datasets():
+    """Hide `datasets`' own "Saving the dataset" bars under ours."""
+    import datasets
+
+    was = datasets.is_progress_bar_enabled()
+    datasets.disable_progress_bars()
+    try:
+        yield
+    finally:
+        if was:
+            datasets.enable_progress_bars()
+
+
+def write_chunk(out: Path, c: int, records: list[dict]) -> None:
+    """Write chunk `c` atomically: a temporary folder renamed to `chunks/NNNNNN` once complete."""
+    from datasets import Dataset
+
+    final = chunk_dir(out, c)
+    tmp = final.parent / f".tmp-{c:06d}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    with quiet_datasets():
+        Dataset.from_list(records, features=features()).save_to_disk(str(tmp))
+    os.replace(tmp, final)  # atomic: a chunk folder exists only when complete
+
+
+# --------------------------------------------------------------------------------------------
+# The run manifest
+# --------------------------------------------------------------------------------------------
+def first_difference(a, b, prefix: str = "") -> str | None:
+    """The first differing key of two nested mappings, as 'key.sub = old (this run: new)'; None when equal."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            d = first_difference(a.get(k), b.get(k), f"{prefix}.{k}" if prefix else k)
+            if d:
+                return d
+        return None
+    return None if a == b else f"{prefix} = {a!r} (this run: {b!r})"
+
+
+def write_manifest(out: Path, manifest: dict) -> None:
+    """Write `generate.json`, or check that an existing one describes the same run (else nothing is mixed).
+
+    Args:
+        out: the run's folder (created if missing).
+        manifest: {"format", "num", "seed", "config": the JSON of the settings that decide the records}.
+
+    Raises:
+        ValueError: the folder holds a run with other settings (the first difference is named).
+    """
+    manifest = json.loads(json.dumps(manifest))  # tuples -> lists: compare as stored
+    path = out / MANIFEST
+    if path.exists():
+        old = json.loads(path.read_text())
+        for key in ("format", "num", "seed"):
+            if old.get(key) != manifest[key]:
+                raise ValueError(
+                    f"--out {str(out)!r} holds a run with {key} = {old.get(key)!r}, this run has {manifest[key]!r}; "
+                    "use another folder or the same settings to resume"
+                )
+        diff = first_difference(old.get("config", {}), manifest["config"])
+        if diff:
+            raise ValueError(
+                f"--out {str(out)!r} holds a run with config {diff}; use another folder or the same config"
+            )
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f".{MANIFEST}.{os.getpid()}"
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------------------------
+# Assembly
+# --------------------------------------------------------------------------------------------
+def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None = None) -> Path:
+    """Concatenate every chunk (of `out_dir`, or of the `sources` folders of shard runs) into the DatasetDict.
+
+    Raises:
+        ValueError: chunks are missing, or the sources describe different runs.
+    """
+    from datasets import DatasetDict, concatenate_datasets, load_from_disk
+
+    out = Path(out_dir)
+    folders = [Path(s) for s in sources] if sources else [out]
+    manifests = []
+    for folder in folders:
+        path = folder / MANIFEST
+        if not path.is_file():
+            raise ValueError(f"{str(folder)!r}: no {MANIFEST}: not a `aynamics generate` output folder")
+        manifests.append(json.loads(path.read_text()))
+    for folder, m in zip(folders[1:], manifests[1:], strict=True):
+        diff = first_difference(manifests[0], m)
+        if diff:
+            raise ValueError(f"{str(folder)!r} belongs to a different run than {str(folders[0])!r}: {diff}")
+    manifest = manifests[0]
+    num, chunk_size = manifest["num"], manifest["config"]["chunk_size"]
+    parts, missing = [], []
+    for c in range(len(chunk_ranges(num, chunk_size))):
+        found = [chunk_dir(f, c) for f in folders if chunk_dir(f, c).is_dir()]
+        if not found:
+            missing.append(c)
+        else:
+            with quiet_datasets():
+                parts.append(load_from_disk(str(found[0])))
+    if missing:
+        raise ValueError(f"cannot assemble {str(out)!r}: chunks {missing[:10]} of {len(parts) + len(missing)} missing")
+    full = concatenate_datasets(parts)
+    split_col = full["split"]
+    dd = DatasetDict({s: full.select([i for i, v in enumerate(split_col) if v == s]) for s in SPLITS})
+    if sources:
+        write_manifest(out, manifest)
+    tmp = out / f".assemble-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    with quiet_datasets():
+        dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 empty file
+    (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
+    for s in SPLITS:
+        shutil.rmtree(out / s, ignore_errors=True)
+        os.replace(tmp / s, out / s)
+    os.replace(tmp / "dataset_dict.json", out / "dataset_dict.json")
+    shutil.rmtree(tmp, ignore_errors=True)
+    return out
