@@ -1,7 +1,16 @@
-"""The `aynamics` console script.
+"""The `aynamics` console script: `aynamics COMMAND --help` for each command's options.
 
     aynamics simulate SCENE.yaml --out TRAJ.npz [--json]
     aynamics ranges [--markdown]
+    aynamics render SCENE.yaml --out DIR
+    aynamics score PRED.yaml [PRED2.yaml ...] --observed SCENE.yaml|DIR --json
+    aynamics generate --num N --out DIR --seed S [--shard k --num-shards n]
+    aynamics refine PRED.yaml --observed SCENE.yaml|DIR [--budget N] [--params ...] --json
+    aynamics edit SCENE.yaml "INSTRUCTION" [--out EDITED.yaml] [--render DIR]
+    aynamics audit --measured M.csv --scene S.yaml --out DIR [--json]
+    aynamics predict --adapter DIR VIDEO_OR_FRAMES_DIR
+    aynamics preferences --data DIR --out DIR
+    aynamics collect MULTIRUN_DIR
 
 Usage errors and invalid input exit with status 2 and a one-paragraph message on stderr (no traceback).
 """
@@ -9,9 +18,9 @@ Usage errors and invalid input exit with status 2 and a one-paragraph message on
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import sys
-from collections.abc import Callable
 
 from aynamics.scene import SceneError
 
@@ -85,20 +94,38 @@ def _run_ranges(args) -> int:
     return 0
 
 
-# every subcommand adds itself here: (name, adder)
-COMMANDS: list[Callable] = [_add_simulate, _add_ranges]
+# name -> (module, function adding the subparser, one-line help). Only the chosen command's module is imported,
+# so `aynamics --help` and light commands start fast (no torch/transformers import).
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "simulate": ("aynamics.cli", "_add_simulate", "simulate a scene and write its trajectory (npz)"),
+    "ranges": ("aynamics.cli", "_add_ranges", "print the scene format's field table (units, frames, ranges)"),
+    "render": ("aynamics.observe_cli", "_add_render", "render a scene: frames, segmentation, depth, flow, camera, GIF"),
+    "score": ("aynamics.observe_cli", "_add_score", "score predicted scenes against an observed scene or folder"),
+    "generate": ("aynamics.generate", "add_generate_parser", "generate a dataset: scenes, videos, flow, reasoning"),
+    "refine": ("aynamics.refine_cli", "add_refine_command", "refine a predicted scene with CMA-ES against a video"),
+    "edit": ("aynamics.whatif", "add_edit_command", "edit a scene by instruction, re-simulate, show the what-if"),
+    "audit": ("aynamics.audit", "add_audit", "audit the simulation against measured trajectories"),
+    "predict": ("aynamics.predict", "add_predict_command", "write the scene YAML for a video with a trained adapter"),
+    "preferences": ("aynamics.preference_data", "add_preferences_command", "sample, score, store PRO preferences"),
+    "collect": ("aynamics.collect", "add_collect_command", "collect a multirun folder into one metrics table"),
+}
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; the subcommand named in `argv` is built in full, the others only listed."""
     parser = _Parser(prog="aynamics", description="Infer rigid-body physics from video: scenes, simulation, tools.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    for add in COMMANDS:
-        add(sub)
+    chosen = next((a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")), None)
+    for name, (module, adder, help_text) in COMMANDS.items():
+        if name == chosen:
+            getattr(importlib.import_module(module), adder)(sub)
+        else:
+            sub.add_parser(name, help=help_text, add_help=False)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    parser = build_parser(argv)
     try:
         args = parser.parse_args(argv)
         if not getattr(args, "run", None):

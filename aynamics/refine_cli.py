@@ -1,0 +1,134 @@
+"""The `aynamics refine` command and the before/after animation of a refinement.
+
+    aynamics refine PRED.yaml [PRED2.yaml ...] --observed SCENE.yaml|DIR [--budget 1000] [--seconds 60]
+        [--params position,linear_velocity] [--seed 0] [--stop-at 0.95] [--out REFINED.yaml]
+        [--animation before_after.gif] --json
+
+`--json` prints `{"iou_full_before", "iou_full_after", "iou_first_after", "simulations", "refined_yaml", ...}`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from aynamics.refine_space import DEFAULT_PARAMS, OBJECT_GROUPS, SCENE_GROUPS
+
+# --------------------------------------------------------------------------------------------
+# Before/after animation and the CLI
+# --------------------------------------------------------------------------------------------
+_PALETTE = np.array(
+    [[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180], [70, 240, 240], [240, 50, 230]]
+)
+
+
+def colour_segmentation(segmentation: np.ndarray) -> np.ndarray:
+    """(F, h, w) object indices (-1 background) -> (F, h, w, 3) uint8: one colour per object, dark background."""
+    seg = np.asarray(segmentation)
+    out = np.full((*seg.shape, 3), 30, np.uint8)
+    fg = seg >= 0
+    out[fg] = _PALETTE[seg[fg] % len(_PALETTE)]
+    return out
+
+
+def write_refine_animation(result, observed, path, scale: int = 3) -> str:
+    """GIF of the observed segmentation next to the start's and the refined scene's (`result`, a
+    `aynamics.refine.RefineResult`), at the sampled frames.
+
+    Raises:
+        aynamics.render.RenderError: no headless OpenGL.
+    """
+    from aynamics.render import Renderer
+    from aynamics.simulate import simulate_batch
+    from aynamics.whatif import write_animation
+
+    rollouts = simulate_batch([result.start, result.scene], observed.config, nthread=1)
+    panels = [colour_segmentation(observed.segmentation)]
+    with Renderer(observed.width, observed.height) as r:
+        for scene, rollout in zip((result.start, result.scene), rollouts, strict=True):
+            frames = r.render(scene, rollout, rgb=False, depth=False, states=observed.frames)
+            panels.append(colour_segmentation(frames.segmentation))
+    panels = [p.repeat(scale, axis=1).repeat(scale, axis=2) for p in panels]
+    labels = [
+        "observed",
+        f"before IoU {result.before.iou_full:.2f}",
+        f"after IoU {result.after.iou_full:.2f}",
+    ]
+    return str(write_animation(path, [panels], [labels], fps=5))
+
+
+def add_refine_command(sub) -> None:
+    """Register `aynamics refine`."""
+    p = sub.add_parser("refine", help="fit a predicted scene to an observed video with CMA-ES")
+    p.add_argument("pred", nargs="+", help="predicted scene YAML (several: warm start from the best)")
+    p.add_argument("--observed", required=True, help="ground-truth scene YAML, or a folder with segmentation.npy")
+    p.add_argument("--budget", type=int, default=1000, help="simulations in all (default 1000)")
+    p.add_argument("--seconds", type=float, default=60.0, help="wall-time budget in seconds (default 60)")
+    p.add_argument(
+        "--params",
+        default=",".join(DEFAULT_PARAMS),
+        help=f"comma-separated groups from {', '.join(OBJECT_GROUPS + SCENE_GROUPS)}, or NAME.group "
+        f"(default {','.join(DEFAULT_PARAMS)})",
+    )
+    p.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
+    p.add_argument("--stop-at", type=float, default=None, help="stop once IoU_full reaches this (default: no)")
+    p.add_argument("--out", help="write the refined scene YAML here")
+    p.add_argument("--animation", help="write a before/after segmentation GIF here (needs headless OpenGL)")
+    p.add_argument("--json", action="store_true", help="print scores before/after, simulations and the YAML")
+    p.set_defaults(run=run_refine_command)
+
+
+def run_refine_command(args) -> int:
+    """`aynamics refine`: refine, then print/write; usage errors exit 2 with a one-paragraph message."""
+    from pathlib import Path
+
+    from aynamics.cli import UsageError
+    from aynamics.refine import refine
+    from aynamics.scene import load
+    from aynamics.scorer import Observation
+
+    if args.budget < 1 or args.seconds <= 0:
+        raise UsageError(f"refine: --budget {args.budget} and --seconds {args.seconds:g} must be > 0")
+    preds = [load(p) for p in args.pred]
+    obs_path = Path(args.observed)
+    try:
+        if obs_path.is_dir():
+            observed = Observation.from_dir(obs_path)
+        else:
+            observed = Observation.from_scene(load(str(obs_path)))
+    except ValueError as e:
+        raise UsageError(f"refine: --observed {args.observed!r}: {e}") from None
+    params = [x.strip() for x in args.params.split(",") if x.strip()]
+    try:
+        result = refine(
+            preds,
+            observed,
+            params=params,
+            budget=args.budget,
+            seconds=args.seconds,
+            seed=args.seed,
+            stop_at=args.stop_at,
+        )
+    except ValueError as e:
+        raise UsageError(f"refine: {e}") from None
+    if args.out:
+        try:
+            Path(args.out).write_text(result.yaml)
+        except OSError as e:
+            raise UsageError(f"refine: cannot write --out {args.out!r}: {e.strerror or e}") from None
+    record = result.to_json()
+    if args.animation:
+        from aynamics.render import RenderError
+
+        try:
+            record["animation"] = write_refine_animation(result, observed, args.animation)
+        except (RenderError, ValueError, OSError) as e:
+            raise UsageError(f"refine --animation {args.animation!r}: {e}") from None
+    if args.json:
+        import json
+        import sys
+
+        json.dump({k: v for k, v in record.items() if k != "trace"} | {"trace": record["trace"]}, sys.stdout)
+        sys.stdout.write("\n")
+    elif not args.out:
+        print(result.yaml, end="")
+    return 0
