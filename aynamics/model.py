@@ -219,6 +219,7 @@ def apply_lora(
     target_modules: Sequence[str] = DEFAULT_LORA_TARGETS,
     train_vision: bool = False,
     gradient_checkpointing: bool = False,
+    modules_to_save: Sequence[str] = (),
 ) -> PeftModel:
     """Wrap `model` with LoRA adapters on the language model's projections; everything else is frozen.
 
@@ -231,6 +232,8 @@ def apply_lora(
         train_vision: Also train the whole vision tower (full weights). peft saves it with the adapter
             (`modules_to_save=["visual"]`), so `PeftModel.from_pretrained` restores it.
         gradient_checkpointing: Enable non-reentrant activation checkpointing first.
+        modules_to_save: More modules trained in full and saved with the adapter (e.g. "embed_tokens", "lm_head"
+            for a model trained from scratch).
     """
     if rank <= 0:
         raise ValueError(f"lora rank = {rank}: must be > 0")
@@ -243,7 +246,7 @@ def apply_lora(
         lora_alpha=alpha,
         lora_dropout=dropout,
         target_modules=lora_target_regex(target_modules),
-        modules_to_save=["visual"] if train_vision else None,
+        modules_to_save=(["visual"] if train_vision else []) + list(modules_to_save) or None,
         bias="none",
         task_type="CAUSAL_LM",
     )

@@ -1,0 +1,283 @@
+"""Evaluation and export callbacks: judge generated scenes by simulating them, and write the peft adapter.
+
+`SceneEvaluation` generates greedily for a fixed validation subset at the end of every validation epoch and logs
+
+    val/yaml_valid       share of responses that parse and validate as a scene
+    val/sim_valid        share that also simulate without diverging
+    val/count_acc        object-count accuracy;  val/composition_acc: multiset of shapes right
+    val/iou_first, val/iou_full   segmentation IoU (first frame, sampled frames), 0 for invalid responses
+    val/epe_first, val/epe_full   flow end-point error in px of a 480-wide image, `scorer.EPE_INVALID` if invalid
+    val/position_mae, val/velocity_mae   initial-state errors (m, m/s), the metrics' penalties if unparsable
+    val/baseline/...     the same metrics of the constant "average scene" predictor (`data.mean_scene`)
+
+and writes `eval/predictions_epochNNN.jsonl` and `eval/epochNNN_sampleK.gif` (observed | predicted rollout,
+side by side) under the run folder, plus the text and a frame strip to TensorBoard. A bad response never
+raises: it is counted invalid with its reason.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+from lightning.pytorch.utilities import rank_zero_only
+
+from aynamics import lm, metrics
+from aynamics.scene import Scene, SceneError, parse
+
+METRIC_KEYS = (
+    "yaml_valid",
+    "sim_valid",
+    "count_acc",
+    "composition_acc",
+    "iou_first",
+    "iou_full",
+    "epe_first",
+    "epe_full",
+    "position_mae",
+    "velocity_mae",
+)
+
+
+def evaluate_texts(texts: Sequence[str], targets: Sequence[Scene], observations: Sequence) -> dict[str, list]:
+    """Per-response metrics of model outputs against their true scenes and observed videos (pure, batched).
+
+    Args:
+        texts: Model responses (the YAML is taken from <answer> tags when present).
+        targets: The true scenes.
+        observations: `scorer.Observation` of each true scene.
+
+    Returns:
+        One list per key of `METRIC_KEYS` (floats, 1.0/0.0 for the rates) plus "reason" (None when valid).
+    """
+    from aynamics.reward import score_completions
+
+    if not len(texts) == len(targets) == len(observations):
+        raise ValueError(f"{len(texts)} texts, {len(targets)} targets, {len(observations)} observations: must match")
+    yaml_valid = []
+    for t in texts:
+        try:
+            parse(t)
+            yaml_valid.append(1.0)
+        except SceneError:
+            yaml_valid.append(0.0)
+    scores = [s[0] for s in score_completions([[t] for t in texts], observations)]
+    count, shapes = metrics.composition_accuracy(texts, targets)
+    mae = metrics.state_mae_batch(texts, targets)
+    return {
+        "yaml_valid": yaml_valid,
+        "sim_valid": [float(s.valid) for s in scores],
+        "count_acc": count,
+        "composition_acc": shapes,
+        "iou_first": [s.iou_first for s in scores],
+        "iou_full": [s.iou_full for s in scores],
+        "epe_first": [s.epe_first for s in scores],
+        "epe_full": [s.epe_full for s in scores],
+        "position_mae": [m[0] for m in mae],
+        "velocity_mae": [m[1] for m in mae],
+        "reason": [s.reason for s in scores],
+    }
+
+
+def summarize(per_item: dict[str, list]) -> dict[str, float]:
+    """Mean of each metric list of `evaluate_texts` (None entries skipped)."""
+    return {k: metrics.mean_finite(per_item[k]) for k in METRIC_KEYS if k in per_item}
+
+
+def format_table(rows: dict[str, dict[str, float]]) -> str:
+    """A plain-text table: one column per row name (e.g. "model", "average scene"), one line per metric."""
+    names = list(rows)
+    keys = [k for k in METRIC_KEYS if any(k in r for r in rows.values())]
+    width = max(len(k) for k in keys) if keys else 10
+    lines = [f"{'metric':<{width}}  " + "  ".join(f"{n:>14}" for n in names)]
+    for k in keys:
+        cells = [rows[n].get(k, float("nan")) for n in names]
+        lines.append(f"{k:<{width}}  " + "  ".join(f"{c:>14.4f}" for c in cells))
+    return "\n".join(lines)
+
+
+class AdapterExport(L.Callback):
+    """Write the peft adapter (+ `aynamics.json`) to `dirpath` at every checkpoint and at the end of training.
+
+    Args:
+        dirpath: Folder of the adapter (default: `<trainer.default_root_dir>/adapter`).
+    """
+
+    def __init__(self, dirpath: str | None = None) -> None:
+        self.dirpath = dirpath
+
+    def _dir(self, trainer: L.Trainer) -> Path:
+        return Path(self.dirpath) if self.dirpath else Path(trainer.default_root_dir) / "adapter"
+
+    @rank_zero_only
+    def export(self, trainer: L.Trainer, pl_module: L.LightningModule) -> Path:
+        prompt = trainer.datamodule.prompt if trainer.datamodule is not None else lm.PromptSpec()
+        return lm.save_adapter(pl_module.model, self._dir(trainer), pl_module.spec, prompt)
+
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
+        # plain JSON types (peft's dict holds enums and sets): checkpoints load with torch.load(weights_only=True)
+        configs = {k: v.to_dict() for k, v in pl_module.model.peft_config.items()}
+        checkpoint["adapter_config"] = json.loads(json.dumps(configs, default=_plain))
+        self.export(trainer, pl_module)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.export(trainer, pl_module)
+
+
+class SceneEvaluation(L.Callback):
+    """Generate scenes for a fixed validation subset and log simulated-scene metrics (see the module docstring).
+
+    Args:
+        num_samples: Validation records evaluated (the first ones, the same every time).
+        max_new_tokens: Response length limit (a scene is ~600 tiny-tokenizer tokens; reasoning doubles it).
+        batch_size: Prompts generated at once.
+        num_animations: Records whose observed | predicted rollouts are written as GIFs (0: none).
+        every_n_epochs: Evaluate every n-th validation epoch (the last fit epoch is always evaluated).
+        baseline: Also score the constant "average scene" of the training split.
+        out_dir: Folder of predictions and animations (default: `<trainer.default_root_dir>/eval`).
+    """
+
+    def __init__(
+        self,
+        num_samples: int = 8,
+        max_new_tokens: int = 768,
+        batch_size: int = 4,
+        num_animations: int = 2,
+        every_n_epochs: int = 1,
+        baseline: bool = True,
+        out_dir: str | None = None,
+    ) -> None:
+        if num_samples < 1 or max_new_tokens < 1 or batch_size < 1 or num_animations < 0 or every_n_epochs < 1:
+            raise ValueError(
+                f"num_samples = {num_samples}, max_new_tokens = {max_new_tokens}, batch_size = {batch_size}, "
+                f"num_animations = {num_animations}, every_n_epochs = {every_n_epochs}: counts must be >= 1 "
+                "(num_animations >= 0)"
+            )
+        self.num_samples, self.max_new_tokens, self.batch_size = num_samples, max_new_tokens, batch_size
+        self.num_animations, self.every_n_epochs, self.baseline = num_animations, every_n_epochs, baseline
+        self.out_dir = out_dir
+        self._records: list[dict] | None = None
+        self._baseline: dict[str, float] | None = None
+        self.last: dict[str, float] = {}  # the latest summary (model), for scripts and tests
+        self.last_baseline: dict[str, float] = {}
+
+    def _prepare(self, trainer: L.Trainer) -> None:
+        if self._records is not None:
+            return
+        from aynamics.scorer import Observation
+
+        dm = trainer.datamodule
+        self._records = dm.eval_records("validation", self.num_samples)
+        for r in self._records:
+            r["scene"] = parse(r["scene_yaml"])
+            r["observation"] = Observation.from_scene(r["scene"])
+        if self.baseline:
+            from aynamics.data import mean_scene_of_split
+
+            avg = mean_scene_of_split(dm.splits["train"])
+            from aynamics.scene import dump
+
+            texts = [dump(avg)] * len(self._records)
+            per = evaluate_texts(texts, [r["scene"] for r in self._records], [r["observation"] for r in self._records])
+            self._baseline = summarize(per)
+
+    def _out(self, trainer: L.Trainer) -> Path:
+        out = Path(self.out_dir) if self.out_dir else Path(trainer.default_root_dir) / "eval"
+        out.mkdir(parents=True, exist_ok=True)
+        return out
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.sanity_checking:
+            return
+        last = trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
+        if (trainer.current_epoch + 1) % self.every_n_epochs and not last:
+            return
+        if trainer.is_global_zero:
+            self.evaluate(trainer, pl_module)
+
+    def evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:
+        """Generate, score, log and write files; returns the model's summary."""
+        self._prepare(trainer)
+        processor = trainer.datamodule.processor
+        records = self._records
+        texts: list[str] = []
+        with torch.no_grad():
+            for i in range(0, len(records), self.batch_size):
+                chunk = [r["prompt"] for r in records[i : i + self.batch_size]]
+                texts += lm.greedy_texts(pl_module.model, processor, chunk, self.max_new_tokens)
+        per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
+        summary = summarize(per)
+        self.last = summary
+        self.last_baseline = dict(self._baseline or {})
+        log = {f"val/{k}": v for k, v in summary.items()}
+        log |= {f"val/baseline/{k}": v for k, v in self.last_baseline.items()}
+        for k, v in log.items():
+            pl_module.log(k, float(v), rank_zero_only=True, on_epoch=True)
+        self._write(trainer, texts, records, per)
+        return summary
+
+    def _write(self, trainer: L.Trainer, texts: list[str], records: list[dict], per: dict[str, list]) -> None:
+        out = self._out(trainer)
+        step = trainer.global_step
+        with open(out / f"predictions_step{step:06d}.jsonl", "w") as f:
+            for k, (text, r) in enumerate(zip(texts, records, strict=True)):
+                row = {"index": int(r["index"]), "prediction": text, "target": r["scene_yaml"]}
+                row |= {m: per[m][k] for m in (*METRIC_KEYS, "reason")}
+                f.write(json.dumps(row) + "\n")
+        tb = _tensorboard(trainer)
+        if tb is not None:
+            for k, text in enumerate(texts[:4]):
+                tb.add_text(f"val/prediction_{k}", "```\n" + text + "\n```", global_step=step)
+        for k in range(min(self.num_animations, len(records))):
+            try:
+                predicted = parse(texts[k])
+            except SceneError:
+                continue
+            try:
+                frames = side_by_side(records[k]["scene"], predicted)
+            except Exception as e:  # no OpenGL here, or a diverging prediction: skip the animation, say why
+                warnings.warn(f"animation of sample {k} skipped: {type(e).__name__}: {e}", stacklevel=2)
+                continue
+            import imageio.v3 as iio
+
+            iio.imwrite(out / f"step{step:06d}_sample{k}.gif", frames, duration=1000 / 15, loop=0)
+            if tb is not None:
+                strip = np.concatenate(list(frames[:: max(1, len(frames) // 4)]), axis=0)  # (4H, 2W, 3)
+                tb.add_image(f"val/rollout_{k}", strip, global_step=step, dataformats="HWC")
+
+
+def _plain(value):
+    return sorted(value) if isinstance(value, set | frozenset) else str(value)
+
+
+def _tensorboard(trainer: L.Trainer):
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    for logger in trainer.loggers:
+        if isinstance(logger, TensorBoardLogger):
+            return logger.experiment
+    return None
+
+
+def side_by_side(observed: Scene, predicted: Scene, width: int = 160, height: int = 106) -> np.ndarray:
+    """(T, H, 2W, 3) uint8 video: the observed scene's rollout left, the predicted one right (OpenGL).
+
+    Raises:
+        aynamics.render.RenderError: no headless OpenGL.
+        ValueError: the predicted scene's simulation diverged.
+    """
+    from aynamics import render as renderlib
+    from aynamics.simulate import simulate
+
+    roll_obs, roll_pred = simulate(observed), simulate(predicted)
+    if not roll_pred.valid:
+        raise ValueError(f"predicted scene does not simulate: {roll_pred.reason}")
+    with renderlib.Renderer(width, height) as r:
+        left = r.render(observed, roll_obs, seed=0, segmentation=False, depth=False).rgb
+        right = r.render(predicted, roll_pred, seed=0, segmentation=False, depth=False).rgb
+    return np.concatenate([left, right], axis=2)

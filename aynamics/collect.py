@@ -1,0 +1,126 @@
+"""Collect the runs of a Hydra multirun folder into one table of their final metrics.
+
+    python train.py -m data.modality=rgb,flow stage.target=answer,think_answer
+    aynamics collect multirun/2026-11-21/18-00-00            # prints a Markdown table, writes summary.csv there
+    python -m aynamics.collect multirun/... --out table.csv
+
+Every run folder holds `metrics.json` (written by `train.py`) and `.hydra/overrides.yaml` (the overrides that
+make the run differ); a run without `metrics.json` (crashed, still running) is listed with status "missing".
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+import yaml
+
+DEFAULT_METRICS = (
+    "val/yaml_valid",
+    "val/count_acc",
+    "val/composition_acc",
+    "val/iou_first",
+    "val/iou_full",
+    "val/epe_first",
+    "val/epe_full",
+    "val/position_mae",
+    "val/velocity_mae",
+    "val/loss",
+    "val/baseline/iou_full",
+)
+
+
+def run_folders(root: str | Path) -> list[Path]:
+    """Run folders under `root`: those holding `.hydra/overrides.yaml` or `metrics.json`, in name order."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"multirun folder {str(root)!r} does not exist")
+    found = {p.parent.parent for p in root.rglob(".hydra/overrides.yaml")} | {
+        p.parent for p in root.rglob("metrics.json")
+    }
+    return sorted(found, key=lambda p: [int(s) if s.isdigit() else s for s in p.relative_to(root).parts])
+
+
+def collect(root: str | Path, metrics: tuple[str, ...] = DEFAULT_METRICS) -> list[dict]:
+    """One row per run: "run" (folder name), its overrides as columns, "status", "step" and the final metrics."""
+    rows = []
+    for folder in run_folders(root):
+        row: dict = {"run": str(folder.relative_to(root)) if folder != Path(root) else "."}
+        overrides_file = folder / ".hydra" / "overrides.yaml"
+        if overrides_file.is_file():
+            for item in yaml.safe_load(overrides_file.read_text()) or []:
+                key, _, value = str(item).partition("=")
+                if not key.startswith("hydra."):
+                    row[key.lstrip("+~")] = value
+        metrics_file = folder / "metrics.json"
+        if metrics_file.is_file():
+            record = json.loads(metrics_file.read_text())
+            row |= {"status": "done", "step": record.get("global_step")}
+            row |= {m: record["metrics"].get(m) for m in metrics}
+        else:
+            row |= {"status": "missing", "step": None} | {m: None for m in metrics}
+        rows.append(row)
+    if not rows:
+        raise ValueError(f"no runs under {str(root)!r}: expected folders with .hydra/overrides.yaml or metrics.json")
+    return rows
+
+
+def _columns(rows: list[dict]) -> list[str]:
+    cols: list[str] = []
+    for row in rows:
+        cols += [k for k in row if k not in cols]
+    return cols
+
+
+def _cell(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else f"{value:.4f}"
+    return str(value)
+
+
+def to_markdown(rows: list[dict]) -> str:
+    """The rows as a Markdown table (columns in first-seen order)."""
+    cols = _columns(rows)
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(_cell(r.get(c)) for c in cols) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def write_csv(rows: list[dict], path: str | Path) -> Path:
+    path = Path(path)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=_columns(rows))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def add_collect_command(sub) -> None:
+    """Register `aynamics collect` on the CLI's subparsers."""
+    p = sub.add_parser("collect", help="collect a multirun folder into one table of final metrics")
+    p.add_argument("folder", help="the multirun folder (multirun/DATE/TIME)")
+    p.add_argument("--out", help="CSV to write (default FOLDER/summary.csv)")
+    p.set_defaults(run=run_collect)
+
+
+def run_collect(args) -> int:
+    from aynamics.cli import UsageError
+
+    try:
+        rows = collect(args.folder)
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(f"collect: {e}") from None
+    out = write_csv(rows, args.out or Path(args.folder) / "summary.csv")
+    sys.stdout.write(to_markdown(rows) + f"\n\n(written to {out})\n")
+    return 0
+
+
+if __name__ == "__main__":
+    from aynamics.cli import main
+
+    sys.exit(main(["collect", *sys.argv[1:]]))

@@ -1,0 +1,321 @@
+"""The generated data set as SFT batches: a LightningDataModule, a resumable sampler and the "average scene".
+
+The data set is the folder written by `aynamics generate` (`datasets.load_from_disk`: train / validation / test,
+columns `scene_yaml`, `target_answer`, `target_think`, `rgb` and `flow` (lists of PIL frames), ...). One example
+is the chat prompt (system prompt, optional in-context scenes, the frames as images or one video, the instruction)
+followed by the response; labels cover only the response (see `aynamics.processor.build_sft_example`).
+
+    dm = SceneDataModule("data/generated/tiny", processor_path=TINY_ASSET_DIR, target="think_answer")
+    dm.setup("fit"); batch = next(iter(dm.train_dataloader()))
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+from aynamics import lm
+from aynamics.processor import build_prompt, build_sft_example, collate
+from aynamics.scene import Scene, from_items, parse, to_items
+
+SPLITS = ("train", "validation", "test")
+
+
+def load_splits(path: str | Path):
+    """`datasets.load_from_disk(path)` with a clear error for a missing or wrong folder."""
+    from datasets import DatasetDict, load_from_disk
+
+    path = Path(path)
+    if not (path / "dataset_dict.json").is_file():
+        raise FileNotFoundError(
+            f"data.dir = {str(path)!r} holds no data set (no dataset_dict.json); make one with "
+            f"`aynamics generate --out {path}` or `make train`"
+        )
+    dd = load_from_disk(str(path))
+    if not isinstance(dd, DatasetDict) or "train" not in dd:
+        raise ValueError(f"data.dir = {str(path)!r}: expected a DatasetDict with a 'train' split, got {type(dd)}")
+    return dd
+
+
+def frames_of(record: dict[str, Any], modality: str) -> list:
+    """The frames of one record for `modality` ("rgb" or "flow")."""
+    if modality not in lm.MODALITIES:
+        raise ValueError(f"modality = {modality!r}: must be one of {lm.MODALITIES}")
+    frames = record.get(modality)
+    if not frames:
+        raise ValueError(f"record {record.get('index', '?')} has no {modality!r} frames")
+    return list(frames)
+
+
+class SFTDataset(Dataset):
+    """Tokenised SFT examples of one split, built on access (PNG decode + processor: ~ms per record)."""
+
+    def __init__(self, split, processor, prompt: lm.PromptSpec, limit: int | None = None) -> None:
+        self.split = split if limit is None else split.select(range(min(limit, len(split))))
+        self.processor = processor
+        self.prompt = prompt
+
+    def __len__(self) -> int:
+        return len(self.split)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        record = self.split[int(i)]
+        p = self.prompt
+        return build_sft_example(
+            self.processor,
+            frames_of(record, p.modality),
+            lm.response_text(record, p.target),
+            system_prompt=p.system_prompt,
+            user_prompt=p.user_prompt,
+            examples=p.examples,
+            as_video=p.as_video,
+        )
+
+
+class ResumableSampler(Sampler[int]):
+    """A shuffled order per epoch from (seed, epoch) alone, sharded over ranks, that can start mid-epoch.
+
+    Lightning calls `set_epoch`; `skip` drops the first indices of `start_epoch` (the examples a resumed run
+    already trained on), so a resumed run sees exactly the batches an uninterrupted run would.
+    """
+
+    def __init__(
+        self,
+        n: int,
+        *,
+        seed: int,
+        shuffle: bool = True,
+        rank: int = 0,
+        world: int = 1,
+        start_epoch: int = 0,
+        skip: int = 0,
+    ) -> None:
+        if not 0 <= rank < world:
+            raise ValueError(f"rank = {rank}, world = {world}: need 0 <= rank < world")
+        self.n, self.seed, self.shuffle, self.rank, self.world = n, seed, shuffle, rank, world
+        self.epoch, self.start_epoch, self.skip = start_epoch, start_epoch, skip
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def _order(self) -> list[int]:
+        if self.shuffle:
+            g = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+            order = torch.randperm(self.n, generator=g).tolist()
+        else:
+            order = list(range(self.n))
+        per_rank = math.ceil(self.n / self.world)
+        order += order[: per_rank * self.world - self.n]  # pad so every rank gets the same count
+        return order[self.rank :: self.world]
+
+    def __iter__(self):
+        order = self._order()
+        return iter(order[self.skip :] if self.epoch == self.start_epoch else order)
+
+    def __len__(self) -> int:
+        full = math.ceil(self.n / self.world)
+        return full - self.skip if self.epoch == self.start_epoch else full
+
+
+class ResumableLoader(DataLoader):
+    """A DataLoader Lightning treats as resumable: its position lives in the sampler (see `ResumableSampler`)."""
+
+    def state_dict(self) -> dict[str, int]:
+        return {"seed": self.sampler.seed, "n": self.sampler.n}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        if state.get("n") != self.sampler.n:
+            raise ValueError(f"resumed data set has {self.sampler.n} training examples, the checkpoint's had {state}")
+
+
+class SceneDataModule(L.LightningDataModule):
+    """Train / validation / test batches of a generated data set.
+
+    Args:
+        dir: Folder of the data set (`datasets.load_from_disk`).
+        processor_path: Tokenizer + image processor (the tiny asset or the pretrained checkpoint's folder).
+        target: "answer" or "think_answer" (reasoning first).
+        modality: "rgb" or "flow" frames.
+        as_video: Frames as one video (half the visual tokens) instead of separate images.
+        num_frames: Frames per clip given to the model (evenly spaced, of the 10 stored).
+        min_pixels, max_pixels: Pixel bounds per frame after the processor's resize (None: processor's default).
+        num_examples: In-context examples: the YAML of this many training scenes put before the frames.
+        batch_size: Training examples per step per process.
+        eval_batch_size: Examples per validation step (default batch_size).
+        num_workers: DataLoader worker processes (0: in the training process).
+        seed: Seed of the shuffling (the order is a function of seed and epoch only).
+        limit_train, limit_val: Use only the first examples of the split (None: all).
+    """
+
+    def __init__(
+        self,
+        dir: str,
+        processor_path: str,
+        target: str = "answer",
+        modality: str = "rgb",
+        as_video: bool = False,
+        num_frames: int = 4,
+        min_pixels: int | None = None,
+        max_pixels: int | None = None,
+        num_examples: int = 0,
+        batch_size: int = 4,
+        eval_batch_size: int | None = None,
+        num_workers: int = 0,
+        seed: int = 0,
+        limit_train: int | None = None,
+        limit_val: int | None = None,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        if batch_size < 1 or num_examples < 0 or num_workers < 0:
+            raise ValueError(
+                f"batch_size = {batch_size}, num_examples = {num_examples}, num_workers = {num_workers}: "
+                "need batch_size >= 1, num_examples >= 0, num_workers >= 0"
+            )
+        self.dir, self.processor_path = str(dir), str(processor_path)
+        self.batch_size, self.eval_batch_size = batch_size, eval_batch_size or batch_size
+        self.num_workers, self.seed = num_workers, seed
+        self.limit_train, self.limit_val = limit_train, limit_val
+        self.num_examples = num_examples
+        self.prompt = lm.PromptSpec(target, modality, as_video, num_frames, min_pixels, max_pixels)  # checks values
+        self.splits = None
+        self.processor = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.splits is not None:
+            return
+        from aynamics.processor import load_processor
+
+        self.splits = load_splits(self.dir)
+        if len(self.splits["train"]) == 0:
+            raise ValueError(f"data.dir = {self.dir!r}: the train split is empty")
+        if self.num_examples:
+            examples = tuple(
+                self.splits["train"].select(range(min(self.num_examples, len(self.splits["train"]))))["scene_yaml"]
+            )
+            self.prompt = lm.PromptSpec(**{**self.prompt.__dict__, "examples": examples})
+        p = self.prompt
+        self.processor = load_processor(
+            self.processor_path, min_pixels=p.min_pixels, max_pixels=p.max_pixels, num_frames=p.num_frames
+        )
+
+    @property
+    def pad_token_id(self) -> int:
+        return self.processor.tokenizer.pad_token_id
+
+    def _collate(self, examples: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+        return collate(examples, self.pad_token_id)
+
+    def dataset(self, split: str, limit: int | None = None) -> SFTDataset:
+        if split not in self.splits or len(self.splits[split]) == 0:
+            raise ValueError(
+                f"data.dir = {self.dir!r} has no {split!r} examples (splits: {dict(self.splits.num_rows)})"
+            )
+        return SFTDataset(self.splits[split], self.processor, self.prompt, limit)
+
+    def train_dataloader(self) -> DataLoader:
+        ds = self.dataset("train", self.limit_train)
+        trainer = self.trainer
+        rank, world, start_epoch, skip = 0, 1, 0, 0
+        if trainer is not None:
+            rank, world = trainer.global_rank, trainer.world_size
+            # After a resume `global_step` is restored before the loaders are built: skip what was trained on.
+            per_rank = math.ceil(len(ds) / world)
+            batches = math.ceil(per_rank / self.batch_size)
+            done = trainer.global_step * trainer.accumulate_grad_batches
+            start_epoch, skip = divmod(done, batches) if batches else (0, 0)
+            skip *= self.batch_size
+        sampler = ResumableSampler(len(ds), seed=self.seed, rank=rank, world=world, start_epoch=start_epoch, skip=skip)
+        return ResumableLoader(
+            ds,
+            batch_size=self.batch_size,
+            sampler=sampler,
+            collate_fn=self._collate,
+            num_workers=self.num_workers,
+            generator=torch.Generator().manual_seed(self.seed),  # worker seeds: not from the global RNG
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def _eval_loader(self, split: str) -> DataLoader:
+        ds = self.dataset(split, self.limit_val)
+        return DataLoader(ds, batch_size=self.eval_batch_size, collate_fn=self._collate, num_workers=self.num_workers)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._eval_loader("validation")
+
+    def test_dataloader(self) -> DataLoader:
+        return self._eval_loader("test")
+
+    def eval_records(self, split: str = "validation", n: int = 8) -> list[dict[str, Any]]:
+        """A fixed subset for generation: the first `n` records' prompt (unbatched), scene text and frames."""
+        ds = self.splits[split]
+        out = []
+        for i in range(min(n, len(ds))):
+            record = ds[i]
+            frames = frames_of(record, self.prompt.modality)
+            prompt = build_prompt(
+                self.processor,
+                frames,
+                system_prompt=self.prompt.system_prompt,
+                user_prompt=self.prompt.user_prompt,
+                examples=self.prompt.examples,
+                as_video=self.prompt.as_video,
+            )
+            out.append({"index": record.get("index", i), "prompt": prompt, "scene_yaml": record["scene_yaml"]})
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# The constant "average scene" predictor
+# --------------------------------------------------------------------------------------------
+def _mean_value(values: list[Any]) -> Any:
+    """Element-wise mean of numbers / equal-length lists / dicts; the most common value of anything else."""
+    if all(isinstance(v, dict) for v in values):
+        keys = Counter(k for v in values for k in v)
+        return {k: _mean_value([v[k] for v in values if k in v]) for k, c in keys.items() if 2 * c > len(values)}
+    if all(isinstance(v, list) for v in values) and len({len(v) for v in values}) == 1:
+        return [_mean_value([v[i] for v in values]) for i in range(len(values[0]))]
+    if all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return float(np.mean(values))
+    top = Counter(map(repr, values)).most_common(1)[0][0]
+    return next(v for v in values if repr(v) == top)
+
+
+def mean_scene(scenes: list[Scene]) -> Scene:
+    """The "average scene": the most common structure (object types in order) with every number averaged.
+
+    Averages run over the scenes of that structure, object k with object k; an optional field (restitution,
+    the environment item) is kept when more than half of them have it. Quaternions are renormalised.
+    """
+    if not scenes:
+        raise ValueError("mean_scene got 0 scenes")
+    structure = Counter(s.structure for s in scenes).most_common(1)[0][0]
+    same = [to_items(s) for s in scenes if s.structure == structure]
+    by_type: dict[str, list[dict]] = {}
+    for items in same:
+        for k, item in enumerate(items):
+            key = f"{k}:{item['type']}" if k < len(structure) else item["type"]
+            by_type.setdefault(key, []).append(item)
+    items = []
+    for key, group in by_type.items():
+        if 2 * len(group) <= len(same):
+            continue
+        item = _mean_value(group)
+        if "state" in item:
+            q = np.array(item["state"]["orientation"])
+            norm = np.linalg.norm(q)
+            item["state"]["orientation"] = (q / norm).tolist() if norm > 1e-6 else [1.0, 0.0, 0.0, 0.0]
+        items.append(item)
+    return from_items(items)
+
+
+def mean_scene_of_split(split) -> Scene:
+    """`mean_scene` of the `scene_yaml` column of a data-set split."""
+    return mean_scene([parse(t) for t in split["scene_yaml"]])

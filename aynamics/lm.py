@@ -1,0 +1,240 @@
+"""Pure helpers of the language-model stages (SFT now, PRO later): prompts, targets, model building, loss, adapters.
+
+Nothing here is a Lightning object; `aynamics.sft` (and the preference stage) call these functions.
+
+    model = build_model(ModelSpec(kind="tiny"))            # tiny random Qwen2.5-VL + LoRA on the language model
+    loss, n = sft_loss(model(**model_inputs(batch)).logits, batch["labels"])
+    save_adapter(model, "out/adapter", spec, prompt_spec)  # peft folder + aynamics.json (what `predict` rebuilds)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from aynamics.processor import token_logprobs
+
+TARGETS = ("answer", "think_answer")  # stage.target: the YAML alone, or motion reasoning then the YAML
+MODALITIES = ("rgb", "flow")  # data.modality: the frames shown to the model
+KINDS = ("tiny", "pretrained")
+ADAPTER_META = "aynamics.json"  # written next to the peft adapter: how to rebuild the base model and the prompt
+
+SYSTEM_PROMPT = (
+    "You are a physics expert. You watch a short video of rigid objects (boxes, spheres, cylinders) moving on a "
+    "floor and write the scene as YAML: every object with its shape, size, initial state and physical parameters, "
+    "then the camera and gravity."
+)
+USER_PROMPTS = {
+    "answer": "Write the scene as YAML inside <answer></answer> tags.",
+    "think_answer": (
+        "Think about the motion first inside <think></think> tags, then write the scene as YAML inside "
+        "<answer></answer> tags."
+    ),
+}
+MODALITY_NOTE = {
+    "rgb": "The frames are video frames in time order.",
+    "flow": "The frames are optical flow images (colour = direction, saturation = speed) in time order.",
+}
+
+
+@dataclass(frozen=True)
+class PromptSpec:
+    """What the model is shown and asked: the same at training, evaluation and `aynamics predict`.
+
+    Attributes:
+        target: "answer" (the YAML in <answer> tags) or "think_answer" (<think> reasoning first).
+        modality: "rgb" (video frames) or "flow" (optical-flow images).
+        as_video: Give the frames as one video (half the visual tokens) instead of separate images.
+        num_frames: Frames sampled evenly from the clip (first and last kept), >= 1.
+        min_pixels, max_pixels: Pixel bounds per frame after the processor's resize (None: the processor's).
+        system_prompt: The system message.
+        examples: In-context example texts placed before the frames (usually scenes in YAML).
+    """
+
+    target: str = "answer"
+    modality: str = "rgb"
+    as_video: bool = False
+    num_frames: int = 4
+    min_pixels: int | None = None
+    max_pixels: int | None = None
+    system_prompt: str = SYSTEM_PROMPT
+    examples: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.target not in TARGETS:
+            raise ValueError(f"target = {self.target!r}: must be one of {TARGETS}")
+        if self.modality not in MODALITIES:
+            raise ValueError(f"modality = {self.modality!r}: must be one of {MODALITIES}")
+        if self.num_frames < 1:
+            raise ValueError(f"num_frames = {self.num_frames}: must be >= 1")
+        object.__setattr__(self, "examples", tuple(self.examples))
+
+    @property
+    def user_prompt(self) -> str:
+        return f"{MODALITY_NOTE[self.modality]} {USER_PROMPTS[self.target]}"
+
+
+def response_text(record: dict[str, Any], target: str) -> str:
+    """The SFT target of one data-set record: its `target_answer` or `target_think` column."""
+    column = {"answer": "target_answer", "think_answer": "target_think"}.get(target)
+    if column is None:
+        raise ValueError(f"target = {target!r}: must be one of {TARGETS}")
+    if column not in record:
+        raise ValueError(f"data-set record lacks the column {column!r} (has {sorted(record)})")
+    return record[column]
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """Which base model and which adapter; plain values, stored with every adapter so it can be rebuilt.
+
+    Attributes:
+        kind: "tiny" (random Qwen2.5-VL from a config, tokenizer asset in the repo) or "pretrained".
+        path: Local directory or hub id of a pretrained checkpoint (kind "pretrained"); the processor comes
+            from the same place. Unused for "tiny" (the repo's tokenizer asset).
+        seed: Seed of the tiny model's random weights (the adapter's base must be rebuilt identically).
+        tiny: Overrides of `aynamics.model.tiny_config` (hidden_size, num_layers, ...).
+        lora_rank, lora_alpha, lora_dropout, lora_targets: LoRA on the language model's projections.
+        train_vision: Train the vision tower's full weights too (saved with the adapter).
+        modules_to_save: More modules trained in full and saved with the adapter (the tiny model, trained from
+            scratch, needs its random "embed_tokens" and "lm_head" trainable to learn quickly).
+        gradient_checkpointing: Non-reentrant activation checkpointing (less memory, more compute).
+        dtype: "float32" or "bfloat16" (pretrained only; the tiny model stays float32).
+    """
+
+    kind: str = "tiny"
+    path: str | None = None
+    seed: int = 0
+    tiny: dict[str, int] = field(default_factory=dict)
+    lora_rank: int = 16
+    lora_alpha: float = 32.0
+    lora_dropout: float = 0.05
+    lora_targets: tuple[str, ...] = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
+    train_vision: bool = False
+    modules_to_save: tuple[str, ...] = ()
+    gradient_checkpointing: bool = False
+    dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"model kind = {self.kind!r}: must be one of {KINDS}")
+        if self.kind == "pretrained" and not self.path:
+            raise ValueError("model kind = 'pretrained' needs model.path (a local directory or a hub id)")
+        if self.dtype not in ("float32", "bfloat16"):
+            raise ValueError(f"model dtype = {self.dtype!r}: must be 'float32' or 'bfloat16'")
+        object.__setattr__(self, "lora_targets", tuple(self.lora_targets))
+        object.__setattr__(self, "modules_to_save", tuple(self.modules_to_save))
+        object.__setattr__(self, "tiny", dict(self.tiny))
+
+    @property
+    def processor_path(self) -> str:
+        from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+        return str(TINY_ASSET_DIR) if self.kind == "tiny" else str(self.path)
+
+
+def build_base(spec: ModelSpec) -> torch.nn.Module:
+    """The base model of `spec` without adapters (tiny: random from `spec.seed`; pretrained: `from_pretrained`)."""
+    from aynamics import model as modellib
+
+    if spec.kind == "tiny":
+        return modellib.build_tiny_model(seed=spec.seed, **spec.tiny)
+    dtype = torch.bfloat16 if spec.dtype == "bfloat16" else torch.float32
+    return modellib.load_pretrained(spec.path, dtype=dtype)
+
+
+def build_model(spec: ModelSpec) -> torch.nn.Module:
+    """Base model + LoRA on the language model (a `peft.PeftModel`), in train mode; only the adapter trains."""
+    from aynamics import model as modellib
+
+    base = build_base(spec)
+    model = modellib.apply_lora(
+        base,
+        rank=spec.lora_rank,
+        alpha=spec.lora_alpha,
+        dropout=spec.lora_dropout,
+        target_modules=spec.lora_targets,
+        train_vision=spec.train_vision,
+        gradient_checkpointing=spec.gradient_checkpointing,
+        modules_to_save=spec.modules_to_save,
+    )
+    return model.train()
+
+
+def load_processor(spec: ModelSpec, prompt: PromptSpec):
+    """The image-only processor of the model, with the prompt's frame count and pixel bounds."""
+    from aynamics.processor import load_processor as _load
+
+    return _load(
+        spec.processor_path, min_pixels=prompt.min_pixels, max_pixels=prompt.max_pixels, num_frames=prompt.num_frames
+    )
+
+
+def sft_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Token-mean negative log-likelihood of the labelled tokens (the usual next-token shift).
+
+    Args:
+        logits: (B, L, V) model outputs.
+        labels: (B, L), -100 where no loss (prompt, images, padding).
+
+    Returns:
+        (loss, n_tokens): the mean over all labelled tokens of the batch, and their count (a 0-d long tensor).
+        With no labelled token the loss is 0 (still attached to the graph).
+    """
+    logp, mask = token_logprobs(logits, labels)  # (B, L-1) each
+    n = mask.sum()
+    return -(logp.sum() / n.clamp(min=1)), n
+
+
+def trainable_state_dict(model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The parameters that train (the adapter, and the vision tower when it trains), by their module name."""
+    return {k: p.detach() for k, p in model.named_parameters() if p.requires_grad}
+
+
+def save_adapter(model: torch.nn.Module, out: str | Path, spec: ModelSpec, prompt: PromptSpec) -> Path:
+    """Write the peft adapter (`PeftModel.from_pretrained(base, out)` loads it) and `aynamics.json` beside it."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model.save_pretrained(str(out))
+    meta = {"model": dataclasses.asdict(spec), "prompt": dataclasses.asdict(prompt)}
+    (out / ADAPTER_META).write_text(json.dumps(meta, indent=2))
+    return out
+
+
+def read_adapter_meta(adapter_dir: str | Path) -> tuple[ModelSpec, PromptSpec]:
+    """The model and prompt specs stored by `save_adapter`."""
+    path = Path(adapter_dir) / ADAPTER_META
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{str(path)!r} not found: --adapter must be a folder written by training (adapter/ under the run)"
+        )
+    meta = json.loads(path.read_text())
+    prompt = meta["prompt"]
+    prompt["examples"] = tuple(prompt.get("examples", ()))
+    return ModelSpec(**meta["model"]), PromptSpec(**prompt)
+
+
+def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, PromptSpec]:
+    """Rebuild the base model of an adapter folder and load the adapter onto it (eval mode)."""
+    from peft import PeftModel
+
+    spec, prompt = read_adapter_meta(adapter_dir)
+    base = build_base(spec)
+    model = PeftModel.from_pretrained(base, str(adapter_dir))
+    return model.eval(), spec, prompt
+
+
+def greedy_texts(model: torch.nn.Module, processor, prompts: Sequence[dict], max_new_tokens: int) -> list[str]:
+    """Greedy responses (special tokens dropped) to unbatched prompts from `processor.build_prompt`."""
+    from aynamics.reward import sample_completions
+
+    _, texts = sample_completions(
+        model, processor, prompts, num_samples=1, temperature=0.0, max_new_tokens=max_new_tokens
+    )
+    return [t[0] for t in texts]

@@ -1,0 +1,230 @@
+"""Offline PRO data: sample N responses per unlabeled video, score them with the simulator, store preference pairs.
+
+    aynamics preferences --data data/synth --split train --out data/prefs --num-samples 32 --pairs 3 \\
+        --temperature 0.1 [--model tiny | CHECKPOINT_DIR] [--adapter SFT_ADAPTER] [--limit K]
+
+The paper draws three pairs per case from 32 samples. Here the N candidates of a video are ordered by reward
+(best first, sampling order among ties) and pair k is (k-th best, k-th worst) for k = 0, 1, ...: the best against
+the worst, then the runners-up, so pairs share no candidate and each has the widest remaining reward gap.
+A pair is kept only when the chosen candidate scores strictly higher; a video whose candidates all tie (e.g.
+all invalid) gives no pair and is counted in the summary.
+
+Stored as a Hugging Face data set on disk (`datasets.load_from_disk(OUT)`), one row per pair:
+    key str (the video), frames list[Image] (what the model saw), completions [chosen, rejected] str,
+    completion_ids [2][L] int32 (the sampled tokens, end-of-turn id included), rewards [2] float32,
+    reasons [2] str or null (why a candidate was invalid), case_rewards [N] float32 (all candidates' rewards).
+Plus `summary.json`: counts, mean/best reward, share invalid, the sampling settings.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from aynamics import reward as rw
+from aynamics.unlabeled import UnlabeledVideo
+
+COLUMNS = ("key", "frames", "completions", "completion_ids", "rewards", "reasons", "case_rewards")
+
+
+def select_pairs(rewards: Sequence[float], pairs: int) -> list[tuple[int, int]]:
+    """(chosen, rejected) index pairs: k-th best against k-th worst, k < `pairs`, strict reward gap only.
+
+    Example: rewards [0.2, 0.9, 0.0, 0.5], pairs 3 -> order by reward 1, 3, 0, 2 -> [(1, 2), (3, 0)].
+    """
+    if pairs < 1:
+        raise ValueError(f"pairs = {pairs}: must be >= 1")
+    order = sorted(range(len(rewards)), key=lambda i: -rewards[i])  # stable: sampling order among ties
+    out = []
+    for k in range(min(pairs, len(order) // 2)):
+        hi, lo = order[k], order[len(order) - 1 - k]
+        if rewards[hi] > rewards[lo]:
+            out.append((hi, lo))
+    return out
+
+
+def features():
+    """The `datasets.Features` of a preference row."""
+    from datasets import Features, Image, List, Value
+
+    return Features(
+        {
+            "key": Value("string"),
+            "frames": List(Image()),
+            "completions": List(Value("string")),
+            "completion_ids": List(List(Value("int32"))),
+            "rewards": List(Value("float32")),
+            "reasons": List(Value("string")),
+            "case_rewards": List(Value("float32")),
+        }
+    )
+
+
+def build_preferences(
+    module: Any,
+    videos: Sequence[UnlabeledVideo],
+    *,
+    num_samples: int = 32,
+    pairs: int = 3,
+    temperature: float = 0.1,
+    batch_size: int = 1,
+) -> tuple[list[dict], dict]:
+    """Sample, score and pair: the rows of the preference data set and a summary.
+
+    Args:
+        module: A `pro.ProModule` (its model, processor, prompt, top_p, max_new_tokens and reward settings).
+        videos: Unlabeled videos.
+        num_samples: N candidates per video (>= 2).
+        pairs: Pairs kept per video at most.
+        temperature: Sampling temperature (> 0).
+        batch_size: Videos sampled together.
+    """
+    if num_samples < 2 or temperature <= 0 or batch_size < 1:
+        raise ValueError(
+            f"num_samples = {num_samples}, temperature = {temperature}, batch_size = {batch_size}: "
+            "need num_samples >= 2, temperature > 0, batch_size >= 1"
+        )
+    rows: list[dict] = []
+    all_rewards, all_scores = [], []
+    for start in range(0, len(videos), batch_size):
+        chunk = [videos[i] for i in range(start, min(start + batch_size, len(videos)))]
+        prompts, ids, scores, rewards = module.sample_and_score(chunk, num_samples, temperature)
+        texts = module.processor.tokenizer.batch_decode([c for row in ids for c in row], skip_special_tokens=True)
+        for b, video in enumerate(chunk):
+            r = rewards[b].tolist()
+            for hi, lo in select_pairs(r, pairs):
+                rows.append(
+                    {
+                        "key": video.key,
+                        "frames": list(video.frames),
+                        "completions": [texts[b * num_samples + hi], texts[b * num_samples + lo]],
+                        "completion_ids": [ids[b][hi], ids[b][lo]],
+                        "rewards": [r[hi], r[lo]],
+                        "reasons": [scores[b][hi].reason, scores[b][lo].reason],
+                        "case_rewards": r,
+                    }
+                )
+        all_rewards.append(rewards)
+        all_scores += scores
+    stats = rw.RewardStats.of(torch.cat(all_rewards), all_scores) if all_rewards else None
+    cases_with_pairs = len({row["key"] for row in rows})
+    summary = {
+        "videos": len(videos),
+        "pairs": len(rows),
+        "videos_without_pairs": len(videos) - cases_with_pairs,
+        "num_samples": num_samples,
+        "temperature": temperature,
+        "pairs_per_video": pairs,
+        **(stats.to_metrics("reward/") if stats else {}),
+    }
+    return rows, summary
+
+
+def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
+    """Save the rows as a data set at `out` (atomically: written beside, then renamed) with `summary.json`."""
+    from datasets import Dataset
+
+    out = Path(out)
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    columns = {c: [row[c] for row in rows] for c in COLUMNS}  # from_dict keeps the columns of 0 rows too
+    Dataset.from_dict(columns, features=features()).save_to_disk(str(tmp))
+    (tmp / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)
+    return out
+
+
+def load_preferences(path: str | Path):
+    """The stored preference data set (rows as dicts with PIL frames), checked for its columns.
+
+    Raises:
+        FileNotFoundError: no data set at `path`.
+        ValueError: a data set without the preference columns.
+    """
+    import datasets
+
+    root = Path(path)
+    if not (root / "state.json").is_file():
+        raise FileNotFoundError(
+            2, f"preferences {str(root)!r}: no data set here (run `aynamics preferences`)", str(root)
+        )
+    ds = datasets.load_from_disk(str(root))
+    missing = [c for c in COLUMNS if c not in ds.column_names]
+    if missing:
+        raise ValueError(f"preferences {str(root)!r}: columns {missing} are missing (has {ds.column_names})")
+    if len(ds) == 0:
+        raise ValueError(f"preferences {str(root)!r} holds 0 pairs: every video's candidates tied")
+    return ds
+
+
+# --------------------------------------------------------------------------------------------
+# CLI: aynamics preferences
+# --------------------------------------------------------------------------------------------
+def add_preferences_command(sub) -> None:
+    p = sub.add_parser("preferences", help="sample, score and store a PRO preference data set (offline mode)")
+    p.add_argument("--data", required=True, help="unlabeled videos: a generated data set or a folder of videos")
+    p.add_argument("--out", required=True, help="folder to write the preference data set to")
+    p.add_argument("--split", default="train", help="split of a generated data set (default train)")
+    p.add_argument("--model", default="tiny", help="'tiny' or a checkpoint directory (default tiny)")
+    p.add_argument("--adapter", default=None, help="peft adapter to sample with (e.g. the SFT stage's)")
+    p.add_argument("--num-samples", type=int, default=32, help="candidates per video (default 32, as the paper)")
+    p.add_argument("--pairs", type=int, default=3, help="pairs kept per video (default 3, as the paper)")
+    p.add_argument("--temperature", type=float, default=0.1, help="sampling temperature (default 0.1)")
+    p.add_argument("--top-p", type=float, default=1.0, help="nucleus sampling mass (default 1.0)")
+    p.add_argument("--max-new-tokens", type=int, default=512, help="response length limit (default 512)")
+    p.add_argument("--metric", default="iou", choices=rw.METRICS, help="reward metric (default iou)")
+    p.add_argument("--span", default="full", choices=rw.SPANS, help="full sequence or first frame (default full)")
+    p.add_argument(
+        "--inputs", default="rgb", choices=("rgb", "flow"), help="images the model sees without --adapter (default rgb)"
+    )
+    p.add_argument("--limit", type=int, default=None, help="use only the first LIMIT videos")
+    p.add_argument("--batch-size", type=int, default=1, help="videos sampled together (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.set_defaults(run=run_preferences)
+
+
+def run_preferences(args) -> int:
+    from aynamics import lm
+    from aynamics.cli import UsageError, _print_json
+    from aynamics.pro import ProModule
+    from aynamics.unlabeled import open_videos
+
+    if args.limit is not None and args.limit < 1:
+        raise UsageError(f"preferences: --limit {args.limit}: must be >= 1")
+    try:
+        spec = lm.ModelSpec(kind="tiny") if args.model == "tiny" else lm.ModelSpec(kind="pretrained", path=args.model)
+        prompt = lm.read_adapter_meta(args.adapter)[1] if args.adapter else lm.PromptSpec(modality=args.inputs)
+        videos = open_videos(
+            args.data, args.split, inputs=prompt.modality, use_flow=args.metric != "iou", limit=args.limit
+        )
+        module = ProModule(
+            spec,
+            init_adapter=args.adapter,
+            num_samples=max(args.num_samples, 2),
+            temperature=args.temperature,
+            top_p=args.top_p,
+            max_new_tokens=args.max_new_tokens,
+            reward_metric=args.metric,
+            reward_span=args.span,
+            prompt=prompt,
+        )
+        torch.manual_seed(args.seed)
+        rows, summary = build_preferences(
+            module,
+            videos,
+            num_samples=args.num_samples,
+            pairs=args.pairs,
+            temperature=args.temperature,
+            batch_size=args.batch_size,
+        )
+    except ValueError as e:
+        raise UsageError(f"preferences: {e}") from None
+    write_preferences(rows, summary, args.out)
+    _print_json(summary)
+    return 0

@@ -1,0 +1,368 @@
+"""The PRO stage: label-free adaptation of the model from the simulator's judgement of its own samples.
+
+Online mode, per training step and per video: sample N responses (`reward.sample_completions`), score them
+against the observed segmentation (and flow) with the fast scorer (`reward.score_completions`), then one
+forward pass over the B x N (prompt, response) rows gives the length-normalised log-likelihoods ℓ (B, N) and
+
+    loss = soft_preference_loss(ℓ, s, τ)  [or pro_ranking_loss(ℓ, s)]  + sft_weight * sft_on_best(...)
+
+(`aynamics.preference`; s = simulator rewards). Offline mode trains the same loss on stored candidates and rewards
+(`aynamics.preference_data`, e.g. three (chosen, rejected) pairs per video drawn from 32 samples). Validation
+runs the paper's Table 10 modes on unlabeled videos: greedy, Best@1 (mean over samples) and Best@N (best by
+simulator score), for IoU and EPE, first frame and full sequence.
+
+    data = ProDataModule("data/synth", processor_path=TINY_ASSET_DIR, batch_size=1)
+    module = ProModule(ModelSpec(kind="tiny"), num_samples=4)     # or init_adapter="sft_run/adapter"
+    lightning.Trainer(max_steps=2).fit(module, data)            # python train.py stage=pro does this
+
+Logged: train/loss, train/margin (ℓ of the best- minus the worst-scored candidate), train/informative (share of
+videos whose candidates do not all tie), reward/mean, reward/best,
+reward/invalid (+ reward/invalid_<kind>), val/<mode>/<metric> (val/iou_full = greedy). Checkpoints hold only the
+trainable (adapter) weights; `callbacks.AdapterExport` writes the peft adapter, as in the SFT stage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader
+
+from aynamics import lm
+from aynamics import reward as rw
+from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
+from aynamics.processor import build_prompt, model_inputs, token_logprobs
+from aynamics.unlabeled import UnlabeledVideo, collate_videos, open_videos
+
+LOSSES = ("soft", "ranking")
+MODES = ("online", "offline")
+PROMPT_KEYS = ("target", "modality", "as_video", "num_frames")  # must agree between an SFT adapter and the PRO data
+
+
+def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[torch.nn.Module, lm.ModelSpec]:
+    """The policy: `lm.build_model(spec)` (fresh LoRA), or the SFT adapter at `init_adapter` loaded trainable.
+
+    An adapter carries its own model spec (`aynamics.json`); it must name the same base model as `spec`.
+
+    Raises:
+        FileNotFoundError: `init_adapter` is not an adapter folder written by training.
+        ValueError: the adapter was trained on another base model.
+    """
+    if init_adapter is None:
+        return lm.build_model(spec), spec
+    from peft import PeftModel
+
+    if not Path(init_adapter, "adapter_config.json").is_file():
+        raise FileNotFoundError(2, f"stage.init_adapter = {init_adapter!r} holds no adapter_config.json", init_adapter)
+    adapter_spec, _ = lm.read_adapter_meta(init_adapter)
+    if (adapter_spec.kind, adapter_spec.path) != (spec.kind, spec.path):
+        raise ValueError(
+            f"stage.init_adapter = {init_adapter!r} was trained on model kind={adapter_spec.kind!r} "
+            f"path={adapter_spec.path!r}, but model is kind={spec.kind!r} path={spec.path!r}"
+        )
+    model = PeftModel.from_pretrained(lm.build_base(adapter_spec), str(init_adapter), is_trainable=True)
+    return model.train(), adapter_spec
+
+
+class ProModule(L.LightningModule):
+    """PRO on unlabeled videos (online) or on a stored preference data set (offline).
+
+    Args:
+        spec: The base model and adapter settings (plain values; the model is built here, as in the SFT stage).
+        init_adapter: Folder of an SFT adapter (`OUT/adapter` of an SFT run) to start from; None: a fresh LoRA.
+        mode: "online" (sample and score in the loop) or "offline" (batches of stored candidates and rewards).
+        num_samples: N responses sampled per video (online training and Best@N evaluation), >= 2.
+        temperature, top_p: Sampling settings (the paper: N = 32 at temperature 0.1).
+        max_new_tokens: Response length limit in tokens.
+        loss: "soft" (reward-weighted soft-label CE) or "ranking" (the original hard-ranking PRO).
+        tau: Temperature τ of the soft targets softmax(s / τ), >= 0 (0: all weight on the best).
+        sft_weight: Weight of the SFT term on each video's best candidate (0: off).
+        skip_ties: Videos whose candidates all score the same (e.g. all invalid) give no loss.
+        reward_metric, reward_span, mix_weight, epe_scale: The reward (`reward.RewardConfig`).
+        lr, weight_decay: AdamW settings (constant learning rate).
+        nthread: MuJoCo threads per scoring batch (None: the cores divided by the ranks on this machine);
+            score_workers: videos scored at once (threads).
+        processor, prompt: The processor and `lm.PromptSpec`; None: taken from the data module at setup
+            (standalone use: given here, or built from `spec` and the default prompt).
+    """
+
+    def __init__(
+        self,
+        spec: lm.ModelSpec | dict,
+        *,
+        init_adapter: str | None = None,
+        mode: str = "online",
+        num_samples: int = 4,
+        temperature: float = 1.0,
+        top_p: float = 1.0,
+        max_new_tokens: int = 256,
+        loss: str = "soft",
+        tau: float = 0.1,
+        sft_weight: float = 0.0,
+        skip_ties: bool = True,
+        reward_metric: str = "iou",
+        reward_span: str = "full",
+        mix_weight: float = 0.5,
+        epe_scale: float = 5.0,
+        lr: float = 1e-4,
+        weight_decay: float = 0.0,
+        nthread: int | None = None,
+        score_workers: int = 1,
+        processor: Any = None,
+        prompt: lm.PromptSpec | None = None,
+    ) -> None:
+        super().__init__()
+        if mode not in MODES:
+            raise ValueError(f"stage.mode = {mode!r}: must be one of {MODES}")
+        if loss not in LOSSES:
+            raise ValueError(f"stage.loss = {loss!r}: must be one of {LOSSES}")
+        if num_samples < 2:
+            raise ValueError(f"stage.num_samples = {num_samples}: a preference needs at least 2 candidates")
+        if tau < 0 or sft_weight < 0 or lr <= 0:
+            raise ValueError(
+                f"tau = {tau}, sft_weight = {sft_weight}, lr = {lr}: need tau >= 0, sft_weight >= 0, lr > 0"
+            )
+        self.reward_config = rw.RewardConfig(reward_metric, reward_span, mix_weight, epe_scale)
+        spec = spec if isinstance(spec, lm.ModelSpec) else lm.ModelSpec(**spec)
+        self.model, self.spec = build_policy(spec, init_adapter)
+        self.save_hyperparameters(ignore=["spec", "processor", "prompt"])
+        self.hparams["spec"] = dataclasses.asdict(self.spec)
+        self.processor, self.prompt = processor, prompt
+        self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
+
+    def setup(self, stage: str) -> None:
+        """Processor and prompt from the data module (the frames it serves are shown the way the prompt says)."""
+        dm = self.trainer.datamodule if self._trainer is not None else None
+        if self.prompt is None and dm is not None:
+            self.prompt, self.processor = dm.prompt, dm.processor
+        stored = getattr(dm, "hparams", {}).get("preferences_dir") if dm is not None else None
+        if dm is not None and (self.hparams.mode == "offline") != (stored is not None):
+            raise ValueError(
+                f"stage.mode = {self.hparams.mode!r} with preferences_dir = {stored!r}: offline mode trains on a "
+                "stored preference data set (set stage.preferences_dir), online mode samples (leave it null)"
+            )
+        self.ensure_processor()
+        if self.hparams.init_adapter is not None:
+            _, trained = lm.read_adapter_meta(self.hparams.init_adapter)
+            diff = [k for k in PROMPT_KEYS if getattr(trained, k) != getattr(self.prompt, k)]
+            if diff:
+                was = ", ".join(f"{k}={getattr(trained, k)!r}" for k in diff)
+                now = ", ".join(f"{k}={getattr(self.prompt, k)!r}" for k in diff)
+                raise ValueError(f"stage.init_adapter was trained with {was}, but the data are set to {now}")
+
+    def ensure_processor(self) -> None:
+        """Standalone use: the default prompt and the spec's processor when none was given."""
+        self.prompt = self.prompt or lm.PromptSpec()
+        if self.processor is None:
+            self.processor = lm.load_processor(self.spec, self.prompt)
+
+    # ----------------------------------------------------------------------------------------
+    def prompts(self, clips: Sequence[Sequence[Any]]) -> list[dict[str, torch.Tensor]]:
+        """Generation prompts of B clips (each a sequence of frames), as the SFT stage builds them."""
+        self.ensure_processor()
+        p = self.prompt
+        kw = {"system_prompt": p.system_prompt, "user_prompt": p.user_prompt, "examples": p.examples}
+        return [build_prompt(self.processor, list(frames), as_video=p.as_video, **kw) for frames in clips]
+
+    def sample_and_score(
+        self, videos: Sequence[UnlabeledVideo], num_samples: int, temperature: float
+    ) -> tuple[list[dict[str, torch.Tensor]], list[list[list[int]]], list[list[rw.Score]], torch.Tensor]:
+        """Prompts, B x N sampled ids, their scores and (B, N) rewards."""
+        hp = self.hparams
+        prompts = self.prompts([v.frames for v in videos])
+        ids, texts = rw.sample_completions(
+            self.model,
+            self.processor,
+            prompts,
+            num_samples=num_samples,
+            temperature=temperature,
+            top_p=hp.top_p,
+            max_new_tokens=hp.max_new_tokens,
+        )
+        scores = rw.score_completions(
+            texts, [v.observation for v in videos], nthread=self.score_threads(), workers=hp.score_workers
+        )
+        return prompts, ids, scores, rw.rewards_of(scores, self.reward_config)
+
+    def score_threads(self) -> int:
+        """MuJoCo threads per scoring batch: `nthread`, else this machine's cores shared by the local ranks."""
+        if self.hparams.nthread is not None:
+            return int(self.hparams.nthread)
+        ranks = self.trainer.world_size // max(1, self.trainer.num_nodes) if self._trainer is not None else 1
+        return max(1, (os.cpu_count() or 1) // max(1, ranks))
+
+    def preference_loss(
+        self,
+        prompts: Sequence[dict[str, torch.Tensor]],
+        completions: Sequence[Sequence[Sequence[int]]],
+        rewards: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loss, seq_logps (B, N)) of the candidates given their rewards (B, N)."""
+        hp = self.hparams
+        pad = self.processor.tokenizer.pad_token_id
+        batch = rw.candidate_batch(prompts, completions, pad, forbidden=rw.vision_token_ids(self.model))
+        batch = {k: v.to(self.device) for k, v in batch.items()}
+        logits = self.model(**model_inputs(batch)).logits
+        tok_lp, mask = token_logprobs(logits, batch["labels"])  # (B*N, L-1)
+        b, n = rewards.shape
+        seq = (tok_lp.sum(-1) / mask.sum(-1).clamp(min=1)).view(b, n)
+        r = rewards.to(seq.device, seq.dtype)
+        # a video whose candidates all score the same (e.g. all invalid) says nothing about which is better
+        keep = r.amax(1) > r.amin(1) if hp.skip_ties else torch.ones(b, dtype=torch.bool, device=seq.device)
+        if not keep.any():
+            return seq.sum() * 0.0, seq  # zero loss that still reaches every parameter (DDP-friendly)
+        s, rk = seq[keep], r[keep]
+        loss = soft_preference_loss(s, rk, hp.tau) if hp.loss == "soft" else pro_ranking_loss(s, rk)
+        if hp.sft_weight > 0:
+            lp, m = tok_lp.view(b, n, -1)[keep], mask.view(b, n, -1)[keep]
+            loss = loss + hp.sft_weight * sft_on_best(lp, m, rk)
+        return loss, seq
+
+    def training_step(self, batch: list, batch_idx: int) -> torch.Tensor:
+        if self.hparams.mode == "online":
+            prompts, ids, scores, rewards = self.sample_and_score(
+                batch, self.hparams.num_samples, self.hparams.temperature
+            )
+            stats = rw.RewardStats.of(rewards, scores)  # this rank's samples; the logged value is the mean over ranks
+            self.log_dict(stats.to_metrics("reward/"), batch_size=len(batch), sync_dist=True)
+        else:  # rows of the preference data set: frames, completion ids, rewards
+            prompts = self.prompts([r["frames"] for r in batch])
+            ids = [r["completion_ids"] for r in batch]
+            rewards = torch.tensor([r["rewards"] for r in batch], dtype=torch.float32)
+        loss, seq = self.preference_loss(prompts, ids, rewards)
+        margin = _margin(seq.detach(), rewards)
+        informative = (rewards.amax(1) > rewards.amin(1)).float().mean()  # share of videos with a preference
+        logs = {"train/loss": loss.detach(), "train/margin": margin, "train/informative": informative}
+        self.log_dict(logs, batch_size=len(batch), prog_bar=True)
+        return loss
+
+    def validation_step(self, batch: list[UnlabeledVideo], batch_idx: int) -> None:
+        hp = self.hparams
+        _, _, greedy, _ = self.sample_and_score(batch, 1, 0.0)
+        _, _, scores, rewards = self.sample_and_score(batch, hp.num_samples, hp.temperature)
+        modes = rw.evaluation_modes([row[0] for row in greedy], scores, rewards)
+        metrics = {f"val/{k}": v for k, v in modes.items()}
+        metrics |= {f"val/{k.split('/')[1]}": v for k, v in modes.items() if k.startswith("greedy/")}
+        metrics |= rw.RewardStats.of(rewards, scores).to_metrics("val/reward_")
+        self.log_dict(metrics, batch_size=len(batch), sync_dist=True)
+
+    def on_train_start(self) -> None:
+        self.model.train()  # the tiny model is built in eval mode; sampling switches modes itself
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        if not params:
+            raise ValueError("the policy has no trainable parameters: apply LoRA or load the adapter trainable")
+        return torch.optim.AdamW(params, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+
+    # ----------------------------------------------------------------------------------------
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Keep only the trainable weights (the adapter) in the checkpoint."""
+        trainable = {f"model.{n}" for n, p in self.model.named_parameters() if p.requires_grad}
+        checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
+
+
+def _margin(seq: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:
+    """Mean over rows of ℓ(best-scored) - ℓ(worst-scored) candidate (0 where all rewards tie)."""
+    r = rewards.to(seq.device)
+    rows = torch.arange(len(seq), device=seq.device)
+    diff = seq[rows, r.argmax(1)] - seq[rows, r.argmin(1)]
+    return torch.where(r.max(1).values > r.min(1).values, diff, torch.zeros_like(diff)).mean()
+
+
+class ProDataModule(L.LightningDataModule):
+    """Unlabeled videos (online) or a stored preference data set (offline) for training; videos for validation.
+
+    The prompt settings are the SFT data module's (`data/default.yaml`), so an SFT adapter sees what it learnt on.
+
+    Args:
+        dir: A generated data set (its labels are never read) or a folder of video folders.
+        processor_path: Tokenizer + image processor (filled in by train.py from the model).
+        target: "answer" or "think_answer": the instruction of the prompt.
+        modality: "rgb" or "flow": the images the model sees.
+        as_video, num_frames, min_pixels, max_pixels: How the frames are given (see `lm.PromptSpec`).
+        preferences_dir: The offline preference data set (`aynamics preferences`); None in online mode.
+        train_split, val_split: Splits of a generated data set (validation falls back to the first training videos).
+        batch_size: Videos (online) or preference rows (offline) per step per process.
+        limit_train, limit_val: Keep only the first videos of each split (None: all).
+        use_flow: Decode the observed flow (needed for EPE rewards and the EPE columns of validation).
+        num_workers: DataLoader workers (0: in the training process).
+        seed: Shuffling seed.
+    """
+
+    def __init__(
+        self,
+        dir: str,
+        processor_path: str,
+        target: str = "answer",
+        modality: str = "rgb",
+        as_video: bool = False,
+        num_frames: int = 4,
+        min_pixels: int | None = None,
+        max_pixels: int | None = None,
+        preferences_dir: str | None = None,
+        train_split: str = "train",
+        val_split: str = "validation",
+        batch_size: int = 1,
+        limit_train: int | None = None,
+        limit_val: int | None = 4,
+        use_flow: bool = True,
+        num_workers: int = 0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if batch_size < 1 or num_workers < 0:
+            raise ValueError(f"batch_size = {batch_size}, num_workers = {num_workers}: need >= 1 and >= 0")
+        self.save_hyperparameters()
+        self.prompt = lm.PromptSpec(target, modality, as_video, num_frames, min_pixels, max_pixels)  # checks values
+        self.processor = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.processor is not None:
+            return
+        from aynamics.processor import load_processor
+
+        hp, p = self.hparams, self.prompt
+        self.processor = load_processor(
+            hp.processor_path, min_pixels=p.min_pixels, max_pixels=p.max_pixels, num_frames=p.num_frames
+        )
+        kw = {"inputs": hp.modality, "use_flow": hp.use_flow}
+        if hp.preferences_dir is not None:
+            from aynamics.preference_data import load_preferences
+
+            self.train_set = load_preferences(hp.preferences_dir)
+        else:
+            self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
+        if len(self.train_set) == 0:
+            raise ValueError(f"data.dir = {hp.dir!r}: split {hp.train_split!r} holds no videos")
+        try:
+            self.val_set = open_videos(hp.dir, hp.val_split, limit=hp.limit_val, **kw)
+        except ValueError:  # no such split
+            self.val_set = []
+        if len(self.val_set) == 0:
+            self.val_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_val or 1, **kw)
+
+    def transfer_batch_to_device(self, batch: list, device: torch.device, dataloader_idx: int) -> list:
+        """Batches are videos / rows of PIL frames; the module builds the tensors and moves them itself."""
+        return batch
+
+    def train_dataloader(self) -> DataLoader:
+        hp = self.hparams
+        gen = torch.Generator().manual_seed(hp.seed)
+        return DataLoader(
+            self.train_set,
+            batch_size=hp.batch_size,
+            shuffle=True,
+            generator=gen,
+            collate_fn=list,
+            num_workers=hp.num_workers,
+        )
+
+    def val_dataloader(self) -> DataLoader:
+        hp = self.hparams
+        return DataLoader(self.val_set, batch_size=hp.batch_size, collate_fn=collate_videos, num_workers=hp.num_workers)

@@ -1,0 +1,157 @@
+"""The SFT stage: teach the vision-language model to write the scene (optionally after its motion reasoning).
+
+A LightningModule around `lm.build_model(spec)` (a Qwen2.5-VL with LoRA on the language model). The loss is
+the token-mean negative log-likelihood of the response tokens only (`lm.sft_loss`). Checkpoints hold the
+trainable weights (the adapter) plus the optimizer, scheduler, loop counters and RNG states, so a resumed run
+continues exactly; `callbacks.AdapterExport` writes the peft folder that `PeftModel.from_pretrained` loads.
+
+    module = SFTModule(ModelSpec(kind="tiny"), lr=1e-3, warmup_steps=10)
+    Trainer(max_steps=20).fit(module, datamodule=SceneDataModule(...))
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import random
+
+import lightning as L
+import numpy as np
+import torch
+
+from aynamics import lm
+from aynamics.processor import model_inputs
+
+SCHEDULES = ("cosine", "constant")
+
+
+def lr_factor(step: int, *, warmup_steps: int, total_steps: int, schedule: str, min_ratio: float) -> float:
+    """Learning-rate multiplier at optimizer step `step`: linear warm-up, then cosine decay to `min_ratio` (or flat)."""
+    if step < warmup_steps:
+        return (step + 1) / warmup_steps
+    if schedule == "constant" or total_steps <= warmup_steps:
+        return 1.0
+    progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
+    return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+class SFTModule(L.LightningModule):
+    """Supervised fine-tuning on (frames, response) pairs.
+
+    Args:
+        spec: The base model and adapter (plain values: the model is built here, never passed in).
+        lr: Peak learning rate of AdamW.
+        weight_decay: AdamW weight decay.
+        warmup_steps: Optimizer steps of linear warm-up.
+        schedule: "cosine" (decay to `min_lr_ratio * lr` at the last step) or "constant".
+        min_lr_ratio: Final learning rate as a share of `lr` (cosine), in [0, 1].
+        betas: AdamW betas.
+    """
+
+    def __init__(
+        self,
+        spec: lm.ModelSpec | dict,
+        lr: float = 2e-4,
+        weight_decay: float = 0.0,
+        warmup_steps: int = 0,
+        schedule: str = "cosine",
+        min_lr_ratio: float = 0.1,
+        betas: tuple[float, float] = (0.9, 0.999),
+    ) -> None:
+        super().__init__()
+        if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= min_lr_ratio <= 1:
+            raise ValueError(
+                f"lr = {lr}, weight_decay = {weight_decay}, warmup_steps = {warmup_steps}, min_lr_ratio = "
+                f"{min_lr_ratio}: need lr > 0, weight_decay >= 0, warmup_steps >= 0, 0 <= min_lr_ratio <= 1"
+            )
+        if schedule not in SCHEDULES:
+            raise ValueError(f"schedule = {schedule!r}: must be one of {SCHEDULES}")
+        spec = spec if isinstance(spec, lm.ModelSpec) else lm.ModelSpec(**spec)  # a dict: from a checkpoint
+        self.save_hyperparameters(
+            {
+                "spec": dataclasses.asdict(spec),
+                "lr": lr,
+                "weight_decay": weight_decay,
+                "warmup_steps": warmup_steps,
+                "schedule": schedule,
+                "min_lr_ratio": min_lr_ratio,
+                "betas": list(betas),
+            }
+        )
+        self.spec = spec
+        self.model = lm.build_model(spec)
+        self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
+        self._rng_to_restore: dict | None = None
+
+    # ------------------------------------------------------------------ steps
+    def _loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.model(**model_inputs(batch), use_cache=False)
+        return lm.sft_loss(out.logits, batch["labels"])
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        loss, n = self._loss(batch)
+        bs = batch["input_ids"].shape[0]
+        self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        self.log("train/response_tokens", n.float(), batch_size=bs, reduce_fx="sum", on_step=True, on_epoch=False)
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=bs, on_step=True, on_epoch=False)
+        return loss
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        loss, _ = self._loss(batch)
+        self.log("val/loss", loss, prog_bar=True, batch_size=batch["input_ids"].shape[0], sync_dist=True)
+
+    def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        loss, _ = self._loss(batch)
+        self.log("test/loss", loss, batch_size=batch["input_ids"].shape[0], sync_dist=True)
+
+    def configure_optimizers(self):
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        if not params:
+            raise ValueError("no trainable parameters: check model.lora_* and model.train_vision")
+        hp = self.hparams
+        opt = torch.optim.AdamW(params, lr=hp.lr, weight_decay=hp.weight_decay, betas=tuple(hp.betas))
+        total = int(self.trainer.estimated_stepping_batches) if self._trainer is not None else 1
+        sched = torch.optim.lr_scheduler.LambdaLR(
+            opt,
+            lambda step: lr_factor(
+                step,
+                warmup_steps=hp.warmup_steps,
+                total_steps=total,
+                schedule=hp.schedule,
+                min_ratio=hp.min_lr_ratio,
+            ),
+        )
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Keep only the trainable weights (the adapter) and record the RNG states for an exact resume."""
+        trainable = {f"model.{k}" for k, p in self.model.named_parameters() if p.requires_grad}
+        checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
+        kind, keys, pos, has_gauss, gauss = np.random.get_state()
+        # plain types and tensors only: Lightning loads checkpoints with torch.load(weights_only=True)
+        checkpoint["rng"] = {
+            "torch": torch.get_rng_state(),
+            "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, gauss],
+            "python": random.getstate(),
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        missing = {f"model.{k}" for k, p in self.model.named_parameters() if p.requires_grad} - set(
+            checkpoint["state_dict"]
+        )
+        if missing:
+            raise ValueError(
+                f"checkpoint lacks {len(missing)} trainable weights of this model (e.g. {sorted(missing)[0]!r}): "
+                "it was written for a different model.* / LoRA setting"
+            )
+        self._rng_to_restore = checkpoint.get("rng")
+
+    def on_train_batch_start(self, batch, batch_idx: int) -> None:
+        # Restored here, not at load: Lightning draws random numbers between loading and the first batch.
+        if self._rng_to_restore is not None:
+            torch.set_rng_state(self._rng_to_restore["torch"])
+            kind, keys, pos, has_gauss, gauss = self._rng_to_restore["numpy"]
+            np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
+            random.setstate(self._rng_to_restore["python"])
+            self._rng_to_restore = None

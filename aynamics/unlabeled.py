@@ -1,0 +1,266 @@
+"""Unlabeled videos for the PRO stage: the frames the model sees and the observation the simulator is scored against.
+
+Two sources, neither of which needs (or reads) a scene label:
+
+- a generated data set (`aynamics generate`, HF datasets on disk): per record the model sees `rgb` (or the `flow`
+  colour images), and the observation is built from the stored `segmentation` masks and the decoded `flow` images
+  only. `scene_yaml`, `reasoning`, `target_*`, `states` and `contacts` are dropped on loading, by design.
+- a folder of frames plus segmentation masks: `frames/*.png` (the video frames in name order: every frame of the
+  video, or exactly the sampled ones) next to the scorer's observed-folder layout (`segmentation.npy` or
+  `segmentation/*.png`, optional `flow.npy`, `occlusion.npy`, `meta.json`; see `aynamics.scorer`). A folder whose
+  sub-folders hold that layout is a collection of videos.
+
+    videos = load_generated("data/synth", split="train")          # list-like of UnlabeledVideo
+    videos = load_folders("videos/")                               # one UnlabeledVideo per folder
+    video.frames, video.observation                                 # PIL frames, scorer.Observation
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.colors import rgb_to_hsv
+from PIL import Image
+
+from aynamics.scorer import HEIGHT, WIDTH, Observation
+
+# Columns of a generated record that the PRO stage may read; everything else (the labels) is dropped on loading.
+OBSERVED_COLUMNS = ("index", "rgb", "flow", "flow_max", "segmentation", "frame_indices")
+INPUTS = ("rgb", "flow")  # what the model sees: the RGB frames or the flow colour images
+
+# Hue knots of the Middlebury wheel (red, yellow, green, cyan, blue, magenta, red) and their positions on the
+# 55-colour wheel of `aynamics.flow` (segments of 15, 6, 4, 11, 13, 6 colours).
+_HUE_KNOTS = np.array([0, 1, 2, 3, 4, 5, 6]) / 6
+_WHEEL_KNOTS = np.array([0, 15, 21, 25, 36, 49, 55], float)
+_NCOLS = 55
+
+
+@dataclass(frozen=True)
+class UnlabeledVideo:
+    """One video without a label.
+
+    Attributes:
+        key: Where it came from (record index or folder name), for logs and the preference data set.
+        frames: The images the model sees (PIL RGB), in time order.
+        observation: The observed segmentation (and flow) at the scorer's resolution.
+    """
+
+    key: str
+    frames: tuple[Image.Image, ...]
+    observation: Observation
+
+
+def decode_flow_colors(images: np.ndarray, flow_max: float) -> np.ndarray:
+    """Invert `aynamics.flow.flow_to_color` (without darkened over-range pixels): colour images back to flow.
+
+    The wheel colour of a direction has one channel at 1 and one at 0, so with saturation r the encoded colour
+    is `1 - r (1 - wheel)`: r = 1 - min channel, and the wheel colour (hence the direction, through the hue,
+    which is piecewise linear along the wheel) follows. Quantisation to 8 bits limits the accuracy to about
+    `flow_max / 255` in magnitude and a fraction of a wheel step (360° / 55) in direction.
+
+    Args:
+        images: (..., 3) uint8 colour-coded flow.
+        flow_max: The magnitude of saturation 1 (pixels), as stored with the images.
+
+    Returns:
+        (..., 2) float32 flow (dx right, dy down) in pixels; white decodes to 0.
+    """
+    images = np.asarray(images)
+    if images.shape[-1:] != (3,) or images.dtype != np.uint8:
+        raise ValueError(f"flow images: shape {images.shape} dtype {images.dtype}, expected (..., 3) uint8")
+    if not np.isfinite(flow_max) or flow_max < 0:
+        raise ValueError(f"flow_max = {flow_max}: must be a finite number >= 0")
+    col = np.clip((images.astype(np.float64) + 0.5) / 255.0, 0.0, 1.0)  # undo the floor of the encoder
+    col[images == 255] = 1.0
+    r = 1.0 - col.min(axis=-1)  # (...,)
+    moving = r > 1.0 / 255.0
+    out = np.zeros((*images.shape[:-1], 2), np.float32)
+    if flow_max == 0 or not moving.any():
+        return out
+    rm = r[moving][:, None]
+    wheel = np.clip(1.0 - (1.0 - col[moving]) / rm, 0.0, 1.0)  # (M, 3) the wheel colour
+    hue = rgb_to_hsv(wheel)[:, 0]
+    pos = np.interp(hue, _HUE_KNOTS, _WHEEL_KNOTS)  # position on the wheel, [0, 55)
+    pos = np.where(pos > _NCOLS - 0.5, 0.0, np.minimum(pos, _NCOLS - 1))  # past the last colour: back to red
+    theta = (pos / (_NCOLS - 1) * 2 - 1) * np.pi  # = atan2(-v, -u)
+    mag = np.minimum(rm[:, 0], 1.0) * flow_max
+    out[moving] = np.stack([-mag * np.cos(theta), -mag * np.sin(theta)], axis=-1)
+    return out
+
+
+def _nearest(full: int, low: int) -> np.ndarray:
+    """Index of the full-resolution pixel nearest each low-resolution pixel centre (as `Observation.from_dir`)."""
+    return ((np.arange(low) + 0.5) * full / low).astype(int)
+
+
+def observation_from_record(
+    record: dict, *, width: int = WIDTH, height: int = HEIGHT, use_flow: bool = True
+) -> Observation:
+    """The observation of a generated record from its `segmentation` masks (and `flow` images) alone.
+
+    Masks hold object index + 1 (0 = floor and sky) at the sampled video frames `frame_indices`; flow images
+    are decoded with the record's `flow_max` and scaled to the scorer's width. Object names are not used
+    (candidates are matched to observed objects by overlap).
+
+    Raises:
+        ValueError: a missing column or masks / flow images of inconsistent size, naming the record.
+    """
+    key = record.get("index", "?")
+    for col in ("segmentation", "frame_indices"):
+        if col not in record or record[col] is None:
+            raise ValueError(f"record {key}: column {col!r} is missing; an unlabeled video needs its masks")
+    masks = [np.asarray(m) for m in record["segmentation"]]
+    frames = np.asarray(record["frame_indices"], int)
+    if len(masks) != len(frames) or not masks:
+        raise ValueError(f"record {key}: {len(masks)} segmentation masks for frame_indices {frames.tolist()}")
+    if len({m.shape for m in masks}) != 1 or masks[0].ndim != 2:
+        raise ValueError(f"record {key}: segmentation masks must be grey images of one size, got {masks[0].shape}")
+    full_h, full_w = masks[0].shape
+    rows, cols = _nearest(full_h, height), _nearest(full_w, width)
+    seg = np.stack(masks)[:, rows][:, :, cols].astype(np.int16) - 1  # (F, h, w), -1 background
+    flow = None
+    if use_flow and record.get("flow"):
+        images = np.stack(
+            [np.asarray(im.convert("RGB") if isinstance(im, Image.Image) else im) for im in record["flow"]]
+        )
+        if images.shape[:3] != (len(frames), full_h, full_w):
+            raise ValueError(f"record {key}: flow images {images.shape[:3]} != masks {(len(frames), full_h, full_w)}")
+        sub = images[:, rows][:, :, cols]
+        flow = decode_flow_colors(sub, float(record.get("flow_max") or 0.0)) * (width / full_w)
+    return Observation(seg, frames, width, height, flow)
+
+
+def video_from_record(
+    record: dict, *, inputs: str = "rgb", width: int = WIDTH, height: int = HEIGHT, use_flow: bool = True
+) -> UnlabeledVideo:
+    """An `UnlabeledVideo` of a generated record; `inputs` picks the model's images ("rgb" or "flow")."""
+    if inputs not in INPUTS:
+        raise ValueError(f"inputs = {inputs!r}: must be one of {INPUTS}")
+    images = record.get(inputs)
+    if not images:
+        raise ValueError(f"record {record.get('index', '?')}: column {inputs!r} holds no images")
+    frames = tuple(
+        im.convert("RGB") if isinstance(im, Image.Image) else Image.fromarray(np.asarray(im)) for im in images
+    )
+    obs = observation_from_record(record, width=width, height=height, use_flow=use_flow)
+    return UnlabeledVideo(str(record.get("index", "?")), frames, obs)
+
+
+class GeneratedVideos(torch.utils.data.Dataset):
+    """Map-style data set of `UnlabeledVideo`s over one split of a generated data set; the labels are dropped.
+
+    Args:
+        path: Folder written by `aynamics generate` (a DatasetDict) or one split saved on its own.
+        split: Split name when `path` holds a DatasetDict.
+        inputs: "rgb" or "flow": the images the model sees.
+        width, height: Scorer resolution of the observation.
+        use_flow: Decode the flow images into the observation (needed for EPE rewards).
+        limit: Keep only the first `limit` records.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        split: str = "train",
+        *,
+        inputs: str = "rgb",
+        width: int = WIDTH,
+        height: int = HEIGHT,
+        use_flow: bool = True,
+        limit: int | None = None,
+    ) -> None:
+        import datasets
+
+        root = Path(path)
+        if not root.is_dir():
+            raise FileNotFoundError(2, f"data set folder {str(root)!r} does not exist", str(root))
+        if inputs not in INPUTS:
+            raise ValueError(f"inputs = {inputs!r}: must be one of {INPUTS}")
+        ds = datasets.load_from_disk(str(root))
+        if isinstance(ds, datasets.DatasetDict):
+            if split not in ds:
+                raise ValueError(f"split = {split!r}: {str(root)!r} holds the splits {sorted(ds)}")
+            ds = ds[split]
+        missing = [c for c in ("segmentation", "frame_indices", inputs) if c not in ds.column_names]
+        if missing:
+            raise ValueError(f"{str(root)!r}: columns {missing} are missing (has {ds.column_names})")
+        keep = [c for c in OBSERVED_COLUMNS if c in ds.column_names]
+        ds = ds.select_columns(keep)  # the labels (scene_yaml, states, ...) are never read
+        if limit is not None:
+            ds = ds.select(range(min(limit, len(ds))))
+        self.ds, self.inputs, self.width, self.height, self.use_flow = ds, inputs, width, height, use_flow
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def __getitem__(self, i: int) -> UnlabeledVideo:
+        rec = self.ds[int(i)]
+        return video_from_record(rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow)
+
+
+def video_from_folder(path: str | Path, *, width: int = WIDTH, height: int = HEIGHT) -> UnlabeledVideo:
+    """An `UnlabeledVideo` from `frames/*.png` plus the scorer's observed layout (see the module docstring).
+
+    When `frames/` holds every frame of the video, the model sees the sampled frames (those the observation
+    uses); when it holds exactly as many frames as are sampled, it sees them all.
+
+    Raises:
+        FileNotFoundError: the folder, its frames or its segmentation is missing.
+        ValueError: frame counts that fit neither case.
+    """
+    root = Path(path)
+    obs = Observation.from_dir(root, width=width, height=height)  # raises for a missing folder / masks
+    files = sorted((root / "frames").glob("*.png")) if (root / "frames").is_dir() else []
+    if not files:
+        raise FileNotFoundError(2, f"{str(root)!r} has no frames/*.png for the model to see", str(root / "frames"))
+    if len(files) == len(obs.frames):
+        chosen = files
+    elif len(files) > int(obs.frames.max()):
+        chosen = [files[int(k)] for k in obs.frames]
+    else:
+        raise ValueError(
+            f"{str(root / 'frames')!r}: {len(files)} frames; need every video frame (> {int(obs.frames.max())}) "
+            f"or exactly the {len(obs.frames)} sampled ones"
+        )
+    frames = tuple(Image.open(f).convert("RGB") for f in chosen)
+    return UnlabeledVideo(root.name, frames, obs)
+
+
+def load_folders(path: str | Path, *, width: int = WIDTH, height: int = HEIGHT) -> list[UnlabeledVideo]:
+    """One video folder, or every sub-folder (in name order) of a collection that holds one."""
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(2, f"video folder {str(root)!r} does not exist", str(root))
+    if (root / "frames").is_dir():
+        return [video_from_folder(root, width=width, height=height)]
+    subs = sorted(p for p in root.iterdir() if (p / "frames").is_dir())
+    if not subs:
+        raise FileNotFoundError(2, f"{str(root)!r} holds no frames/ folder, nor sub-folders with one", str(root))
+    return [video_from_folder(p, width=width, height=height) for p in subs]
+
+
+def open_videos(
+    path: str | Path,
+    split: str = "train",
+    *,
+    inputs: str = "rgb",
+    width: int = WIDTH,
+    height: int = HEIGHT,
+    use_flow: bool = True,
+    limit: int | None = None,
+) -> Sequence[UnlabeledVideo]:
+    """Unlabeled videos from a generated data set (a folder with `dataset_dict.json` or `state.json`) or folders."""
+    root = Path(path)
+    if (root / "dataset_dict.json").is_file() or (root / "state.json").is_file():
+        return GeneratedVideos(root, split, inputs=inputs, width=width, height=height, use_flow=use_flow, limit=limit)
+    videos = load_folders(root, width=width, height=height)
+    return videos[:limit] if limit is not None else videos
+
+
+def collate_videos(items: Sequence[UnlabeledVideo]) -> list[UnlabeledVideo]:
+    """DataLoader collate: keep the videos as a list (prompts are built per video, rows padded later)."""
+    return list(items)

@@ -1,0 +1,87 @@
+"""Every config group composes, and the objects it describes instantiate (those this CPU machine can hold)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from aynamics.lm import ModelSpec
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+GROUPS = {
+    "model": ["tiny", "qwen2_5_vl_3b", "qwen2_5_vl_7b"],
+    "trainer": ["cpu", "gpu", "ddp", "fsdp", "deepspeed"],
+    "logger": ["default", "csv", "tensorboard", "none"],
+    "stage": ["sft", "pro"],
+    "data": ["default", "unlabeled"],
+    "callbacks": ["default", "pro"],
+    "debug": ["fast_dev_run"],
+    "experiment": ["make_train"],
+}
+
+
+def _compose(tmp_path, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="config", overrides=[f"output_dir={tmp_path}", *overrides])
+
+
+def test_every_group_file_is_listed():
+    """A new config file must be added to GROUPS (so it is composed here)."""
+    for group, names in GROUPS.items():
+        on_disk = sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+        assert on_disk == sorted(names), group
+
+
+@pytest.mark.parametrize("group,name", [(g, n) for g, names in GROUPS.items() for n in names])
+def test_group_composes(tmp_path, group, name):
+    cfg = _compose(tmp_path, f"{group}={name}")
+    assert cfg.stage.target in ("answer", "think_answer")
+    assert cfg.trainer._target_ == "lightning.pytorch.Trainer"
+    if group == "model":
+        spec = hydra.utils.instantiate(cfg.model)
+        assert isinstance(spec, ModelSpec)
+        assert spec.kind == ("tiny" if name == "tiny" else "pretrained")
+        assert isinstance(spec.lora_targets, tuple) and spec.lora_rank > 0
+        if name != "tiny":
+            assert spec.path.startswith("Qwen/Qwen2.5-VL-") and spec.dtype == "bfloat16"
+    if group == "logger":
+        loggers = [hydra.utils.instantiate(c) for c in cfg.logger.values()]
+        assert len(loggers) == {"default": 2, "csv": 1, "tensorboard": 1, "none": 0}[name]
+    if group == "trainer":
+        if name in ("cpu", "ddp"):
+            trainer = hydra.utils.instantiate(cfg.trainer, accelerator="cpu", logger=False)
+            assert trainer.world_size == (2 if name == "ddp" else 1)
+        elif torch.cuda.is_available():
+            hydra.utils.instantiate(cfg.trainer, logger=False)
+        else:
+            assert cfg.trainer.accelerator == "gpu"  # composes; instantiating needs CUDA (and deepspeed)
+    if group == "debug":
+        assert cfg.trainer.fast_dev_run is True
+
+
+def test_data_stage_and_callbacks_instantiate(tmp_path):
+    cfg = _compose(tmp_path, "stage.target=think_answer", "data.modality=flow", "data.as_video=true")
+    spec = hydra.utils.instantiate(cfg.model)
+    dm = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
+    assert dm.prompt.target == "think_answer" and dm.prompt.modality == "flow" and dm.prompt.as_video
+    factory = hydra.utils.instantiate(cfg.stage.module)
+    assert factory.func.__name__ == "SFTModule"
+    callbacks = [hydra.utils.instantiate(c) for c in cfg.callbacks.values()]
+    assert {type(c).__name__ for c in callbacks} == {"ModelCheckpoint", "AdapterExport", "SceneEvaluation"}
+
+
+def test_experiment_overrides_compose(tmp_path):
+    cfg = _compose(tmp_path, "experiment=make_train")
+    assert cfg.model.tiny.hidden_size == 128 and cfg.data.dir == "data/generated/make_train"
+    cfg = _compose(tmp_path, "experiment=make_train", "trainer.max_steps=7")
+    assert cfg.trainer.max_steps == 7
+
+
+def test_bad_values_are_named(tmp_path):
+    cfg = _compose(tmp_path, "model.kind=huge")
+    with pytest.raises(Exception, match="model kind = 'huge'"):
+        hydra.utils.instantiate(cfg.model)

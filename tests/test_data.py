@@ -1,0 +1,140 @@
+"""The SFT data module: label masks, modalities, frames as images or video, the resumable order, the mean scene."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from train_fixtures import tiny_dataset
+
+from aynamics import lm
+from aynamics.data import ResumableSampler, SceneDataModule, load_splits, mean_scene
+from aynamics.processor import IGNORE_INDEX, IMAGE, TEXT, VIDEO
+from aynamics.scene import parse
+from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory):
+    return tiny_dataset(tmp_path_factory)
+
+
+def _dm(dataset_dir, **kw) -> SceneDataModule:
+    dm = SceneDataModule(str(dataset_dir), str(TINY_ASSET_DIR), num_frames=2, batch_size=2, **kw)
+    dm.setup("fit")
+    return dm
+
+
+@pytest.mark.parametrize("target", lm.TARGETS)
+def test_labels_cover_exactly_the_response(dataset_dir, target):
+    """Labels are -100 on the prompt and the image tokens; the labelled ids decode to the response + <|im_end|>."""
+    dm = _dm(dataset_dir, target=target)
+    ex = dm.dataset("train")[0]
+    record = dm.splits["train"][0]
+    response = lm.response_text(record, target)
+    tok = dm.processor.tokenizer
+    labelled = ex["labels"][ex["labels"] != IGNORE_INDEX]
+    assert tok.decode(labelled) == response + "<|im_end|>"
+    # the labelled span is the tail of input_ids, and identical to it
+    n = len(labelled)
+    assert torch.equal(ex["input_ids"][-n:], labelled)
+    assert (ex["labels"][:-n] == IGNORE_INDEX).all()
+    # images sit in the masked prompt; mm_token_type_ids marks exactly the image pads
+    is_image = ex["input_ids"] == dm.processor.image_token_id
+    assert is_image.sum() > 0 and (ex["labels"][is_image] == IGNORE_INDEX).all()
+    assert torch.equal(ex["mm_token_type_ids"] == IMAGE, is_image)
+    assert (ex["mm_token_type_ids"][-n:] == TEXT).all()
+    assert response.startswith("<think>") == (target == "think_answer")
+
+
+def test_hand_made_label_mask():
+    """A hand-made prompt + response: 'ab' response tokens get labels, everything before them -100.
+
+    With the tiny tokenizer the response "<answer>\\nx\\n</answer>" is 5 tokens, plus <|im_end|> = 6 labelled.
+    """
+    from PIL import Image
+
+    from aynamics.processor import build_sft_example, load_processor
+
+    proc = load_processor(TINY_ASSET_DIR)
+    frame = Image.new("RGB", (56, 56), (120, 30, 200))
+    response = "<answer>\nx\n</answer>"
+    ex = build_sft_example(proc, [frame], response, system_prompt="s", user_prompt="u")
+    ids = proc.tokenizer(response, add_special_tokens=False)["input_ids"]
+    assert len(ids) == 5
+    expected = [IGNORE_INDEX] * (len(ex["input_ids"]) - 6) + ids + [proc.tokenizer.convert_tokens_to_ids("<|im_end|>")]
+    assert ex["labels"].tolist() == expected
+
+
+def test_modality_and_video(dataset_dir):
+    """flow frames differ from rgb frames; as_video gives one video with half the visual tokens of 2 images."""
+    rgb = _dm(dataset_dir, modality="rgb").dataset("train")[0]
+    flow = _dm(dataset_dir, modality="flow").dataset("train")[0]
+    video = _dm(dataset_dir, modality="rgb", as_video=True).dataset("train")[0]
+    assert not torch.equal(rgb["pixel_values"], flow["pixel_values"])
+    assert "pixel_values_videos" in video and "pixel_values" not in video
+    n_img = int((rgb["mm_token_type_ids"] == IMAGE).sum())
+    n_vid = int((video["mm_token_type_ids"] == VIDEO).sum())
+    assert n_vid * 2 == n_img
+
+
+def test_in_context_examples_enter_the_prompt(dataset_dir):
+    dm = _dm(dataset_dir, num_examples=1)
+    assert dm.prompt.examples == (dm.splits["train"][0]["scene_yaml"],)
+    ex = dm.dataset("train")[1]
+    text = dm.processor.tokenizer.decode(ex["input_ids"][ex["labels"] == IGNORE_INDEX])
+    assert "Example 1:" in text and dm.splits["train"][0]["scene_yaml"].strip() in text
+
+
+def test_batches_are_left_padded(dataset_dir):
+    batch = next(iter(_dm(dataset_dir).train_dataloader()))
+    assert batch["input_ids"].shape[0] == 2
+    assert (batch["attention_mask"][:, -1] == 1).all()  # left padding: every row ends with a real token
+    assert batch["input_ids"].shape == batch["labels"].shape == batch["mm_token_type_ids"].shape
+
+
+def test_resumable_sampler_order():
+    """Skipping k indices of an epoch continues the uninterrupted order; ranks split an epoch without overlap."""
+    full = list(ResumableSampler(10, seed=3))
+    assert sorted(full) == list(range(10))
+    assert list(ResumableSampler(10, seed=3, skip=4)) == full[4:]
+    s = ResumableSampler(10, seed=3, start_epoch=1, skip=2)
+    s.set_epoch(1)
+    tail = list(s)
+    s.set_epoch(2)
+    assert len(tail) == 8 and len(list(s)) == 10
+    s0, s1 = ResumableSampler(10, seed=3, rank=0, world=2), ResumableSampler(10, seed=3, rank=1, world=2)
+    assert sorted(list(s0) + list(s1)) == list(range(10))
+    other = ResumableSampler(10, seed=3)
+    other.set_epoch(1)
+    assert list(other) != full
+
+
+def test_mean_scene_by_hand():
+    """Two one-box scenes (x = 0 and 1, mass 1 and 3) and one sphere scene: the box structure wins (2 of 3),
+    position x averages to 0.5, mass to 2.0; the sphere scene is ignored."""
+    box = """
+- type: box
+  size: [0.2, 0.2, 0.2]
+  state: {position: [X, 0, 0.2], orientation: [1, 0, 0, 0], linear_velocity: [1, 0, 0], angular_velocity: [0, 0, 0]}
+  physics: {friction: [0.5, 0.0], mass: M, damping: -3}
+- type: camera
+  fovy: 45
+  orientation: 45
+  position: [0, -2, 3]
+"""
+    sphere = box.replace("type: box", "type: sphere").replace("size: [0.2, 0.2, 0.2]", "radius: 0.2")
+    scenes = [parse(box.replace("X", "0").replace("M", "1")), parse(box.replace("X", "1").replace("M", "3"))]
+    scenes.append(parse(sphere.replace("X", "5").replace("M", "9")))
+    avg = mean_scene(scenes)
+    assert avg.structure == ("box",)
+    assert avg.objects[0].state.position[0] == pytest.approx(0.5)
+    assert avg.objects[0].physics.mass == pytest.approx(2.0)
+
+
+def test_bad_input_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no data set"):
+        load_splits(tmp_path / "nothing")
+    with pytest.raises(ValueError, match="modality = 'depth'"):
+        SceneDataModule(str(tmp_path), str(TINY_ASSET_DIR), modality="depth")
+    with pytest.raises(ValueError, match="target = 'yaml'"):
+        SceneDataModule(str(tmp_path), str(TINY_ASSET_DIR), target="yaml")

@@ -1,0 +1,283 @@
+"""The reward module: unlabeled observations, simulator rewards, statistics, sampling and the candidates' batch."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from aynamics import reward as rw
+from aynamics.flow import flow_to_color
+from aynamics.scene import dump, parse
+from aynamics.scorer import EPE_INVALID, Observation, Score
+from aynamics.unlabeled import GeneratedVideos, decode_flow_colors, observation_from_record, open_videos
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory):
+    """A real generated data set: 4 scenes at 96x64 (about 5 s); skipped when OpenGL cannot render here."""
+    from aynamics.generate import GenerateConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("gen") / "synth"
+    try:
+        return generate_dataset(out, num=4, seed=0, config=GenerateConfig(width=96, height=64, workers=0))
+    except Exception as e:  # no EGL / OSMesa: rendering is another module's concern
+        if "gl" in str(e).lower() or "render" in str(e).lower():
+            pytest.skip(f"OpenGL rendering unavailable: {e}")
+        raise
+
+
+@pytest.fixture(scope="module")
+def records(generated):
+    import datasets
+
+    dd = datasets.load_from_disk(str(generated))
+    return [r for split in dd.values() for r in split]
+
+
+def _moved(scene, dx=0.0, dv=0.0):
+    o = scene.objects[0]
+    st = o.state
+    pos = (st.position[0] + dx, st.position[1], st.position[2])
+    vel = (st.linear_velocity[0] + dv, st.linear_velocity[1], st.linear_velocity[2])
+    o = o.model_copy(update={"state": st.model_copy(update={"position": pos, "linear_velocity": vel})})
+    return scene.model_copy(update={"objects": (o, *scene.objects[1:])})
+
+
+# --------------------------------------------------------------------------------------------
+# Observations from unlabeled data
+# --------------------------------------------------------------------------------------------
+def test_decode_flow_colors_inverts_the_colour_wheel():
+    """Random flows on a 20 px scale come back within 1 % of the scale; white (zero flow) decodes to 0."""
+    rng = np.random.default_rng(0)
+    flow = rng.normal(size=(2000, 2)) * 5
+    flow[:20] = 0
+    scale = float(np.hypot(flow[:, 0], flow[:, 1]).max())
+    back = decode_flow_colors(flow_to_color(flow, max_norm=scale), scale)
+    err = np.hypot(*(back - flow).T)
+    assert err.max() < 0.01 * scale
+    assert np.all(back[:20] == 0)
+    with pytest.raises(ValueError, match="flow_max = -1"):
+        decode_flow_colors(np.zeros((2, 3), np.uint8), -1.0)
+    with pytest.raises(ValueError, match="expected"):
+        decode_flow_colors(np.zeros((2, 2)), 1.0)
+
+
+def test_observation_from_record_reads_masks_not_labels(records):
+    """The observation equals the stored masks resampled to 120x80; blanking every label changes nothing."""
+    rec = records[0]
+    obs = observation_from_record(rec)
+    masks = np.stack([np.asarray(m) for m in rec["segmentation"]]).astype(int) - 1  # (F, 64, 96)
+    rows = ((np.arange(80) + 0.5) * 64 / 80).astype(int)
+    cols = ((np.arange(120) + 0.5) * 96 / 120).astype(int)
+    np.testing.assert_array_equal(obs.segmentation, masks[:, rows][:, :, cols])
+    assert obs.flow is not None and obs.flow.shape == (10, 80, 120, 2) and obs.names is None
+    blank = dict(rec, scene_yaml="", reasoning="", target_answer="", target_think="", states=None, contacts=None)
+    again = observation_from_record(blank)
+    np.testing.assert_array_equal(again.segmentation, obs.segmentation)
+    np.testing.assert_array_equal(again.flow, obs.flow)
+    with pytest.raises(ValueError, match="'segmentation' is missing"):
+        observation_from_record({k: v for k, v in rec.items() if k != "segmentation"})
+
+
+def test_reward_does_not_read_scene_yaml(generated, tmp_path, records):
+    """A copy of the data set with every label blanked gives the same rewards for the same candidates."""
+    import datasets
+
+    dd = datasets.load_from_disk(str(generated))
+    full = datasets.concatenate_datasets([split for split in dd.values() if len(split)])
+    full.save_to_disk(str(tmp_path / "full"))
+    labels = {"scene_yaml": "", "reasoning": "", "target_answer": "", "target_think": ""}
+    full.map(lambda r: labels).save_to_disk(str(tmp_path / "blank"))
+    a, b = GeneratedVideos(tmp_path / "full"), GeneratedVideos(tmp_path / "blank")
+    assert "scene_yaml" not in a.ds.column_names and len(a) == len(records)
+    truth = full["scene_yaml"]
+    ra = rw.simulator_rewards(truth, [a[i].observation for i in range(len(a))])
+    rb = rw.simulator_rewards(truth, [b[i].observation for i in range(len(b))])
+    assert ra == rb and min(ra) > 0.5
+
+
+def test_true_scene_scores_above_perturbed(records):
+    """On every generated video the true YAML beats the same scene moved 0.4 m or pushed 1.5 m/s faster."""
+    for rec in records:
+        obs = observation_from_record(rec)
+        scene = parse(rec["scene_yaml"])
+        texts = [rec["scene_yaml"], dump(_moved(scene, dx=0.4)), dump(_moved(scene, dv=1.5))]
+        iou = rw.simulator_rewards(texts, [obs] * 3)
+        epe = rw.simulator_rewards(texts, [obs] * 3, config=rw.RewardConfig(metric="epe"))
+        mix = rw.simulator_rewards(texts, [obs] * 3, config=rw.RewardConfig(metric="mix", mix_weight=0.3))
+        assert iou[0] > max(iou[1:]) and iou[0] > 0.7, (rec["index"], iou)
+        assert epe[0] > max(epe[1:]), (rec["index"], epe)
+        assert mix[0] > max(mix[1:]), (rec["index"], mix)
+
+
+def test_invalid_outputs_score_zero_with_their_reason(records):
+    obs = observation_from_record(records[0])
+    scene = parse(records[0]["scene_yaml"])
+    bad_mass = dump(scene).replace("mass: ", "mass: -", 1)
+    texts = ["", "I think the box slides.", "<answer>\n- type: box\n  size: [1, 2\n</answer>", bad_mass]
+    texts.append(f"<think>it slides</think>\n<answer>\n{dump(scene)}</answer>")
+    scores = rw.score_completions([texts], [obs])[0]
+    assert [s.valid for s in scores] == [False, False, False, False, True]
+    assert all(s.iou_full == 0 and s.epe_full == EPE_INVALID for s in scores[:4])
+    assert [rw.reason_kind(s.reason) for s in scores] == ["no_yaml", "no_yaml", "no_yaml", "invalid_scene", "valid"]
+    assert "mass = -" in scores[3].reason
+    rewards = rw.rewards_of([scores])
+    assert rewards.shape == (1, 5) and torch.all(rewards[0, :4] == 0) and rewards[0, 4] > 0.7
+    stats = rw.RewardStats.of(rewards, [scores])
+    m = stats.to_metrics()
+    assert m["reward/invalid"] == pytest.approx(0.8) and m["reward/invalid_no_yaml"] == pytest.approx(0.6)
+    assert m["reward/invalid_invalid_scene"] == pytest.approx(0.2) and m["reward/best"] == pytest.approx(
+        m["reward/mean"] * 5
+    )
+
+
+def test_scoring_in_parallel_matches_serial(records):
+    obs = [observation_from_record(r) for r in records]
+    cands = [[r["scene_yaml"], dump(_moved(parse(r["scene_yaml"]), dx=0.2)), "junk"] for r in records]
+    serial = rw.score_completions(cands, obs, workers=1)
+    parallel = rw.score_completions(cands, obs, workers=2)
+    assert serial == parallel
+    with pytest.raises(ValueError, match="3 candidate lists for 2 observations"):
+        rw.score_completions(cands[:3], obs[:2])
+
+
+def test_reward_of_hand_worked():
+    """IoU 0.6, EPE 5 px with scale 5: epe reward 1/(1+1) = 0.5; mix 0.25: 0.25*0.6 + 0.75*0.5 = 0.525."""
+    s = Score(0.8, 0.6, 1.0, 5.0, True)
+    assert rw.reward_of(s) == pytest.approx(0.6)
+    assert rw.reward_of(s, rw.RewardConfig(span="first")) == pytest.approx(0.8)
+    assert rw.reward_of(s, rw.RewardConfig(metric="epe", epe_scale=5)) == pytest.approx(0.5)
+    assert rw.reward_of(s, rw.RewardConfig(metric="mix", mix_weight=0.25)) == pytest.approx(0.525)
+    assert rw.reward_of(s, rw.RewardConfig(metric="epe", span="first", epe_scale=1)) == pytest.approx(0.5)
+    assert rw.reward_of(Score(0.0, 0.0, 100.0, 100.0, False, "x"), rw.RewardConfig(metric="epe")) == 0.0
+    with pytest.raises(ValueError, match="needs flow"):
+        rw.reward_of(Score(0.5, 0.5, None, None, True), rw.RewardConfig(metric="epe"))
+    for bad, match in [({"metric": "ssim"}, "'ssim'"), ({"mix_weight": 2}, "mix_weight = 2"), ({"epe_scale": 0}, "0")]:
+        with pytest.raises(ValueError, match=match):
+            rw.RewardConfig(**bad)
+
+
+def test_evaluation_modes_hand_worked():
+    """Video 0: samples IoU 0.2 / 0.8 (rewards pick the 2nd); video 1: 0.5 / 0.1 (rewards pick the 1st).
+
+    greedy = mean(0.3, 0.4) = 0.35; Best@1 = mean(0.5, 0.3) = 0.4; Best@N = mean(0.8, 0.5) = 0.65.
+    """
+
+    def s(iou, epe):
+        return Score(iou, iou, epe, epe, True)
+
+    greedy = [s(0.3, 2.0), s(0.4, 4.0)]
+    samples = [[s(0.2, 3.0), s(0.8, 1.0)], [s(0.5, 2.0), s(0.1, 6.0)]]
+    out = rw.evaluation_modes(greedy, samples, torch.tensor([[0.2, 0.8], [0.5, 0.1]]))
+    assert out["greedy/iou_full"] == pytest.approx(0.35) and out["best1/iou_first"] == pytest.approx(0.4)
+    assert out["bestN/iou_full"] == pytest.approx(0.65) and out["bestN/epe_full"] == pytest.approx(1.5)
+    assert out["best1/epe_first"] == pytest.approx(3.0) and len(out) == 12
+    no_flow = rw.evaluation_modes(
+        [Score(0.3, 0.3, None, None, True)], [[Score(0.1, 0.1, None, None, True)]], torch.tensor([[0.1]])
+    )
+    assert set(no_flow) == {f"{m}/{k}" for m in rw.MODES for k in ("iou_first", "iou_full")}
+
+
+def test_open_videos_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        open_videos(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no frames/ folder"):
+        open_videos(tmp_path / "empty")
+
+
+def test_video_folder_with_frames_and_masks(tmp_path):
+    """A folder of 30 frames + segmentation.npy: the model sees the 10 sampled frames; the true scene is exact."""
+    from PIL import Image
+
+    scene = parse(open(os.path.join(os.path.dirname(__file__), "assets", "paper_example.yaml")).read())
+    obs = Observation.from_scene(scene, frames=np.arange(30))  # 120x80: the scorer's own resolution
+    root = tmp_path / "vid"
+    (root / "frames").mkdir(parents=True)
+    np.save(root / "segmentation.npy", obs.segmentation.astype(np.int16))
+    for k in range(30):
+        Image.fromarray(np.full((80, 120, 3), k, np.uint8)).save(root / "frames" / f"{k:03d}.png")
+    (video,) = open_videos(root)
+    assert len(video.frames) == 10 and video.frames[1].getpixel((0, 0)) == (3, 3, 3)
+    r = rw.simulator_rewards([dump(scene), dump(_moved(scene, dx=0.5))], [video.observation] * 2)
+    assert r[0] == pytest.approx(1.0) and r[1] < 0.9
+
+
+# --------------------------------------------------------------------------------------------
+# Sampling and the candidates' batch on the tiny model
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny():
+    from aynamics.model import build_tiny_model
+    from aynamics.processor import load_processor
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    return build_tiny_model(), load_processor(TINY_ASSET_DIR)
+
+
+def _prompts(proc, sizes=((56, 56), (56, 84))):
+    from aynamics.processor import build_prompt
+
+    rng = np.random.default_rng(1)
+    out = []
+    for h, w in sizes:
+        frames = [rng.integers(0, 255, (h, w, 3), dtype=np.uint8) for _ in range(2)]
+        out.append(build_prompt(proc, frames, system_prompt="You are a physicist.", user_prompt="Write YAML."))
+    return out
+
+
+def test_sample_completions_shapes_and_order(tiny):
+    model, proc = tiny
+    prompts = _prompts(proc)
+    torch.manual_seed(0)
+    ids, texts = rw.sample_completions(model, proc, prompts, num_samples=3, temperature=1.0, max_new_tokens=6)
+    assert [len(r) for r in ids] == [3, 3] and [len(t) for t in texts] == [3, 3]
+    assert all(1 <= len(c) <= 6 for row in ids for c in row)
+    assert texts[1][2] == proc.tokenizer.decode(ids[1][2], skip_special_tokens=True)
+    assert not model.training
+    g_ids, _ = rw.sample_completions(model, proc, prompts[1:], num_samples=1, temperature=0.0, max_new_tokens=6)
+    g_all, _ = rw.sample_completions(model, proc, prompts, num_samples=1, temperature=0.0, max_new_tokens=6)
+    assert g_all[1] == g_ids[0]  # row b of the output belongs to prompt b
+    with pytest.raises(ValueError, match="greedy gives one response"):
+        rw.sample_completions(model, proc, prompts, num_samples=2, temperature=0.0)
+
+
+def test_candidate_batch_keeps_images_aligned(tiny):
+    """B=2 prompts (4 and 6 merged tokens per image) x N=3: visual tensors follow the rows; each row's mean
+    log-prob in the padded batch equals that row's alone."""
+    from aynamics.processor import append_response, collate, mean_token_logprob, model_inputs, response_ids
+
+    model, proc = tiny
+    prompts = _prompts(proc)
+    words = [["mass: 1.5", "box", "- type: sphere"], ["radius: 0.2", "camera", "friction: [0.5, 0.1]"]]
+    cands = [[response_ids(proc, w) for w in row] for row in words]
+    batch = rw.candidate_batch(prompts, cands, proc.tokenizer.pad_token_id)
+    assert batch["input_ids"].shape[0] == 6
+    expected_pv = torch.cat([p["pixel_values"] for p in prompts for _ in range(3)])
+    expected_grid = torch.cat([p["image_grid_thw"] for p in prompts for _ in range(3)])
+    assert torch.equal(batch["pixel_values"], expected_pv) and torch.equal(batch["image_grid_thw"], expected_grid)
+    for row in range(6):
+        b, n = divmod(row, 3)
+        c = len(cands[b][n])
+        assert batch["mm_token_type_ids"][row, -c:].eq(0).all()
+        assert batch["labels"][row, -c:].tolist() == cands[b][n]
+        plen = len(prompts[b]["input_ids"])
+        assert torch.equal(batch["mm_token_type_ids"][row, -c - plen : -c], prompts[b]["mm_token_type_ids"])
+    with torch.no_grad():
+        lp = mean_token_logprob(model(**model_inputs(batch)).logits, batch["labels"])
+        for row in (0, 4, 5):
+            b, n = divmod(row, 3)
+            alone = collate([append_response(prompts[b], cands[b][n])], proc.tokenizer.pad_token_id)
+            lp1 = mean_token_logprob(model(**model_inputs(alone)).logits, alone["labels"])
+            assert lp[row].item() == pytest.approx(lp1.item(), abs=1e-4)
+    with pytest.raises(ValueError, match="same N"):
+        rw.candidate_batch(prompts, [cands[0], cands[1][:2]], 0)
+    with pytest.raises(ValueError, match="empty"):
+        rw.candidate_batch(prompts[:1], [[[]]], 0)
+    assert math.isfinite(lp.sum().item())

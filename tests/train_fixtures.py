@@ -1,0 +1,25 @@
+"""A tiny generated data set shared by the training tests (one copy per test session, also under xdist).
+
+Made by the real generator (`aynamics.generate`) at 64×48 pixels: 12 scenes, split 5 / 4 / 3.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from filelock import FileLock
+
+NUM_SCENES = 12
+
+
+def tiny_dataset(tmp_path_factory) -> Path:
+    """Path of the shared tiny data set, generated on first use (a file lock serialises xdist workers)."""
+    from aynamics.generate import GenerateConfig, generate_dataset
+
+    root = tmp_path_factory.getbasetemp().parent  # shared by every xdist worker of this session
+    path = root / "aynamics_tiny_dataset"
+    with FileLock(str(root / "aynamics_tiny_dataset.lock")):
+        if not (path / "dataset_dict.json").is_file():
+            config = GenerateConfig(width=64, height=48, workers=0, splits=(0.5, 0.25, 0.25))
+            generate_dataset(path, num=NUM_SCENES, seed=0, config=config)
+    return path
