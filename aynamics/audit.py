@@ -4,11 +4,13 @@
 
 1. split the trajectories (whole ones) into fit / validation / held-out;
 2. refit the baseline (sliding μ, the only scene field every object has) on the fit split;
-3. fit each candidate cause (`aynamics.effects.CANDIDATES`) on top of the current model and accept the best
-   one only when all three say so: the information criterion (BIC on the effective sample size) drops by
-   more than `BIC_MARGIN`, the validation RMS falls by `VAL_DROP` or more, and the fitted value is at least
-   `Z_MIN` standard errors from "absent"; two that explain the data equally are reported as ambiguous;
-   repeat on top of the accepted cause (up to `max_causes`);
+3. screen every candidate cause (`aynamics.effects.CANDIDATES`) with a coarse fit on top of the current
+   model, fit the `FINALISTS` with the lowest screened BIC fully, and accept the best one only when all three
+   say so: the information criterion (BIC on the effective sample size) drops by more than `BIC_MARGIN`, the
+   validation RMS falls by `VAL_DROP` or more on most validation trajectories (`VAL_MAJORITY`), and the
+   fitted value is at least `Z_MIN` standard errors from
+   "absent"; two that explain the data equally are reported as ambiguous; repeat on top of the accepted
+   cause (up to `max_causes`);
 4. with nothing accepted, a sparse regression of flight-phase residual accelerations on a small library of
    terms decides between "none" and "unexplained" (and gives the form of the unexplained effect);
 5. the extended scene is re-simulated on the held-out split; the gain has a bootstrap interval over tracks.
@@ -16,6 +18,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -23,15 +26,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from aynamics import scene as scenelib
-from aynamics.effects import CANDIDATES, NAMES, scene_with
-from aynamics.fit import FitResult, fit, track_errors
+from aynamics.effects import CANDIDATES, GRIDS, NAMES, STEP_HZ, physics_rate, scene_with, simulate_many
+from aynamics.fit import FitResult, fit, flat, track_errors
 from aynamics.measured import Measured, MeasuredError, Track, split
 from aynamics.residuals import sparse_terms
 
 BIC_MARGIN = 10.0
-VAL_DROP = 0.40  # validation RMS must fall by >= 40 %: a 1 ms vs 1/240 s integrator alone gives up to ~33 %
-Z_MIN = 3.0
+VAL_DROP = 0.30  # validation RMS must fall by >= 30 % (nulls: at most ~15 % from fitting the integrator's bias)
+Z_MIN = 10.0  # standard errors: the effective-sample-size errors of contact-rich fits are optimistic (a null reached 7)
 AMBIGUOUS = 0.10  # a runner-up reaching 90 % of the best's validation improvement is as good
+SCREEN_EVALS = 4  # least-squares iterations of the coarse screening fit of every candidate
+FINALISTS = 3  # candidates with the lowest screened BIC that are fitted fully and judged
+VAL_MAJORITY = 0.6  # ... and at least this share of the validation trajectories must improve (not a lucky few)
+PAIR_POOL = 3  # with no single cause accepted, pairs of this many best-screened candidates are fitted jointly
+PAIR_GRID = 32  # most starting points of a pair's product grid
 BOOTSTRAP = 2000
 
 
@@ -48,6 +56,9 @@ class CandidateRow:
     val_drop: float
     z: float
     significant: bool
+    screened_out: bool = False  # judged on the coarse screening fit only (not among the finalists)
+    pair: str = ""  # "a + b" when fitted jointly with another candidate
+    val_errors: np.ndarray | None = field(default=None, repr=False)  # (n_val,) per-track RMS, m
 
 
 @dataclass
@@ -70,6 +81,7 @@ class AuditResult:
     ambiguous_with: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    step_hz: int = STEP_HZ  # physics rate the audit simulated at
 
     @property
     def cause(self) -> str:
@@ -119,22 +131,104 @@ def bootstrap(before: np.ndarray, after: np.ndarray, seed: int = 0) -> tuple[tup
     return (float(diff[0]), float(diff[1])), (float(ratio[0]), float(ratio[1]))
 
 
-def _candidate(
-    scene: scenelib.Scene, fit_t: list[Track], val_t: list[Track], cur: FitResult, cur_val: float, name: str, rnd: int
-) -> tuple[CandidateRow, FitResult]:
-    res = fit(scene, fit_t, dict(cur.values), cur.active + [name])
-    alt = CANDIDATES[name].alt_start
-    if alt is not None:
-        other = fit(scene, fit_t, {**cur.values, **dict(zip(CANDIDATES[name].params, alt, strict=True))}, res.active)
-        res = other if other.rss < res.rss else res
-    val = _rms(track_errors(scene, val_t, res.values, res.active))
-    d_bic = res.bic - cur.bic
-    drop = 1 - val / cur_val if cur_val > 0 else 0.0
-    z = res.mahalanobis(name)
-    sig = d_bic < -BIC_MARGIN and drop >= VAL_DROP and z >= Z_MIN
+def _baseline(scene: scenelib.Scene, fit_t: list[Track]) -> FitResult:
+    """The baseline: μ fitted from the scene's own μ (the only field every object has)."""
+    return fit(scene, fit_t, {"mu": float(np.mean([o.physics.friction[0] for o in scene.objects]))}, [])
+
+
+def _screen(scene: scenelib.Scene, fit_t: list[Track], cur: FitResult, name: str) -> FitResult:
+    """Coarse screening of one candidate on top of the current model: every point of its grid (`GRIDS`) in one
+    batch, then a short least-squares fit from the best point."""
+    c = CANDIDATES[name]
+    starts = [{**cur.values, **dict(zip(c.params, g, strict=True))} for g in GRIDS[name]]
+    sims = simulate_many(scene, fit_t, starts, cur.active + [name])
+    rss = [float(np.sum(flat([p - tr.position for p, tr in zip(sm.position, fit_t, strict=True)]) ** 2)) for sm in sims]
+    return fit(scene, fit_t, starts[int(np.argmin(rss))], cur.active + [name], max_evals=SCREEN_EVALS)
+
+
+def _screened_row(res: FitResult, cur: FitResult, name: str, rnd: int) -> CandidateRow:
     vals = {p: res.values[p] for p in CANDIDATES[name].params}
     sigma = {p: res.sigma[p] for p in CANDIDATES[name].params}
-    return CandidateRow(name, rnd, vals, sigma, d_bic, val, drop, z, sig), res
+    nan = float("nan")
+    return CandidateRow(name, rnd, vals, sigma, res.bic - cur.bic, nan, nan, res.mahalanobis(name), False, True)
+
+
+def _candidate(
+    scene: scenelib.Scene,
+    fit_t: list[Track],
+    val_t: list[Track],
+    cur: FitResult,
+    cur_err: np.ndarray,
+    name: str,
+    rnd: int,
+    start: FitResult | None = None,
+) -> tuple[CandidateRow, FitResult]:
+    """Fit one candidate fully (from its screening fit when given) and weigh the evidence."""
+    res = fit(scene, fit_t, dict((start or cur).values), cur.active + [name])
+    if start is not None and start.rss < res.rss:
+        res = start
+    err = track_errors(scene, val_t, res.values, res.active)
+    val, drop, most = _validation(err, cur_err)
+    d_bic = res.bic - cur.bic
+    z = res.mahalanobis(name)
+    sig = d_bic < -BIC_MARGIN and drop >= VAL_DROP and most and z >= Z_MIN
+    vals = {p: res.values[p] for p in CANDIDATES[name].params}
+    sigma = {p: res.sigma[p] for p in CANDIDATES[name].params}
+    return CandidateRow(name, rnd, vals, sigma, d_bic, val, drop, z, sig, val_errors=err), res
+
+
+def _validation(err: np.ndarray, cur_err: np.ndarray) -> tuple[float, float, bool]:
+    """Validation RMS, its drop against the current model, and whether most validation tracks improved."""
+    val, cur_val = _rms(err), _rms(cur_err)
+    drop = 1 - val / cur_val if cur_val > 0 else 0.0
+    return val, drop, bool(np.mean(err < cur_err) >= VAL_MAJORITY)
+
+
+def _pairs(
+    scene: scenelib.Scene,
+    fit_t: list[Track],
+    val_t: list[Track],
+    cur: FitResult,
+    cur_err: np.ndarray,
+    ranked: list[str],
+    rows: list[CandidateRow],
+    say,
+) -> FitResult | None:
+    """Two causes that only together explain the data (each alone passes no test): the pairs of the
+    `PAIR_POOL` best-screened candidates, each started from the best point of its product grid and fitted
+    jointly; the best pair whose every part is significant is returned."""
+    best: tuple[float, FitResult] | None = None
+    for a, b in itertools.combinations(ranked[:PAIR_POOL], 2):
+        ca, cb = CANDIDATES[a], CANDIDATES[b]
+        grid = [(ga, gb) for ga in GRIDS[a] for gb in GRIDS[b]]
+        grid = grid[:: max(1, math.ceil(len(grid) / PAIR_GRID))]
+        starts = [
+            {**cur.values, **dict(zip(ca.params, ga, strict=True)), **dict(zip(cb.params, gb, strict=True))}
+            for ga, gb in grid
+        ]
+        active = cur.active + [a, b]
+        sims = simulate_many(scene, fit_t, starts, active)
+        rss = [
+            float(np.sum(flat([p - tr.position for p, tr in zip(sm.position, fit_t, strict=True)]) ** 2)) for sm in sims
+        ]
+        res = fit(scene, fit_t, starts[int(np.argmin(rss))], active)
+        err = track_errors(scene, val_t, res.values, res.active)
+        val, drop, most = _validation(err, cur_err)
+        d_bic = res.bic - cur.bic
+        ok = d_bic < -BIC_MARGIN and drop >= VAL_DROP and most
+        for name in (a, b):
+            z = res.mahalanobis(name)
+            vals = {p: res.values[p] for p in CANDIDATES[name].params}
+            sigma = {p: res.sigma[p] for p in CANDIDATES[name].params}
+            ok &= z >= Z_MIN
+            rows.append(CandidateRow(f"{name}", 0, vals, sigma, d_bic, val, drop, z, False, False, f"{a} + {b}"))
+        if ok:
+            for r in rows[-2:]:
+                r.significant = True
+        say(f"pair {a} + {b}: dBIC {d_bic:.1f}, val {val:.4g} m ({drop:+.0%}) {'*' if ok else ''}")
+        if ok and (best is None or val < best[0]):
+            best = (val, res)
+    return None if best is None else best[1]
 
 
 def audit(
@@ -144,33 +238,65 @@ def audit(
     max_causes: int = 2,
     candidates: tuple[str, ...] = NAMES,
     log=None,
+    held_out: list[str] | None = None,
+    step_hz: int = STEP_HZ,
 ) -> AuditResult:
-    """Run the whole audit on measured trajectories and the nominal scene (its objects' shapes and physics)."""
+    """Run the whole audit on measured trajectories and the nominal scene (its objects' shapes and physics).
+
+    `held_out` fixes the held-out trajectories (the rest is split into fit / validation by `seed`); `step_hz`
+    is the physics rate of every simulation (see `aynamics.effects.physics_rate`).
+    """
+    with physics_rate(step_hz):
+        result = _audit(measured, scene, seed, max_causes, candidates, log, held_out)
+    result.step_hz = step_hz
+    return result
+
+
+def _audit(
+    measured: Measured,
+    scene: scenelib.Scene,
+    seed: int,
+    max_causes: int,
+    candidates: tuple[str, ...],
+    log,
+    held_out: list[str] | None,
+) -> AuditResult:
     t0 = time.perf_counter()
     say = log or (lambda msg: None)
     scene = check_objects(measured, scene)
-    fit_ids, val_ids, held_ids = split(measured.ids, seed)
+    fit_ids, val_ids, held_ids = split(measured.ids, seed, held_out=held_out)
     fit_t, val_t, held_t = measured.subset(fit_ids), measured.subset(val_ids), measured.subset(held_ids)
-    mu0 = float(np.mean([o.physics.friction[0] for o in scene.objects]))
-    base = fit(scene, fit_t, {"mu": mu0}, [])
-    cur, cur_val = base, _rms(track_errors(scene, val_t, base.values, []))
+    base = _baseline(scene, fit_t)
+    cur_err = track_errors(scene, val_t, base.values, [])
+    cur, cur_val = base, _rms(cur_err)
     say(f"baseline: mu = {base.values['mu']:.4f}, validation RMS {cur_val:.4g} m")
     rows: list[CandidateRow] = []
     causes: list[str] = []
     ambiguous: list[str] = []
     for rnd in range(max_causes):
         tried = []
-        for name in candidates:
-            if name in cur.active:
-                continue
-            row, res = _candidate(scene, fit_t, val_t, cur, cur_val, name, rnd)
+        screened = {name: _screen(scene, fit_t, cur, name) for name in candidates if name not in cur.active}
+        finalists = sorted(screened, key=lambda n: screened[n].bic)[:FINALISTS]
+        say(f"round {rnd} screening: " + ", ".join(f"{n} {screened[n].bic - cur.bic:.1f}" for n in screened))
+        for name in screened:
+            if name not in finalists:
+                rows.append(_screened_row(screened[name], cur, name, rnd))
+        for name in finalists:
+            row, res = _candidate(scene, fit_t, val_t, cur, cur_err, name, rnd, screened[name])
             rows.append(row)
             tried.append((row, res))
             say(
-                f"round {rnd} {name}: dBIC {row.d_bic:.1f}, val {row.val_rms:.4g} m ({row.val_drop:+.0%}), "
-                f"z {row.z:.1f} {'*' if row.significant else ''}"
+                f"round {rnd} {name} {', '.join(f'{k}={v:.4g}' for k, v in row.values.items())}: dBIC "
+                f"{row.d_bic:.1f}, val {row.val_rms:.4g} m ({row.val_drop:+.0%}), z {row.z:.1f} "
+                f"{'*' if row.significant else ''}"
             )
         sig = sorted([tr for tr in tried if tr[0].significant], key=lambda tr: tr[0].val_rms)
+        if not sig and rnd == 0 and max_causes >= 2:
+            pair = _pairs(scene, fit_t, val_t, cur, cur_err, sorted(screened, key=lambda n: screened[n].bic), rows, say)
+            if pair is not None:
+                causes += pair.active
+                cur, cur_val = pair, _rms(track_errors(scene, val_t, pair.values, pair.active))
+            break
         if not sig:
             break
         best, best_res = sig[0]
@@ -178,7 +304,7 @@ def audit(
         if rnd == 0:
             ambiguous = [r.name for r, _ in sig[1:] if r.val_rms**2 - best.val_rms**2 <= AMBIGUOUS * gain]
         causes.append(best.name)
-        cur, cur_val = best_res, best.val_rms
+        cur, cur_val, cur_err = best_res, best.val_rms, best.val_errors
     unexplained: list[dict] = []
     if not causes:
         unexplained = sparse_terms(scene, fit_t + val_t, base.values, [])
@@ -187,18 +313,15 @@ def audit(
         verdict = "ambiguous" if ambiguous else "found"
     elif unexplained:
         verdict = "unexplained"
+    # the extended scene as written (canonical YAML, 4 decimals) is what is re-simulated on the held-out split
+    extended = scenelib.parse(scenelib.dump(scene_with(scene, cur.values, cur.active)))
     held_before = track_errors(scene, held_t, base.values, [])
-    held_after = track_errors(scene, held_t, cur.values, cur.active) if causes else held_before
+    held_after = track_errors(extended, held_t, {}, []) if causes else held_before
     gain_ci, ratio_ci = bootstrap(held_before, held_after, seed)
-    params = {"mu": cur.values["mu"]}
+    params = {"mu": float(extended.objects[0].physics.friction[0])}  # the scene's μ (at v = 0)
     for c in causes:
         params.update({p: cur.values[p] for p in CANDIDATES[c].params})
-    extended = scenelib.from_items(scenelib.to_items(scene_with(scene, cur.values, cur.active)))
-    notes = [
-        f"{c} has no scene field yet: its value is reported as a parameter only"
-        for c in causes
-        if c in ("magnus", "speed_dependent_friction", "time_scale")
-    ]
+    notes: list[str] = []
     return AuditResult(
         verdict=verdict,
         causes=causes + [a for a in ambiguous if a not in causes],
@@ -230,9 +353,23 @@ def add_audit(sub) -> None:
     p.add_argument("--scene", required=True, help="scene YAML describing the objects (shape, size, mass, physics)")
     p.add_argument("--out", required=True, help="folder for report.md, plots and extended_scene.yaml")
     p.add_argument("--json", action="store_true", help="print the verdict, causes, parameters and errors as JSON")
+    p.add_argument(
+        "--step-hz", type=int, default=STEP_HZ, help=f"physics steps per second (default {STEP_HZ}; finer is slower)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the fit / validation / held-out split")
     p.add_argument("--max-causes", type=int, default=2, help="most causes accepted one after another (default 2)")
-    p.add_argument("--max-trajectories", type=int, default=0, help="use at most this many (0: all), evenly spaced")
+    p.add_argument(
+        "--max-trajectories",
+        type=int,
+        default=0,
+        help="fit and validate on at most this many (0: all), evenly spaced; a --held-out-every split stays whole",
+    )
+    p.add_argument(
+        "--held-out-every",
+        type=int,
+        default=0,
+        help="hold out the trajectories whose index (integer id, else position) is a multiple of N (0: random)",
+    )
     p.set_defaults(run=run_audit)
 
 
@@ -242,23 +379,28 @@ def run_audit(args) -> int:
 
     from aynamics.audit_report import write_report
     from aynamics.cli import UsageError
-    from aynamics.measured import Measured, read_csv
+    from aynamics.measured import Measured, every_nth, read_csv
 
+    if not 30 <= args.step_hz <= 10_000:
+        raise UsageError(f"audit: --step-hz {args.step_hz}: must be in [30, 10000] physics steps per second")
     if args.max_causes < 0 or args.max_trajectories < 0:
         raise UsageError(f"audit: --max-causes {args.max_causes}, --max-trajectories {args.max_trajectories}: >= 0")
     scene = scenelib.load(args.scene)
     try:
         measured = read_csv(args.measured)
-        if args.max_trajectories and len(measured.ids) > args.max_trajectories:
-            ids = measured.ids
-            keep = [ids[int(k)] for k in np.linspace(0, len(ids) - 1, args.max_trajectories)]
-            measured = Measured(measured.objects, {k: measured.tracks[k] for k in keep})
+        held = every_nth(measured.ids, args.held_out_every) if args.held_out_every else None
+        rest = [i for i in measured.ids if held is None or i not in set(held)]
+        if args.max_trajectories and len(rest) > args.max_trajectories:  # a fixed held-out split is kept whole
+            keep = {rest[int(k)] for k in np.linspace(0, len(rest) - 1, args.max_trajectories)} | set(held or [])
+            measured = Measured(measured.objects, {k: v for k, v in measured.tracks.items() if k in keep})
         result = audit(
             measured,
             scene,
             seed=args.seed,
             max_causes=args.max_causes,
             log=None if args.json else lambda m: print(m, file=sys.stderr),
+            held_out=held,
+            step_hz=args.step_hz,
         )
         write_report(result, measured, check_objects(measured, scene), args.out)
     except MeasuredError as e:

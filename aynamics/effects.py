@@ -12,28 +12,49 @@ Representation of each cause (scene field it writes):
     wind                     environment.wind with air_density = WIND_AIR_DENSITY (real air) unless fitted
     floor_tilt, floor_offset environment.floor_tilt / floor_offset
     gravity                  gravity item (full vector)
-    magnus                   lift k·ω×v (k in kg), applied as xfrc_applied each physics step (a stepping hook)
-    speed_dependent_friction μ(v) = μ + κ·|v_horizontal| (κ in s/m), written to geom_friction each step
-    time_scale               data clock / physical clock s: a frame stamped t happened at s·t (wrong frame rate)
-The last three have no scene field yet; the audit reports their values as parameters.
+    magnus                   physics.magnus k (kg): lift k·ω×v (simulate.py's stepping hook)
+    speed_dependent_friction physics.friction_slope κ (s/m): μ(v) = μ + κ·|v_horizontal| (same hook)
+    time_scale               environment.time_scale s: a frame stamped t happened at s·t (wrong frame rate)
+Every cause is simulated through the scene it writes (`simulate.prepare_batch` / `simulate.step_hooked`), so
+the extended scene YAML reproduces exactly what was fitted.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-import mujoco
 import numpy as np
 
 from aynamics import simulate as sim
 from aynamics.measured import Track, initial_state
 from aynamics.scene import Environment, Scene
 
-STEP_HZ = 240  # physics rate of the template model (simulate.FPS * simulate.SUBSTEPS)
+STEP_HZ = 240  # physics steps per second of the data clock (simulate's default 1/240 s, × time_scale per scene)
 WIND_AIR_DENSITY = 1.2  # kg/m³: the air the wind acts through when no density is fitted
 LOST = 1.0  # m: residual used for a simulation that diverged (NaN)
+
+
+@contextlib.contextmanager
+def physics_rate(hz: int) -> Iterator[None]:
+    """Simulate at `hz` physics steps per (data-clock) second inside the block (default `STEP_HZ` = 240).
+
+    A finer step costs proportionally more; it matters where the integrator's own error is as large as the
+    effect, e.g. a box sliding at 1–2.5 m/s stops about 3 % shorter at 1/240 s than at 1 ms.
+    """
+    global STEP_HZ
+    if not 30 <= hz <= 10_000:
+        raise ValueError(f"physics rate = {hz} Hz: must be in [30, 10000]")
+    old, STEP_HZ = STEP_HZ, int(hz)
+    try:
+        yield
+    finally:
+        STEP_HZ = old
+
+
+V_REF = 1.0  # m/s: sliding speed at which the speed-dependent-friction candidate keeps the baseline μ
 REFINE_WINDOW = 0.2  # s of early motion used to correct the initial state
 REFINE_GAP = 0.01  # m: lowest point this close to the floor ends the early window
 
@@ -52,7 +73,6 @@ class Candidate:
     field: str  # what it writes, for the report
     apply: Callable[[Scene, dict], Scene]
     tell_apart: str = ""  # the experiment that separates it from look-alikes
-    alt_start: tuple[float, ...] | None = None  # a second start (non-convex fits): the better fit is kept
 
 
 def _env(scene: Scene, **update) -> Scene:
@@ -70,6 +90,20 @@ def _physics(scene: Scene, friction1: float | None = None, **update) -> Scene:
     return scene.model_copy(update={"objects": tuple(objs)})
 
 
+def _slope(scene: Scene, v: dict) -> Scene:
+    """μ(v) = μ + κ·v_h written so that the fitted 'mu' is the friction at V_REF: scene μ = mu − κ·V_REF.
+
+    μ and κ are then nearly independent in the fit (with μ at v = 0 they trade off along a narrow valley).
+    """
+    k = v["friction_slope"]
+    objs = []
+    for o in scene.objects:
+        mu = max(o.physics.friction[0] - k * V_REF, 0.0)
+        phys = o.physics.model_copy(update={"friction": (mu, o.physics.friction[1]), "friction_slope": k})
+        objs.append(o.model_copy(update={"physics": phys}))
+    return scene.model_copy(update={"objects": tuple(objs)})
+
+
 def _wind(scene: Scene, v: dict) -> Scene:
     env = scene.environment or Environment()
     rho = env.air_density if env.air_density > 0 else WIND_AIR_DENSITY
@@ -78,10 +112,6 @@ def _wind(scene: Scene, v: dict) -> Scene:
 
 def _gravity(scene: Scene, v: dict) -> Scene:
     return scene.model_copy(update={"gravity": (v["gx"], v["gy"], v["gz"])})
-
-
-def _same(scene: Scene, v: dict) -> Scene:
-    return scene
 
 
 CANDIDATES: dict[str, Candidate] = {
@@ -110,7 +140,6 @@ CANDIDATES: dict[str, Candidate] = {
             "physics.restitution",
             lambda s, v: _physics(s, restitution=v["restitution"]),
             "drop the object from rest onto the floor and compare rebound heights",
-            (0.05,),
         ),
         Candidate(
             "air_drag_quadratic",
@@ -171,7 +200,6 @@ CANDIDATES: dict[str, Candidate] = {
             "environment.floor_offset",
             lambda s, v: _env(s, floor_offset=v["floor_offset"]),
             "measure the resting height of the object's centre",
-            (-0.02,),  # the cost is rough within a few mm of 0: a second start below
         ),
         Candidate(
             "gravity",
@@ -193,8 +221,8 @@ CANDIDATES: dict[str, Candidate] = {
             (0.0,),
             (0.0,),
             (0.002,),
-            "hook: force k·ω×v",
-            _same,
+            "physics.magnus",
+            lambda s, v: _physics(s, magnus=v["magnus"]),
             "throw with and without spin: only spinning flight curves",
         ),
         Candidate(
@@ -205,8 +233,8 @@ CANDIDATES: dict[str, Candidate] = {
             (0.0,),
             (0.0,),
             (0.05,),
-            "hook: μ + κ·|v|",
-            _same,
+            "physics.friction_slope (μ at V_REF kept)",
+            _slope,
             "slide the object at several speeds and compare decelerations",
         ),
         Candidate(
@@ -217,13 +245,38 @@ CANDIDATES: dict[str, Candidate] = {
             (1.0,),
             (1.0,),
             (0.02,),
-            "clock of the data",
-            _same,
+            "environment.time_scale",
+            lambda s, v: _env(s, time_scale=v["time_scale"]),
             "time a free fall against an independent clock: gravity changes only accelerations",
         ),
     ]
 }
 NAMES = tuple(CANDIDATES)
+
+
+def _ring(radii: tuple[float, ...], n: int = 8) -> tuple[tuple[float, float], ...]:
+    """Points on circles of the given radii, n directions each: starts for a 2-D (direction, size) effect."""
+    angles = np.arange(n) * 2 * math.pi / n
+    return tuple((round(r * math.cos(a), 4), round(r * math.sin(a), 4)) for r in radii for a in angles)
+
+
+# Coarse starting points of each candidate's own parameters, spanning its plausible sizes and directions. The
+# screening simulates them all at once and the full fit starts from the best one: the position error of
+# contact-rich motion is too rough a function of the parameters for a local fit started at "absent".
+GRIDS: dict[str, tuple[tuple[float, ...], ...]] = {
+    "rolling_resistance": ((0.01,), (0.03,), (0.06,), (0.12,)),
+    "restitution": ((0.05,), (0.3,), (0.6,), (0.85,)),
+    "air_drag_quadratic": ((0.5,), (1.5,), (3.0,), (5.0,)),
+    "air_drag_linear": ((0.02,), (0.06,), (0.12,), (0.25,)),
+    "wind": _ring((3.0, 6.0, 9.0), 12),
+    "floor_tilt": _ring((1.5, 3.0, 5.0), 12),
+    "floor_offset": ((-0.04,), (-0.015,), (-0.005,), (0.005,), (0.015,), (0.04,)),
+    "gravity": ((0.0, 0.0, -9.3), (0.0, 0.0, -10.3))
+    + tuple((x, y, gz) for x, y in _ring((0.75,), 12) for gz in (-9.3, -9.81, -10.3)),
+    "magnus": ((-0.005,), (-0.002,), (0.002,), (0.005,)),
+    "speed_dependent_friction": ((-0.1,), (0.05,), (0.1,), (0.2,)),
+    "time_scale": ((0.9,), (0.95,), (1.05,), (1.1,)),
+}
 
 
 def scene_with(base: Scene, values: dict, active: list[str]) -> Scene:
@@ -242,11 +295,27 @@ def scene_with(base: Scene, values: dict, active: list[str]) -> Scene:
     return scene
 
 
+_INITIAL: dict[tuple[int, int, float], tuple[Track, dict]] = {}
+
+
+def _initial(track: Track, i: int, time_scale: float) -> dict:
+    """`initial_state`, memoised per track object (the fit asks for the same tracks hundreds of times)."""
+    key = (id(track), i, time_scale)
+    hit = _INITIAL.get(key)
+    if hit is not None and hit[0] is track:
+        return hit[1]
+    if len(_INITIAL) > 20_000:
+        _INITIAL.clear()
+    out = initial_state(track, i, time_scale)
+    _INITIAL[key] = (track, out)
+    return out
+
+
 def track_scene(scene: Scene, track: Track, time_scale: float = 1.0) -> Scene:
     """The scene with every object's initial state taken from the track's first frames."""
     objs = []
     for i, o in enumerate(scene.objects):
-        s = initial_state(track, i, time_scale)
+        s = _initial(track, i, time_scale)
         state = o.state.model_copy(
             update={
                 "position": tuple(float(x) for x in s["position"]),
@@ -277,32 +346,53 @@ def simulate_tracks(
     over the first `REFINE_WINDOW` s (before the first contact) is fitted by δp + δv·t and subtracted from the
     initial state, which is then simulated again (one Gauss-Newton step; exact for drag-free flight).
     """
-    s = float(values.get("time_scale", 1.0)) if "time_scale" in active else 1.0
-    scene = scene_with(base, values, active)
-    scenes = [track_scene(scene, tr, s) for tr in tracks]
-    if not refine:
-        return _run(scenes, tracks, values, active, s, nthread)
-    out = _run(scenes, tracks, values, active, s, nthread, horizon=REFINE_WINDOW)
-    fixed = []
-    for k, (tr, sc) in enumerate(zip(tracks, scenes, strict=True)):
-        objs = []
-        for i, o in enumerate(sc.objects):
-            dp, dv = _early_offset(tr, i, out.position[k][:, i], o, s)
-            st = o.state
-            objs.append(
-                o.model_copy(
-                    update={
-                        "state": st.model_copy(
-                            update={
-                                "position": tuple(float(x) for x in np.asarray(st.position) - dp),
-                                "linear_velocity": tuple(float(x) for x in np.asarray(st.linear_velocity) - dv),
-                            }
-                        )
-                    }
-                )
-            )
-        fixed.append(sc.model_copy(update={"objects": tuple(objs)}))
-    return _run(fixed, tracks, values, active, s, nthread)
+    return simulate_many(base, tracks, [values], active, nthread, refine)[0]
+
+
+def simulate_many(
+    base: Scene,
+    tracks: list[Track],
+    values: list[dict],
+    active: list[str],
+    nthread: int | None = None,
+    refine: bool = True,
+) -> list[TrackSim]:
+    """`simulate_tracks` for several parameter sets at once: one Batch over every (set, track) pair.
+
+    A least-squares Jacobian's columns (one set per perturbed parameter) cost one call instead of one each.
+    """
+    scenes, all_tracks, s_of = [], [], []
+    for v in values:
+        scene = scene_with(base, v, active)
+        s = sim.time_scale(scene)  # the recording's clock: measured velocities are divided by it
+        scenes += [track_scene(scene, tr, s) for tr in tracks]
+        all_tracks += tracks
+        s_of += [s] * len(tracks)
+    if refine:
+        early = _run(scenes, all_tracks, nthread, horizon=REFINE_WINDOW)
+        scenes = [_shifted(sc, tr, early.position[k], s) for k, (sc, tr, s) in enumerate(zip(scenes, all_tracks, s_of))]
+    out = _run(scenes, all_tracks, nthread)
+    n = len(tracks)
+    return [
+        TrackSim(
+            out.position[k * n : (k + 1) * n], out.orientation[k * n : (k + 1) * n], out.scenes[k * n : (k + 1) * n]
+        )
+        for k in range(len(values))
+    ]
+
+
+def _shifted(sc: Scene, tr: Track, early: np.ndarray, s: float) -> Scene:
+    """The scene with each object's initial position and velocity corrected by its early residual."""
+    objs = []
+    for i, o in enumerate(sc.objects):
+        dp, dv = _early_offset(tr, i, early[:, i], o, s)
+        st = o.state
+        update = {
+            "position": tuple(float(x) for x in np.asarray(st.position) - dp),
+            "linear_velocity": tuple(float(x) for x in np.asarray(st.linear_velocity) - dv),
+        }
+        objs.append(o.model_copy(update={"state": st.model_copy(update=update)}))
+    return sc.model_copy(update={"objects": tuple(objs)})
 
 
 def _early_offset(track: Track, i: int, sim_pos: np.ndarray, obj, s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -336,25 +426,26 @@ def sim_lowest(obj) -> float:
     return float(np.linalg.norm(sim.half_extents(obj))) if obj.type != "sphere" else float(obj.radius)
 
 
-def _run(
-    scenes: list[Scene], tracks: list[Track], values: dict, active: list[str], s: float, nthread, horizon=None
-) -> TrackSim:
-    """Simulate the scenes; positions at the tracks' times (held at the last step beyond `horizon` s)."""
+def _run(scenes: list[Scene], tracks: list[Track], nthread: int | None, horizon: float | None = None) -> TrackSim:
+    """Simulate the scenes; positions at the tracks' (data-clock) times (held at the last step beyond `horizon`).
+
+    Each scene steps 1/STEP_HZ·s physical seconds per step (its time_scale s), so data time t is step t·STEP_HZ.
+    """
     duration = max(tr.duration for tr in tracks) if horizon is None else horizon
-    nsteps = int(math.ceil(duration * s * STEP_HZ)) + 2
-    b, tpl = sim.prepare_batch(scenes, scenes[0].structure, nthread)
+    nsteps = int(math.ceil(duration * STEP_HZ)) + 2
+    b, tpl = sim.prepare_batch(scenes, scenes[0].structure, nthread, timestep=1.0 / STEP_HZ)
     qpos0 = np.array(b.bind("qpos"))
-    hooks = [n for n in ("magnus", "speed_dependent_friction") if n in active]
-    if not hooks:
+    hooks = sim.Hooks.of(scenes, tpl)
+    if hooks is None:
         qpos = b.rollout(nsteps, record=("qpos",))["qpos"]
     else:
-        qpos = _stepped(b, tpl, scenes, values, hooks, nsteps)
+        qpos = sim.step_hooked(b, hooks, nsteps, ("qpos",))["qpos"]
     qpos = np.concatenate([qpos0[:, None], qpos], axis=1)  # (n, S+1, nq)
     cols = tpl.qpos_adr[:, None] + np.arange(7)
     out_p, out_q = [], []
     for k, tr in enumerate(tracks):
         q = qpos[k][:, cols]  # (S+1, N, 7)
-        u = tr.t * s * STEP_HZ
+        u = tr.t * STEP_HZ
         i0 = np.clip(np.floor(u).astype(int), 0, nsteps - 1)
         w = (u - i0)[:, None, None]
         pos = (1 - w) * q[i0, :, :3] + w * q[i0 + 1, :, :3]
@@ -362,36 +453,3 @@ def _run(
         out_p.append(pos)
         out_q.append(q[np.clip(np.rint(u).astype(int), 0, nsteps), :, 3:])
     return TrackSim(out_p, out_q, scenes)
-
-
-def _stepped(b, tpl: sim.Template, scenes: list[Scene], values: dict, hooks: list[str], nsteps: int) -> np.ndarray:
-    """Step the batch one physics step at a time, applying the Magnus force / speed-dependent friction."""
-    qpos, qvel = b.bind("qpos"), b.bind("qvel")
-    xfrc = b.bind("xfrc_applied")  # (n, nbody, 6) world force, torque
-    fric = b.expand("geom_friction")  # (n, ngeom, 3)
-    mu0 = fric[:, tpl.geom_ids, 0].copy()
-    k_m = float(values.get("magnus", 0.0))
-    kappa = float(values.get("friction_slope", 0.0))
-    out = np.empty((len(scenes), nsteps, tpl.model.nq))
-    for step in range(nsteps):
-        for i, (a, d) in enumerate(zip(tpl.qpos_adr, tpl.dof_adr, strict=True)):
-            v = qvel[:, d : d + 3]
-            if "magnus" in hooks:
-                quat = qpos[:, a + 3 : a + 7]
-                w_world = np.einsum("nij,nj->ni", _mats(quat), qvel[:, d + 3 : d + 6])
-                xfrc[:, tpl.body_ids[i], :3] = k_m * np.cross(w_world, v)
-            if "speed_dependent_friction" in hooks:
-                fric[:, tpl.geom_ids[i], 0] = np.maximum(mu0[:, i] + kappa * np.linalg.norm(v[:, :2], axis=1), 0.0)
-        b.step()
-        out[:, step] = qpos
-    fric[:, tpl.geom_ids, 0] = mu0
-    xfrc[...] = 0.0
-    return out
-
-
-def _mats(q: np.ndarray) -> np.ndarray:
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    out = np.empty((len(q), 9))
-    for k in range(len(q)):
-        mujoco.mju_quat2Mat(out[k], q[k])
-    return out.reshape(-1, 3, 3)

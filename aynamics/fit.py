@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from aynamics.effects import CANDIDATES, simulate_tracks
+from aynamics.effects import CANDIDATES, simulate_many, simulate_tracks
 from aynamics.measured import Track
 from aynamics.scene import Scene
 
@@ -64,6 +64,10 @@ def residuals(scene: Scene, tracks: list[Track], values: dict, active: list[str]
     return [p - tr.position for p, tr in zip(sim.position, tracks, strict=True)]
 
 
+def flat(res: list[np.ndarray]) -> np.ndarray:
+    return np.nan_to_num(np.concatenate([r.ravel() for r in res]), nan=0.0)
+
+
 def track_errors(scene: Scene, tracks: list[Track], values: dict, active: list[str]) -> np.ndarray:
     """(n,) RMS position error (m) of each track."""
     return np.array([math.sqrt(np.nanmean(np.sum(r**2, -1))) for r in residuals(scene, tracks, values, active)])
@@ -105,8 +109,7 @@ def fit(
     def fun(u: np.ndarray) -> np.ndarray:
         nonlocal evals
         evals += 1
-        res = residuals(scene, tracks, unpack(u), active)
-        return np.nan_to_num(np.concatenate([r.ravel() for r in res]), nan=0.0)
+        return flat(residuals(scene, tracks, unpack(u), active))
 
     u_lo, u_hi = (lo_ - x0_) / sc_, (hi_ - x0_) / sc_
     cache: dict[bytes, np.ndarray] = {}
@@ -120,13 +123,16 @@ def fit(
 
     def jac(u: np.ndarray) -> np.ndarray:
         # forward differences with a fixed step of STEP typical sizes (scipy's relative step is 0 at u = 0)
+        # all columns in one Batch call
+        nonlocal evals
         f0 = fun_cached(u)
-        cols = []
-        for j in range(len(u)):
-            h = STEP if u[j] + STEP <= u_hi[j] else -STEP
-            du = np.zeros_like(u)
-            du[j] = h
-            cols.append((fun(u + du) - f0) / h)
+        steps = np.where(u + STEP <= u_hi, STEP, -STEP)
+        sims = simulate_many(scene, tracks, [unpack(u + steps[j] * np.eye(len(u))[j]) for j in range(len(u))], active)
+        evals += len(u)
+        cols = [
+            (flat([p - tr.position for p, tr in zip(sm.position, tracks, strict=True)]) - f0) / steps[j]
+            for j, sm in enumerate(sims)
+        ]
         return np.stack(cols, 1)
 
     out = least_squares(

@@ -22,6 +22,7 @@ import numpy as np
 
 from aynamics.camera import CameraMatrices
 from aynamics.scene import Scene
+from aynamics.simulate import quat_to_mat
 
 FRAME_STRIDE = 3  # the paper samples every third frame: 10 of 30
 OCCLUSION_TOLERANCE = 0.01  # relative depth slack (1 %) before a carried point counts as hidden
@@ -46,20 +47,6 @@ def pixel_rays(cam: CameraMatrices) -> np.ndarray:
     pix = np.stack([u, v, np.ones_like(u)], axis=-1)  # (H, W, 3)
     cam_dirs = pix @ np.linalg.inv(cam.K).T  # z = 1 in camera coordinates
     return cam_dirs @ cam.R  # camera -> world: R^T x, written for row vectors
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) w, x, y, z quaternions (normalised here) -> (..., 3, 3) rotation matrices."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
 
 
 def carry_points(

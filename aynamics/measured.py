@@ -22,14 +22,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aynamics.simulate import quat_to_mat
+
 REQUIRED = ("trajectory", "t", "object", "x", "y", "z")
 ORIENTATION = ("qw", "qx", "qy", "qz")
 LINEAR = ("vx", "vy", "vz")
 ANGULAR = ("wx", "wy", "wz")
 INIT_WINDOW = 0.08  # s: frames used to estimate the initial state when velocities are not measured
+SPIN_FRAMES = 8  # first frames whose measured spin is averaged for the initial spin
 PHASES = ("flight", "impact", "sliding", "rolling", "rest")
 CONTACT_GAP = 0.006  # m: lowest point this close to the floor counts as contact
 REST_SPEED = 0.05  # m/s
+BOUNCE_WINDOW = 0.05  # s after a touch-down in which the rebound speed is read
 ROLL_SLIP = 0.15  # m/s: contact-point slip below this (and moving) is rolling / tumbling
 
 
@@ -172,8 +176,27 @@ def cube_tosses_csv(src: str, dst: str, tosses: list[int] | None = None) -> int:
     return len(out) - 1
 
 
-def split(ids: list[str], seed: int = 0, fractions: tuple[float, float] = (0.5, 0.25)) -> tuple[list, list, list]:
-    """Shuffle trajectory ids and cut them into fit / validation / held-out (whole trajectories)."""
+def split(
+    ids: list[str], seed: int = 0, fractions: tuple[float, float] = (0.5, 0.25), held_out: list[str] | None = None
+) -> tuple[list, list, list]:
+    """Shuffle trajectory ids and cut them into fit / validation / held-out (whole trajectories).
+
+    With `held_out` given, those ids are the held-out split and the rest is cut into fit and validation in the
+    ratio of `fractions`.
+    """
+    if held_out is not None:
+        unknown = [h for h in held_out if h not in ids]
+        if unknown:
+            raise MeasuredError(f"held-out trajectories {unknown[:5]} are not in the data")
+        rest = [i for i in ids if i not in set(held_out)]
+        if len(rest) < 2 or not held_out:
+            raise MeasuredError(
+                f"{len(held_out)} held-out of {len(ids)} trajectories: at least 1 held out and 2 left to fit"
+            )
+        order = list(np.random.default_rng(seed).permutation(len(rest)))
+        a = min(len(rest) - 1, max(1, int(round(fractions[0] / sum(fractions) * len(rest)))))
+        pick = [rest[k] for k in order]
+        return pick[:a], pick[a:], list(held_out)
     if len(ids) < 3:
         raise MeasuredError(f"{len(ids)} trajectories: at least 3 are needed to split fit/validation/held-out")
     order = list(np.random.default_rng(seed).permutation(len(ids)))
@@ -184,17 +207,15 @@ def split(ids: list[str], seed: int = 0, fractions: tuple[float, float] = (0.5, 
     return pick[:a], pick[a:b], pick[b:]
 
 
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) wxyz -> (..., 3, 3)."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+def every_nth(ids: list[str], n: int) -> list[str]:
+    """The ids whose index is a multiple of n: the integer id itself when every id is an integer, else the
+    position in the file (e.g. cube tosses 0, 5, 10, ... for n = 5)."""
+    if n < 2:
+        raise MeasuredError(f"held-out every {n}: must be >= 2")
+    try:
+        return [i for i in ids if int(i) % n == 0]
+    except ValueError:
+        return [i for k, i in enumerate(ids) if k % n == 0]
 
 
 def initial_state(track: Track, i: int, time_scale: float = 1.0) -> dict[str, np.ndarray]:
@@ -217,7 +238,13 @@ def initial_state(track: Track, i: int, time_scale: float = 1.0) -> dict[str, np
     if track.velocity is not None and np.isfinite(track.velocity[k0, i, :3]).all():
         lin, pos = track.velocity[k0, i, :3], p[k0]
     if track.velocity is not None and np.isfinite(track.velocity[k0, i, 3:]).all():
-        ang = quat_to_mat(quat) @ track.velocity[k0, i, 3:]
+        # world spin averaged over the first SPIN_FRAMES frames: one frame's measured spin is noisy, and a few
+        # tenths of rad/s of spurious yaw or tilt decide where a sliding box ends up
+        ks = [k for k in np.flatnonzero(sel)[:SPIN_FRAMES] if np.isfinite(track.velocity[k, i, 3:]).all()]
+        if track.orientation is not None and ks:
+            ang = np.mean([quat_to_mat(track.orientation[k, i]) @ track.velocity[k, i, 3:] for k in ks], axis=0)
+        else:
+            ang = quat_to_mat(quat) @ track.velocity[k0, i, 3:]
     return {"position": pos, "orientation": quat, "linear_velocity": lin / time_scale, "angular": ang / time_scale}
 
 
@@ -255,16 +282,25 @@ def phases(t: np.ndarray, position: np.ndarray, support: np.ndarray, floor: floa
 
 
 def bounces(t: np.ndarray, position: np.ndarray, support: np.ndarray, floor: float = 0.0) -> list[float]:
-    """Vertical restitution at each impact after flight: -vz(after) / vz(before), from finite differences."""
+    """Vertical restitution at each impact after flight: (largest upward centre speed within `BOUNCE_WINDOW` s
+    after the touch-down) / (downward centre speed over the last flight frames before it).
+
+    The rebound is read as the best upward speed after the touch-down, not at one fixed frame: a soft contact
+    (MuJoCo's) takes tens of milliseconds to give the energy back and a rigid one (the real cube) a few, and a
+    frame counted from the bottom of the dip compares the two at different stages of the impact.
+    """
     contact = support - floor < CONTACT_GAP
     onset = np.flatnonzero(contact[1:] & ~contact[:-1]) + 1
     out = []
     for k in onset:
-        k = int(k + np.argmin(support[k : k + 6]))  # the impact: lowest point of the dip, not the first touch
-        if k < 3 or k + 3 >= len(t):
+        k = int(k)
+        if k < 3 or k + 2 >= len(t):
             continue
         vz_in = (position[k - 1, 2] - position[k - 3, 2]) / (t[k - 1] - t[k - 3])
-        vz_out = (position[k + 3, 2] - position[k + 1, 2]) / (t[k + 3] - t[k + 1])
-        if vz_in < -0.3:
-            out.append(float(-vz_out / vz_in))
+        after = np.flatnonzero((t > t[k]) & (t <= t[k] + BOUNCE_WINDOW))
+        after = after[after + 2 < len(t)]
+        if vz_in > -0.3 or not len(after):
+            continue
+        vz_out = (position[after + 2, 2] - position[after, 2]) / (t[after + 2] - t[after])  # 2-frame slopes
+        out.append(float(max(np.max(vz_out), 0.0) / -vz_in))
     return out

@@ -90,6 +90,20 @@ RANGES: dict[str, Range] = {
     "physics.restitution": Range(
         0.0, 0.95, "-", "-", "optional: normal bounce coefficient against the floor (absent: MuJoCo's soft contact)"
     ),
+    "physics.magnus": Range(
+        -0.05,
+        0.05,
+        "kg",
+        "world",
+        "optional: spin lift (Magnus) F = k·ω×v on the object in flight and on the floor (absent: none)",
+    ),
+    "physics.friction_slope": Range(
+        -0.5,
+        1.0,
+        "s/m",
+        "-",
+        "optional: speed-dependent sliding friction μ(v) = max(μ + κ·v_h, 0), v_h the horizontal speed (absent: 0)",
+    ),
     "camera.position": Range((-20.0, -20.0, 0.1), (20.0, 20.0, 20.0), "m", "world", "optical centre"),
     "camera.orientation": Range(
         0.0,
@@ -113,6 +127,15 @@ RANGES: dict[str, Range] = {
     "environment.floor_offset": Range(-0.5, 0.5, "m", "world", "optional: height of the floor plane", 0.0),
     "environment.floor_tilt": Range(
         -20.0, 20.0, "deg", "world", "optional: floor rotation about world x then y", (0.0, 0.0)
+    ),
+    "environment.time_scale": Range(
+        0.5,
+        2.0,
+        "-",
+        "-",
+        "optional: clock of the recording: a frame stamped t shows the physical instant s·t (a wrong frame rate); "
+        "velocities stay physical",
+        1.0,
     ),
 }
 
@@ -220,12 +243,14 @@ class State(_Record):
 
 
 class Physics(_Record):
-    """Physical properties of an object. `restitution` is an optional extension field."""
+    """Physical properties of an object. `restitution`, `magnus`, `friction_slope` are optional extension fields."""
 
     friction: Annotated[Vec2, _ranged("physics.friction")] = (0.5, 0.0)
     mass: Annotated[Num, _ranged("physics.mass", positive=True)] = 1.0
     damping: Annotated[Num, _ranged("physics.damping")] = -4.0
     restitution: Annotated[Num, _ranged("physics.restitution")] | None = None
+    magnus: Annotated[Num, _ranged("physics.magnus")] | None = None
+    friction_slope: Annotated[Num, _ranged("physics.friction_slope")] | None = None
 
 
 class _Object(_Record):
@@ -261,7 +286,7 @@ class Camera(_Record):
 
 
 class Environment(_Record):
-    """Optional extension item: air drag, wind and floor geometry (defaults: none of them)."""
+    """Optional extension item: air drag, wind, floor geometry and the recording's clock (defaults: none of them)."""
 
     type: Literal["environment"] = "environment"
     air_density: Annotated[Num, _ranged("environment.air_density")] = 0.0
@@ -269,6 +294,7 @@ class Environment(_Record):
     wind: Annotated[Vec3, _ranged("environment.wind")] = (0.0, 0.0, 0.0)
     floor_offset: Annotated[Num, _ranged("environment.floor_offset")] = 0.0
     floor_tilt: Annotated[Vec2, _ranged("environment.floor_tilt")] = (0.0, 0.0)
+    time_scale: Annotated[Num, _ranged("environment.time_scale", positive=True)] = 1.0
 
 
 class Gravity(_Record):
@@ -606,22 +632,27 @@ def to_items(scene: Scene) -> list[dict[str, Any]]:
         d["physics"] = {"friction": list(p.friction), "mass": p.mass, "damping": p.damping}
         if p.restitution is not None:
             d["physics"]["restitution"] = p.restitution
+        if p.magnus is not None:
+            d["physics"]["magnus"] = p.magnus
+        if p.friction_slope is not None:
+            d["physics"]["friction_slope"] = p.friction_slope
         items.append(d)
     c = scene.camera
     items.append({"type": "camera", "fovy": c.fovy, "orientation": c.orientation, "position": list(c.position)})
     items.append({"type": "gravity", "gravity": list(scene.gravity)})
     if scene.environment is not None:
         e = scene.environment
-        items.append(
-            {
-                "type": "environment",
-                "air_density": e.air_density,
-                "air_viscosity": e.air_viscosity,
-                "wind": list(e.wind),
-                "floor_offset": e.floor_offset,
-                "floor_tilt": list(e.floor_tilt),
-            }
-        )
+        env: dict[str, Any] = {
+            "type": "environment",
+            "air_density": e.air_density,
+            "air_viscosity": e.air_viscosity,
+            "wind": list(e.wind),
+            "floor_offset": e.floor_offset,
+            "floor_tilt": list(e.floor_tilt),
+        }
+        if e.time_scale != 1.0:  # written only when set: older environment items dump as before
+            env["time_scale"] = e.time_scale
+        items.append(env)
     return items
 
 

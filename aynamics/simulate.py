@@ -17,6 +17,12 @@ Physical meaning of the fields (see `aynamics.scene.RANGES`):
   motion v and ω decay as exp(-10^d t) whatever the mass.
 - restitution e (optional): the direct contact form solref = (-k, -b) with k = 1e4 and b chosen so that
   a damped spring of that stiffness rebounds with coefficient e.
+- magnus k and friction_slope κ (optional): a spin lift k·ω×v (world force on the body's centre) and a sliding
+  μ + κ·|v_horizontal| recomputed before every physics step from the current state (a Python stepping hook
+  over the whole batch, `step_hooked`). MuJoCo's ellipsoid fluid model has a Magnus term too, but it comes
+  with added-mass forces and needs a global air density, so it cannot express a pure k·ω×v.
+- environment.time_scale s (optional): the recording's clock; frame k at t = k/fps shows the physical instant
+  s·t, so each simulation steps s·dt per physics step (velocities stay physical, m/s of real time).
 """
 
 from __future__ import annotations
@@ -268,7 +274,7 @@ def compile_scene(scene: Scene, config: SimConfig | None = None) -> tuple[mujoco
     tpl = template(scene.structure)
     model = _copy_model(tpl.model)
     _write_params(model, scene_params(scene, tpl))
-    model.opt.timestep = (config or SimConfig()).timestep
+    model.opt.timestep = (config or SimConfig()).timestep * time_scale(scene)  # magnus / friction_slope: no hook here
     mujoco.mj_setConst(model, mujoco.MjData(model))
     return model, tpl
 
@@ -440,7 +446,8 @@ def prepare_batch(
     """A Batch over the structure's template with each scene's parameters and initial state written in.
 
     Batches are cached per (structure, size, threads) and rewritten completely on each call. `timestep` is the
-    physics step in seconds (default 1 / 240: `SimConfig().timestep`).
+    physics step in seconds (default 1 / 240: `SimConfig().timestep`), times each scene's
+    `environment.time_scale`.
     """
     tpl = template(structure)
     n = len(scenes)
@@ -448,7 +455,8 @@ def prepare_batch(
     params = [scene_params(s, tpl) for s in scenes]
     for name in PARAM_FIELDS:
         b.expand(name)[...] = np.stack([p[name] for p in params]).reshape(b.expand(name).shape)
-    b.expand("opt.timestep")[...] = SimConfig().timestep if timestep is None else timestep
+    dt = SimConfig().timestep if timestep is None else timestep
+    b.expand("opt.timestep")[...] = dt * np.array([time_scale(s) for s in scenes])
     b.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
     b.set_const()
     qpos, qvel = b.bind("qpos"), b.bind("qvel")
@@ -456,6 +464,68 @@ def prepare_batch(
         qpos[k], qvel[k] = initial_qpos_qvel(s, tpl)
     b.forward()
     return b, tpl
+
+
+def time_scale(scene: Scene) -> float:
+    """The recording's clock factor s (1 without an environment item)."""
+    return 1.0 if scene.environment is None else float(scene.environment.time_scale)
+
+
+@dataclass(frozen=True)
+class Hooks:
+    """Per-step forces a Batch cannot hold: Magnus lift and speed-dependent friction, (n, N) per object."""
+
+    template: Template
+    magnus: np.ndarray  # (n, N) k, kg
+    slope: np.ndarray  # (n, N) κ, s/m
+
+    @staticmethod
+    def of(scenes: list[Scene], tpl: Template) -> Hooks | None:
+        """The scenes' hook coefficients, or None when no object has magnus or friction_slope set."""
+        magnus = np.array([[o.physics.magnus or 0.0 for o in s.objects] for s in scenes], dtype=float)
+        slope = np.array([[o.physics.friction_slope or 0.0 for o in s.objects] for s in scenes], dtype=float)
+        if not magnus.any() and not slope.any():
+            return None
+        return Hooks(tpl, magnus, slope)
+
+
+def step_hooked(b: mjbatch.Batch, hooks: Hooks, nstep: int, record: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """`Batch.rollout` with the hook forces recomputed from the state before each physics step.
+
+    Before step k: xfrc_applied = k·ω×v (world) on each object body, and the object geom's sliding friction
+    max(μ + κ·|v_xy|, 0) (object geoms have priority over the floor, so this is the floor contact's μ).
+    Returns the recorded fields after every step, (n, nstep, ...) as `Batch.rollout` does.
+    """
+    tpl = hooks.template
+    qpos, qvel = b.bind("qpos"), b.bind("qvel")
+    xfrc = b.bind("xfrc_applied")  # (n, nbody, 6): world force, torque
+    fric = b.expand("geom_friction")  # (n, ngeom, 3)
+    mu0 = fric[:, tpl.geom_ids, 0].copy()  # (n, N)
+    live = {name: b.bind(name) for name in record}
+    out = {name: np.empty((b.nsim, nstep, *np.shape(v)[1:])) for name, v in live.items()}
+    magnus, sliding = hooks.magnus.any(), hooks.slope.any()
+    try:
+        for step in range(nstep):
+            for i, (a, d) in enumerate(zip(tpl.qpos_adr, tpl.dof_adr, strict=True)):
+                v = qvel[:, d : d + 3]  # (n, 3) world linear velocity
+                if magnus:
+                    spin = np.einsum("nij,nj->ni", quat_to_mat(_unit(qpos[:, a + 3 : a + 7])), qvel[:, d + 3 : d + 6])
+                    xfrc[:, tpl.body_ids[i], :3] = hooks.magnus[:, i, None] * np.cross(spin, v)
+                if sliding:
+                    speed = np.linalg.norm(v[:, :2], axis=1)
+                    fric[:, tpl.geom_ids[i], 0] = np.maximum(mu0[:, i] + hooks.slope[:, i] * speed, 0.0)
+            b.step()
+            for name, v in live.items():
+                out[name][:, step] = v
+    finally:
+        fric[:, tpl.geom_ids, 0] = mu0
+        xfrc[...] = 0.0
+    return out
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 @dataclass(frozen=True)
@@ -491,7 +561,12 @@ def rollout_raw(
     qpos0 = np.array(b.bind("qpos"))
     qvel0 = np.array(b.bind("qvel"))
     sub = config.substeps
-    rec = b.rollout(config.frames * sub, record=("qpos", "qvel", "sensordata") if sensors else ("qpos", "qvel"))
+    fields = ("qpos", "qvel", "sensordata") if sensors else ("qpos", "qvel")
+    hooks = Hooks.of(scenes, tpl)
+    if hooks is None:
+        rec = b.rollout(config.frames * sub, record=fields)
+    else:
+        rec = step_hooked(b, hooks, config.frames * sub, fields)
     qpos = np.concatenate([qpos0[:, None], rec["qpos"][:, sub - 1 :: sub]], axis=1)
     qvel = np.concatenate([qvel0[:, None], rec["qvel"][:, sub - 1 :: sub]], axis=1)
     warnings = np.array(b.warning).sum(axis=(1, 2))
@@ -515,7 +590,7 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
     position = q[..., :3]
     with np.errstate(invalid="ignore", divide="ignore"):
         orientation = q[..., 3:] / np.linalg.norm(q[..., 3:], axis=-1, keepdims=True)
-    angular = np.einsum("btnij,btnj->btni", _quat_to_mat(orientation), v[..., 3:])  # body -> world
+    angular = np.einsum("btnij,btnj->btni", quat_to_mat(orientation), v[..., 3:])  # body -> world
     t = np.arange(frames + 1) / config.fps
 
     # contacts: the pair's sensor counts a contact at any physics step of the frame interval
@@ -606,8 +681,9 @@ def _check(scene: Scene, position: np.ndarray, v: np.ndarray, nwarning: int, t: 
     return True, None
 
 
-def _quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) wxyz unit quaternions -> (..., 3, 3) rotation matrices."""
+def quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) w, x, y, z quaternions (normalised here) -> (..., 3, 3) rotation matrices."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     w, x, y, z = np.moveaxis(q, -1, 0)
     return np.stack(
         [

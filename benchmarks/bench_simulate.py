@@ -106,13 +106,13 @@ def main() -> None:
     n = len(scenes)
     print(f"machine: {os.cpu_count()} cores; {n} scenes of 3 objects, 1 s at 30 FPS x 8 substeps ({nstep} steps)")
     print(f"  one by one (simulate):        {n / t_one:8.1f} rollouts/s")
-    print(
-        f"  batched ({args.threads} threads):          {n / t_batch:8.1f} rollouts/s   ratio to one-by-one {t_one / t_batch:5.2f}x (target >= 1.7x)"
-    )
+    ratio = t_one / t_batch
+    print(f"  batched ({args.threads} threads): {n / t_batch:8.1f} rollouts/s, {ratio:5.2f}x one-by-one (target 1.7x)")
     print(f"  raw mj_step, 1 thread:        {n / t_raw:8.1f} rollouts/s   ({n * nstep / t_raw:,.0f} steps/s)")
     print(f"  batched vs raw 1-thread:      {t_raw / t_batch:5.2f}x")
     print(
-        f"  setup (params + initial states) {t_setup / n * 1e3:6.3f} ms/scene vs rollout {t_roll / n * 1e3:6.3f} ms/scene: "
+        f"  setup (params + initial states) {t_setup / n * 1e3:6.3f} ms/scene"
+        f" vs rollout {t_roll / n * 1e3:6.3f} ms/scene: "
         f"{t_setup / t_roll:5.1%} of the rollouts (target <= 20%)"
     )
     print(f"  template compile (once per structure): {t_compile * 1e3:6.2f} ms")

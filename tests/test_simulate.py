@@ -432,3 +432,83 @@ def test_contact_intervals_of_interleaved_pairs():
         assert (a == 0 or not r.touching[a - 1, i, j]) and (b == len(r.t) - 1 or not r.touching[b + 1, i, j])
     bounces = [c for c in r.contacts if c.a == "sphere_1" and c.b == "floor"]
     assert len(bounces) >= 2
+
+
+# --------------------------------------------------------------------------------------------
+# Extension fields the measured-data audit writes: magnus, friction_slope, time_scale
+# --------------------------------------------------------------------------------------------
+def test_magnus_lift_turns_a_spinning_flight_and_grows_with_k():
+    """Spin ω = 10 ẑ, v = 2 x̂, lift k·ω×v: the horizontal velocity turns at Ω = k·ω/m (vertical ω ⟂ v_xy), so
+    y(t) = (v/Ω)(1 − cos Ωt); k = 0.01 kg, m = 1 kg: Ω = 0.1/s, y(1) = 20·(1 − cos 0.1) = 0.09992 m."""
+    ys = []
+    for k in (None, 0.002, 0.005, 0.01):
+        r = run(scene([sphere(z=8.0, v=(2.0, 0, 0), w=(0, 0, 10.0), r=0.1, magnus=k)]))
+        ys.append(r.position[-1, 0, 1])
+    assert abs(ys[0]) < 1e-12 and all(a < b for a, b in zip(ys, ys[1:], strict=False)), ys
+    omega = 0.01 * 10.0 / 1.0
+    assert ys[-1] == pytest.approx(2.0 / omega * (1 - math.cos(omega)), rel=0.02)
+    flipped = run(scene([sphere(z=8.0, v=(2.0, 0, 0), w=(0, 0, 10.0), r=0.1, magnus=-0.01)]))
+    assert flipped.position[-1, 0, 1] == pytest.approx(-ys[-1], rel=1e-6)
+
+
+def test_friction_slope_shortens_the_slide_as_closed_form():
+    """dv/dt = −g(μ + κv): v(t) = (v0 + μ/κ)e^{−gκt} − μ/κ stops at t_s = ln(1 + κv0/μ)/(gκ) after
+    x_s = (v0 + μ/κ)(1 − e^{−gκ t_s})/(gκ) − μ t_s/κ. μ = 0.3, v0 = 3 m/s: κ = 0 → 1.529 m, κ = 0.1 → 1.292 m."""
+    stops = {}
+    for kappa in (-0.05, None, 0.05, 0.1):
+        r = run(scene([box(v=(3.0, 0, 0), mu=0.3)]), 2.0)
+        if kappa is not None:
+            b = box(v=(3.0, 0, 0), mu=0.3)
+            b["physics"]["friction_slope"] = kappa
+            r = run(scene([b]), 2.0)
+        stops[kappa] = r.position[-1, 0, 0]
+    xs = [stops[k] for k in (-0.05, None, 0.05, 0.1)]
+    assert all(a > b for a, b in zip(xs, xs[1:], strict=False)), stops
+    g, mu, v0, kappa = 9.81, 0.3, 3.0, 0.1
+    ts = math.log(1 + kappa * v0 / mu) / (g * kappa)
+    expected = (v0 + mu / kappa) * (1 - math.exp(-g * kappa * ts)) / (g * kappa) - mu * ts / kappa
+    assert stops[0.1] == pytest.approx(expected, rel=0.03)
+    assert stops[None] == pytest.approx(v0**2 / (2 * mu * g), rel=0.03)
+
+
+def test_time_scale_samples_the_physics_at_s_times_the_frame_time():
+    """A frame stamped t shows the physical instant s·t: a projectile's x = v·s·t, and the larger s the farther."""
+    xs = []
+    for s in (0.8, 1.0, 1.25):
+        env = None if s == 1.0 else {"time_scale": s}
+        r = run(scene([sphere(z=8.0, v=(2.0, 0, 0), r=0.1)], environment=env))
+        np.testing.assert_allclose(r.position[:, 0, 0], 2.0 * s * r.t, atol=1e-9)
+        xs.append(r.position[-1, 0, 0])
+    assert xs[0] < xs[1] < xs[2]
+
+
+def test_extension_fields_round_trip_and_old_dumps_stay_unchanged():
+    plain = scene([sphere()], environment={"floor_offset": 0.01})
+    assert "time_scale" not in S.dump(plain) and "magnus" not in S.dump(plain)
+    ext = scene([sphere(magnus=0.0045, friction_slope=0.08)], environment={"floor_offset": 0.01, "time_scale": 1.1})
+    again = S.parse(S.dump(ext))
+    assert again == ext and again.objects[0].physics.magnus == 0.0045 and again.environment.time_scale == 1.1
+    with pytest.raises(S.SceneError, match=r"environment.*time_scale = 3.0: must be in \[0.5, 2\]"):
+        scene([sphere()], environment={"time_scale": 3.0})
+    with pytest.raises(S.SceneError, match=r"physics.magnus = 0.2: must be in \[-0.05, 0.05\] kg"):
+        scene([sphere(magnus=0.2)])
+
+
+def test_hooked_batch_is_bit_identical_to_one_by_one():
+    scenes = [
+        scene([sphere(z=1.0, v=(2, 0, 1), w=(0, 3, 10), r=0.1, magnus=0.004), box(x=2.0, mu=0.3)]),
+        scene([sphere(z=1.0, v=(1, 1, 1), w=(5, 0, 0), r=0.1), box(x=2.0, mu=0.3)]),
+    ]
+    b = scenes[1].objects[1]
+    scenes[1] = scenes[1].model_copy(
+        update={
+            "objects": (
+                scenes[1].objects[0],
+                b.model_copy(update={"physics": b.physics.model_copy(update={"friction_slope": 0.1})}),
+            )
+        }
+    )
+    batch = sim.simulate_batch(scenes, nthread=2)
+    for s, r in zip(scenes, batch, strict=True):
+        one = sim.simulate(s)
+        assert r.valid and np.array_equal(one.position, r.position) and np.array_equal(one.orientation, r.orientation)
