@@ -347,8 +347,6 @@ _PYDANTIC_MESSAGES = {
     "missing": "required field is missing",
     "extra_forbidden": "unknown field",
     "tuple_type": "must be a list",
-    "too_short": "has too few values",
-    "too_long": "has too many values",
     "string_type": "must be a string",
     "string_pattern_mismatch": "must be a name of letters, digits and _ (not starting with a digit), at most 64 chars",
     "literal_error": "wrong type",
