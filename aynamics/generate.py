@@ -87,6 +87,7 @@ class GenerateConfig:
         chunk_size: scenes per stored chunk (the unit of resume and sharding).
         max_attempts: resamples of one index whose simulation diverged before giving up.
         textures_dir: folder of photographs for floor and sky (None: scikit-image's samples).
+        backdrop: "photos" (floor and sky photographs) or "plain" (a random flat colour each).
         workers: processes rendering in parallel (each holds one OpenGL context); 0 = in this process.
         min_pixels: mask pixels for an object to count as visible in a frame.
     """
@@ -102,6 +103,7 @@ class GenerateConfig:
     chunk_size: int = 16
     max_attempts: int = 10
     textures_dir: str | None = None
+    backdrop: str = "photos"
     workers: int = 2
     min_pixels: int = 1
 
@@ -118,6 +120,8 @@ class GenerateConfig:
             raise ValueError(f"splits = {list(self.splits)}: need 3 shares (train, validation, test) >= 0 summing to 1")
         if not 0 <= self.workers <= 64:
             raise ValueError(f"workers = {self.workers}: must be in [0, 64]")
+        if self.backdrop not in ("photos", "plain"):
+            raise ValueError(f"backdrop = {self.backdrop!r}: must be 'photos' or 'plain'")
         if abs(self.sampler.aspect - self.width / self.height) > 1e-6 or self.sampler.duration != self.duration:
             object.__setattr__(
                 self,
@@ -256,7 +260,9 @@ def render_sampled(scene: Scene, rollout: Rollout, renderer: Renderer, config: G
     from aynamics.flow import sample_frames
 
     frames = sample_frames(len(rollout.t) - 1, config.stride)  # video frames 0..T-2
-    return renderer.render(scene, rollout, seed=seed, textures_dir=config.textures_dir, states=frames)
+    return renderer.render(
+        scene, rollout, seed=seed, textures_dir=config.textures_dir, backdrop=config.backdrop, states=frames
+    )
 
 
 def flow_images(frames: Frames, rollout: Rollout) -> tuple[np.ndarray, float]:

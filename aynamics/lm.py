@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 
+from aynamics import scene as scene_lib
 from aynamics.processor import token_logprobs
 
 TARGETS = ("answer", "think_answer")  # stage.target: the YAML alone, or motion reasoning then the YAML
@@ -80,14 +81,26 @@ class PromptSpec:
         return f"{MODALITY_NOTE[self.modality]} {USER_PROMPTS[self.target]}"
 
 
-def response_text(record: dict[str, Any], target: str) -> str:
-    """The SFT target of one data-set record: its `target_answer` or `target_think` column."""
+def response_text(record: dict[str, Any], target: str, decimals: int | None = None) -> str:
+    """The SFT target of one data-set record: its `target_answer` or `target_think` column.
+
+    `decimals` (None: as stored, the canonical 4) rounds every number of the YAML in the target: a shorter
+    target whose last digits are not noise the model has to fit (`data.decimals`).
+    """
     column = {"answer": "target_answer", "think_answer": "target_think"}.get(target)
     if column is None:
         raise ValueError(f"target = {target!r}: must be one of {TARGETS}")
     if column not in record:
         raise ValueError(f"data-set record lacks the column {column!r} (has {sorted(record)})")
-    return record[column]
+    text = record[column]
+    if decimals is None or decimals == scene_lib.DECIMALS:
+        return text
+    yaml_text = record["scene_yaml"]
+    if yaml_text not in text:
+        raise ValueError(f"record {record.get('index')!r}: its {column!r} does not hold its scene_yaml verbatim")
+    rounded = scene_lib.dump(scene_lib.parse(yaml_text), decimals)
+    scene_lib.parse(rounded)  # rounding must keep the scene valid (SceneError names the field otherwise)
+    return text.replace(yaml_text, rounded)
 
 
 @dataclass(frozen=True)
@@ -190,6 +203,25 @@ def sft_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, 
     logp, mask = token_logprobs(logits, labels)  # (B, L-1) each
     n = mask.sum()
     return -(logp.sum() / n.clamp(min=1)), n
+
+
+def shifted_visuals(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:
+    """The batch with every example's frames replaced by the next example's (the last takes the first's).
+
+    The loss on this batch minus the loss on the true one is the model's *image reliance* (`val/image_gap`):
+    about 0 means it writes the same answer whatever it sees. None where the batch cannot be shifted (one
+    example, or examples whose frames have different patch counts).
+    """
+    n = batch["input_ids"].shape[0]
+    for values, grid in (("pixel_values", "image_grid_thw"), ("pixel_values_videos", "video_grid_thw")):
+        if values not in batch:
+            continue
+        sizes = batch[grid].prod(-1)
+        if n < 2 or len(sizes) % n or len(set(sizes.tolist())) != 1:
+            return None
+        per_example = int(sizes.sum()) // n
+        return {**batch, values: torch.roll(batch[values], per_example, 0)}
+    return None
 
 
 def trainable_state_dict(model: torch.nn.Module) -> dict[str, torch.Tensor]:

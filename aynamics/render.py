@@ -140,9 +140,11 @@ class Appearance:
     lights: tuple[Light, ...]
     ambient: float
     objects: tuple[ObjectLook, ...]  # object i wears objects[i % len(objects)]
-    floor_image: Path
-    sky_image: Path
+    floor_image: Path | None  # None: a plain floor of colour floor_rgb (backdrop "plain")
+    sky_image: Path | None
     floor_repeat: float  # photograph repeats per metre of floor
+    floor_rgb: tuple[float, float, float] = (0.5, 0.5, 0.5)
+    sky_rgb: tuple[float, float, float] = (0.6, 0.6, 0.6)
 
 
 def default_texture_dir() -> Path:
@@ -174,10 +176,21 @@ def texture_images(textures_dir: str | Path | None = None) -> list[Path]:
     return paths
 
 
-def sample_appearance(seed: int, textures_dir: str | Path | None = None, n_objects: int = MAX_OBJECTS) -> Appearance:
-    """Draw lighting, object textures and floor/sky photographs from `seed` (same seed, same look)."""
+BACKDROPS = ("photos", "plain")
+
+
+def sample_appearance(
+    seed: int, textures_dir: str | Path | None = None, n_objects: int = MAX_OBJECTS, backdrop: str = "photos"
+) -> Appearance:
+    """Draw lighting, object textures and the floor/sky from `seed` (same seed, same look).
+
+    backdrop: "photos" (floor and sky photographs, the default) or "plain" (one random colour each: an easier,
+    texture-free look, e.g. for a small model trained from scratch).
+    """
+    if backdrop not in BACKDROPS:
+        raise ValueError(f"backdrop = {backdrop!r}: must be one of {BACKDROPS}")
     rng = np.random.default_rng(seed)
-    images = texture_images(textures_dir)
+    images = texture_images(textures_dir) if backdrop == "photos" else []
     lights = []
     n_lights = int(rng.integers(1, 4))
     for k in range(n_lights):
@@ -194,6 +207,12 @@ def sample_appearance(seed: int, textures_dir: str | Path | None = None, n_objec
         rgb1 = tuple(float(x) for x in rng.uniform(0.05, 1.0, 3))
         rgb2 = tuple(float(x) for x in rng.uniform(0.05, 1.0, 3))
         looks.append(ObjectLook(kind, rgb1, rgb2))
+    if backdrop == "plain":
+        floor_rgb = tuple(float(x) for x in rng.uniform(0.25, 0.75, 3))
+        sky_rgb = tuple(float(x) for x in rng.uniform(0.4, 0.9, 3))
+        return Appearance(
+            tuple(lights), float(rng.uniform(0.15, 0.35)), tuple(looks), None, None, 1.0, floor_rgb, sky_rgb
+        )
     floor, sky = rng.choice(len(images), size=2, replace=len(images) < 2)
     return Appearance(
         lights=tuple(lights),
@@ -224,7 +243,7 @@ def _load_texture(path: Path, size: int) -> bytes:
 
 def render_model(scene: Scene, appearance: Appearance, width: int, height: int) -> tuple[mujoco.MjModel, sim.Template]:
     """The scene's MuJoCo model with the appearance's lights, materials and textures (same ids as simulation)."""
-    spec = sim._spec(scene.structure)
+    spec = sim.build_spec(scene.structure)
     spec.visual.global_.offwidth = max(width, 64)
     spec.visual.global_.offheight = max(height, 64)
     spec.visual.quality.shadowsize = SHADOW_SIZE
@@ -241,9 +260,26 @@ def render_model(scene: Scene, appearance: Appearance, width: int, height: int) 
         tex.width, tex.height, tex.nchannel = size, size, 3
         tex.data = _load_texture(path, size)
 
+    def flat_texture(name: str, kind: mujoco.mjtTexture, rgb: tuple[float, float, float]) -> None:
+        spec.add_texture(
+            name=name,
+            type=kind,
+            builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT,
+            width=8,
+            height=8,
+            rgb1=list(rgb),
+            rgb2=list(rgb),
+        )
+
     rgb_role = int(mujoco.mjtTextureRole.mjTEXROLE_RGB)
-    image_texture("floor_tex", mujoco.mjtTexture.mjTEXTURE_2D, appearance.floor_image, FLOOR_TEXTURE)
-    image_texture("sky_tex", mujoco.mjtTexture.mjTEXTURE_SKYBOX, appearance.sky_image, SKY_TEXTURE)
+    if appearance.floor_image is None:
+        flat_texture("floor_tex", mujoco.mjtTexture.mjTEXTURE_2D, appearance.floor_rgb)
+    else:
+        image_texture("floor_tex", mujoco.mjtTexture.mjTEXTURE_2D, appearance.floor_image, FLOOR_TEXTURE)
+    if appearance.sky_image is None:
+        flat_texture("sky_tex", mujoco.mjtTexture.mjTEXTURE_SKYBOX, appearance.sky_rgb)
+    else:
+        image_texture("sky_tex", mujoco.mjtTexture.mjTEXTURE_SKYBOX, appearance.sky_image, SKY_TEXTURE)
     floor_mat = spec.add_material(name="floor_mat", texrepeat=[appearance.floor_repeat] * 2, texuniform=True)
     floor_mat.textures[rgb_role] = "floor_tex"
     builtin = {
@@ -281,7 +317,7 @@ def render_model(scene: Scene, appearance: Appearance, width: int, height: int) 
     except ValueError as e:
         raise RenderError(f"cannot build the render model: {e}") from None
     tpl = sim.template(scene.structure)
-    sim._write_params(model, sim.scene_params(scene, tpl))
+    sim.write_params(model, sim.scene_params(scene, tpl))
     mujoco.mj_setConst(model, mujoco.MjData(model))
     # shadow maps of directional lights cover stat.extent around stat.center: centre them where the camera looks
     cam = scene.camera
@@ -360,6 +396,7 @@ class Renderer:
         *,
         seed: int = 0,
         textures_dir: str | Path | None = None,
+        backdrop: str = "photos",
         appearance: Appearance | None = None,
         rgb: bool = True,
         segmentation: bool = True,
@@ -370,7 +407,7 @@ class Renderer:
         if self._ctx is None:
             raise RenderError("Renderer.render called after close()")
         if appearance is None:
-            appearance = sample_appearance(seed, textures_dir, n_objects=max(1, len(scene.objects)))
+            appearance = sample_appearance(seed, textures_dir, n_objects=max(1, len(scene.objects)), backdrop=backdrop)
         states = video_states(len(rollout.t)) if states is None else np.asarray(states, int)
         if len(states) and (states.min() < 0 or states.max() >= len(rollout.t)):
             raise ValueError(f"states {states.tolist()}: must index the rollout's {len(rollout.t)} states")
@@ -450,6 +487,7 @@ def render(
     height: int = camlib.HEIGHT,
     seed: int = 0,
     textures_dir: str | Path | None = None,
+    backdrop: str = "photos",
     rgb: bool = True,
     segmentation: bool = True,
     depth: bool = True,
@@ -457,7 +495,14 @@ def render(
     """Render a rollout once (a fresh GL context; use `Renderer` to render many scenes)."""
     with Renderer(width, height) as r:
         return r.render(
-            scene, rollout, seed=seed, textures_dir=textures_dir, rgb=rgb, segmentation=segmentation, depth=depth
+            scene,
+            rollout,
+            seed=seed,
+            textures_dir=textures_dir,
+            backdrop=backdrop,
+            rgb=rgb,
+            segmentation=segmentation,
+            depth=depth,
         )
 
 

@@ -66,7 +66,11 @@ RANGES: dict[str, Range] = {
         (-10.0, -10.0, -0.5), (10.0, 10.0, 10.0), "m", "world, z up", "centre of the object (of its bounding box)"
     ),
     "state.orientation": Range(
-        -1.0, 1.0, "-", "body→world", "unit quaternion [w, x, y, z], w first; norm must be in [0.9, 1.1], normalised"
+        -1.0,
+        1.0,
+        "-",
+        "body→world",
+        "quaternion [w, x, y, z], w first; normalised like MuJoCo's compiler (norm must be ≥ 0.1)",
     ),
     "state.linear_velocity": Range(-20.0, 20.0, "m/s", "world", "initial velocity of the centre"),
     "state.angular_velocity": Range(-50.0, 50.0, "rad/s", "world", "initial spin, world axes"),
@@ -220,11 +224,18 @@ def _ranged(key: str, positive: bool = False) -> AfterValidator:
     return AfterValidator(check)
 
 
+MIN_QUATERNION_NORM = 0.1  # below: too close to [0, 0, 0, 0] to name a rotation
+
+
 def _unit_quaternion(q: tuple[float, ...]) -> tuple[float, ...]:
+    # MuJoCo's compiler normalises any non-zero `quat`; so does `simulate` (the text keeps the numbers as written,
+    # so that parse(dump(s)) == s). Only a near-zero quaternion, which names no rotation, is refused.
     norm = math.sqrt(sum(x * x for x in q))
-    if not 0.9 <= norm <= 1.1:
+    if norm < MIN_QUATERNION_NORM:
         raise PydanticCustomError(
-            "range", "{msg}", {"msg": f"must be a unit quaternion [w, x, y, z] (norm {norm:.3g})"}
+            "range",
+            "{msg}",
+            {"msg": f"must be a rotation quaternion [w, x, y, z] (norm {norm:.3g} < {MIN_QUATERNION_NORM})"},
         )
     return q
 
@@ -598,14 +609,14 @@ def load(path: str) -> Scene:
 # --------------------------------------------------------------------------------------------
 # Canonical dump
 # --------------------------------------------------------------------------------------------
-def _num(x: float) -> str:
-    text = f"{x:.{DECIMALS}f}".rstrip("0")
+def _num(x: float, decimals: int = DECIMALS) -> str:
+    text = f"{x:.{decimals}f}".rstrip("0")
     text = text + "0" if text.endswith(".") else text
     return "0.0" if text == "-0.0" else text
 
 
-def _vec(v: tuple[float, ...]) -> str:
-    return "[" + ", ".join(_num(x) for x in v) + "]"
+def _vec(v: tuple[float, ...], decimals: int = DECIMALS) -> str:
+    return "[" + ", ".join(_num(x, decimals) for x in v) + "]"
 
 
 def to_items(scene: Scene) -> list[dict[str, Any]]:
@@ -654,35 +665,38 @@ def to_items(scene: Scene) -> list[dict[str, Any]]:
     return items
 
 
-def _emit(value: Any, indent: int, lines: list[str], key: str | None = None) -> None:
+def _emit(value: Any, indent: int, lines: list[str], key: str | None = None, decimals: int = DECIMALS) -> None:
     pad = " " * indent
     if isinstance(value, dict):
         if key is not None:
             lines.append(f"{pad}{key}:")
             indent += 2
         for k, v in value.items():
-            _emit(v, indent, lines, k)
+            _emit(v, indent, lines, k, decimals)
         return
     if isinstance(value, list):
-        text = _vec(tuple(value))
+        text = _vec(tuple(value), decimals)
     elif isinstance(value, float | int) and not isinstance(value, bool):
-        text = _num(float(value))
+        text = _num(float(value), decimals)
     else:
         text = str(value)
     lines.append(f"{pad}{key}: {text}")
 
 
-def dump(scene: Scene) -> str:
-    """Canonical YAML: fixed key order (the paper's), numbers with at most `DECIMALS` decimals.
+def dump(scene: Scene, decimals: int = DECIMALS) -> str:
+    """Canonical YAML: fixed key order (the paper's), numbers with at most `decimals` decimals.
 
-    `parse(dump(s)) == s` for every valid scene.
+    `parse(dump(s)) == s` for every valid scene (at the default `DECIMALS`). Fewer decimals round every number
+    (shorter training targets: `data.decimals`); the result is validated again by whoever parses it.
     """
+    if not 0 <= decimals <= DECIMALS:
+        raise ValueError(f"decimals = {decimals}: must be in [0, {DECIMALS}]")
     lines: list[str] = []
     for item in to_items(scene):
         first = True
         for k, v in item.items():
             sub: list[str] = []
-            _emit(v, 2, sub, k)
+            _emit(v, 2, sub, k, decimals)
             if first:
                 sub[0] = "- " + sub[0][2:]
                 first = False

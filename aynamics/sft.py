@@ -98,7 +98,11 @@ class SFTModule(L.LightningModule):
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         loss, _ = self._loss(batch)
-        self.log("val/loss", loss, prog_bar=True, batch_size=batch["input_ids"].shape[0], sync_dist=True)
+        bs = batch["input_ids"].shape[0]
+        self.log("val/loss", loss, prog_bar=True, batch_size=bs, sync_dist=True)
+        shifted = lm.shifted_visuals(batch)
+        if shifted is not None:  # does the model look? loss with another example's frames minus the true loss
+            self.log("val/image_gap", self._loss(shifted)[0] - loss, batch_size=bs, sync_dist=True)
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         loss, _ = self._loss(batch)

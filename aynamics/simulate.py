@@ -134,7 +134,11 @@ class Template:
     pairs: tuple[tuple[int, int], ...]  # contact sensors: (i, j) objects, j = -1 for the floor
 
 
-def _spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
+def build_spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
+    """The MjSpec of a scene structure (object types in order): floor, one free body per object, camera, sensors.
+
+    `template` compiles it once per structure; `render.render_model` adds lights and materials to a fresh one.
+    """
     spec = mujoco.MjSpec()
     spec.modelname = "aynamics_scene"
     spec.option.timestep = 1.0 / (FPS * SUBSTEPS)
@@ -175,7 +179,7 @@ def _spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
 @functools.lru_cache(maxsize=64)
 def template(structure: tuple[str, ...]) -> Template:
     """The compiled template model for a structure (cached)."""
-    model = _spec(structure).compile()
+    model = build_spec(structure).compile()
     n = len(structure)
     body_ids = np.array([model.body(f"obj{i}").id for i in range(n)])
     joints = [model.joint(f"obj{i}_joint") for i in range(n)]
@@ -261,7 +265,8 @@ def _tilt_quaternion(about_x: float, about_y: float) -> np.ndarray:
     return out
 
 
-def _write_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> None:
+def write_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> None:
+    """Write `scene_params` output (model field name -> values; "opt.x" for model.opt) into a compiled model."""
     for name, value in params.items():
         if name.startswith("opt."):
             setattr(model.opt, name[4:], value)
@@ -273,7 +278,7 @@ def compile_scene(scene: Scene, config: SimConfig | None = None) -> tuple[mujoco
     """A standalone MjModel of the scene (for rendering and single simulations), and its template."""
     tpl = template(scene.structure)
     model = _copy_model(tpl.model)
-    _write_params(model, scene_params(scene, tpl))
+    write_params(model, scene_params(scene, tpl))
     model.opt.timestep = (config or SimConfig()).timestep * time_scale(scene)  # magnus / friction_slope: no hook here
     mujoco.mj_setConst(model, mujoco.MjData(model))
     return model, tpl
@@ -625,7 +630,7 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
         radii = np.array([bounding_radius(o) for o in scene.objects])
         with np.errstate(invalid="ignore"):
             in_view = camlib.sphere_in_view(cam, position[k], radii)
-        valid, reason = _check(scene, position[k], v[k], int(raw.warnings[k]), t)
+        valid, reason = check_states(scene, position[k], v[k], int(raw.warnings[k]), t)
         rest = tuple(
             None if not valid or last == frames else (0.0 if last < 0 else float(t[last + 1]))
             for last in last_moving[k]
@@ -649,7 +654,13 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
     return out
 
 
-def _check(scene: Scene, position: np.ndarray, v: np.ndarray, nwarning: int, t: np.ndarray) -> tuple[bool, str | None]:
+def check_states(
+    scene: Scene, position: np.ndarray, v: np.ndarray, nwarning: int, t: np.ndarray
+) -> tuple[bool, str | None]:
+    """(valid, reason) of simulated states: non-finite values, blow-up speeds, MuJoCo warnings, tunnelling.
+
+    position (T, N, 3) and v (T, N, 6) per frame and object, nwarning the MuJoCo warning count, t (T,) seconds.
+    """
     names = scene.names
     finite = np.isfinite(position).all(-1) & np.isfinite(v).all(-1)  # (T, N)
     if not finite.all():

@@ -46,6 +46,37 @@ def test_labels_cover_exactly_the_response(dataset_dir, target):
     assert response.startswith("<think>") == (target == "think_answer")
 
 
+@pytest.mark.parametrize("target", lm.TARGETS)
+def test_rounded_targets_hold_the_same_scene_to_fewer_decimals(dataset_dir, target):
+    dm = _dm(dataset_dir, target=target, decimals=1)
+    record = dm.splits["train"][0]
+    full, short = lm.response_text(record, target), lm.response_text(record, target, decimals=1)
+    assert len(short) < len(full) and short.endswith("</answer>")
+    scene, rounded = parse(record["scene_yaml"]), parse(short)
+    assert rounded.names == scene.names
+    assert rounded.camera.fovy == round(scene.camera.fovy, 1)
+    assert rounded.objects[0].state.position == tuple(round(x, 1) for x in scene.objects[0].state.position)
+    labelled = dm.dataset("train")[0]["labels"]
+    assert dm.processor.tokenizer.decode(labelled[labelled != IGNORE_INDEX]) == short + "<|im_end|>"
+    with pytest.raises(ValueError, match="decimals = 7"):
+        _dm(dataset_dir, decimals=7)
+
+
+def test_cached_examples_are_built_once_and_equal(dataset_dir):
+    plain, cached = _dm(dataset_dir).dataset("train"), _dm(dataset_dir, cache=True).dataset("train")
+    first = cached[1]
+    assert cached[1] is first  # built once
+    for k, v in plain[1].items():
+        assert torch.equal(v, first[k]), k
+    dm = _dm(dataset_dir, cache=True)
+    ds = dm.dataset("train")
+    batch = dm._collate([ds[0], ds[1]])
+    for v in batch.values():
+        v.zero_()  # a batch holds fresh tensors: zeroing it leaves the cached examples untouched
+    for k, v in plain[0].items():
+        assert torch.equal(v, ds[0][k]), k
+
+
 def test_hand_made_label_mask():
     """A hand-made prompt + response: 'ab' response tokens get labels, everything before them -100.
 
@@ -107,6 +138,43 @@ def test_resumable_sampler_order():
     other = ResumableSampler(10, seed=3)
     other.set_epoch(1)
     assert list(other) != full
+
+
+def test_length_grouped_order_pads_less_and_still_resumes():
+    lengths = [1, 4, 2, 3] * 16  # 64 examples, object counts 1-4
+    kw = dict(seed=5, lengths=lengths, batch_size=4)
+    grouped = list(ResumableSampler(64, **kw))
+    assert sorted(grouped) == list(range(64))  # every example once per epoch
+    assert grouped == list(ResumableSampler(64, **kw))  # a function of (seed, epoch)
+    assert list(ResumableSampler(64, **kw, skip=8)) == grouped[8:]  # a resume skips whole batches
+
+    def padding(order):  # tokens of padding per epoch if a scene's length is its object count
+        batches = [[lengths[i] for i in order[k : k + 4]] for k in range(0, 64, 4)]
+        return sum(max(b) * len(b) - sum(b) for b in batches)
+
+    assert padding(grouped) < padding(list(ResumableSampler(64, seed=5))) / 3
+    s0 = ResumableSampler(64, **kw, rank=0, world=2)
+    s1 = ResumableSampler(64, **kw, rank=1, world=2)
+    assert sorted(list(s0) + list(s1)) == list(range(64))
+    with pytest.raises(ValueError, match="lengths has 3 entries for 64"):
+        ResumableSampler(64, seed=5, lengths=[1, 2, 3])
+
+
+def test_shifted_visuals_hand_example():
+    """Example k gets example k+1's patches (the last gets the first's); text and grids stay; odd sizes refuse."""
+    a, b = torch.full((4, 3), 1.0), torch.full((4, 3), 2.0)  # 4 patches of 3 values each
+    grid = torch.tensor([[1, 2, 2], [1, 2, 2]])
+    batch = {
+        "input_ids": torch.zeros(2, 5, dtype=torch.long),
+        "pixel_values": torch.cat([a, b]),
+        "image_grid_thw": grid,
+    }
+    shifted = lm.shifted_visuals(batch)
+    assert torch.equal(shifted["pixel_values"], torch.cat([b, a]))
+    assert shifted["input_ids"] is batch["input_ids"] and torch.equal(shifted["image_grid_thw"], grid)
+    assert lm.shifted_visuals({**batch, "image_grid_thw": torch.tensor([[1, 2, 2], [1, 2, 4]])}) is None
+    one = {"input_ids": torch.zeros(1, 5), "pixel_values": a, "image_grid_thw": grid[:1]}
+    assert lm.shifted_visuals(one) is None
 
 
 def test_mean_scene_by_hand():

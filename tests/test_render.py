@@ -105,6 +105,27 @@ def test_appearance_from_user_folder(tmp_path):
     }
 
 
+@needs_gl
+def test_plain_backdrop_is_one_flat_colour(rollout):
+    look = renderlib.sample_appearance(5, backdrop="plain")
+    assert look.floor_image is None and look.sky_image is None
+    with pytest.raises(ValueError, match="backdrop = 'tiles'"):
+        renderlib.sample_appearance(5, backdrop="tiles")
+    with renderlib.Renderer(96, 64) as r:
+        plain = r.render(SCENE, rollout, seed=5, backdrop="plain", states=[0])
+        photo = r.render(SCENE, rollout, seed=5, states=[0])
+    floor = plain.segmentation[0] == -1  # floor pixels: shading varies (lights, shadows), texture does not
+    assert floor.sum() > 1000
+
+    # a flat floor has almost no pixel-to-pixel texture; a photograph has plenty
+    def texture(frames):
+        rgb = frames.rgb[0].astype(float)
+        d = np.abs(np.diff(rgb, axis=1)).sum(-1)
+        return np.median(d[floor[:, 1:] & floor[:, :-1]])
+
+    assert texture(plain) <= 3 < texture(photo)
+
+
 def test_bad_backend_gives_clear_message(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", "glx-please")
     with pytest.raises(renderlib.RenderError, match="MUJOCO_GL = 'glx-please'"):

@@ -41,6 +41,30 @@ def test_paper_example_round_trips_and_canonical_text_is_stable():
     assert "    damping: -4.0" in text and "  gravity: [0.0, 0.0, -7.0]" in text
 
 
+def test_fewer_decimals_round_every_number_and_stay_valid():
+    s = S.parse(EXAMPLE.replace("0.97, 0.0, 0.0, 0.23", "0.9701, 0.0, 0.0, 0.2427"))
+    text = S.dump(s, decimals=1)
+    assert "orientation: [1.0, 0.0, 0.0, 0.2]" in text and "damping: -4.0" in text
+    assert S.parse(text).objects[0].state.orientation == (1.0, 0.0, 0.0, 0.2)
+    assert S.dump(s, decimals=S.DECIMALS) == S.dump(s)
+    with pytest.raises(ValueError, match="decimals = 5"):
+        S.dump(s, decimals=5)
+
+
+def test_quaternions_are_normalised_like_mujoco():
+    """Any quaternion MuJoCo's compiler accepts names a rotation: [0.5, 0, 0, 0.5] is the same yaw as the unit one."""
+    from aynamics import simulate
+
+    half = S.parse(EXAMPLE.replace("0.97, 0.0, 0.0, 0.23", "0.5, 0.0, 0.0, 0.5"))
+    unit = S.parse(EXAMPLE.replace("0.97, 0.0, 0.0, 0.23", "0.7071, 0.0, 0.0, 0.7071"))
+    assert half.objects[0].state.orientation == (0.5, 0.0, 0.0, 0.5)  # kept as written: parse(dump(s)) == s
+    tpl = simulate.template(half.structure)
+    for x, y in zip(simulate.initial_qpos_qvel(half, tpl), simulate.initial_qpos_qvel(unit, tpl), strict=True):
+        assert abs(x - y).max() < 1e-12  # the same initial state (this tipping box then amplifies 1e-16 to mm)
+    with pytest.raises(S.SceneError, match=r"orientation = \[0.01, 0.0, 0.0, 0.05\]: must be a rotation quaternion"):
+        S.parse(EXAMPLE.replace("0.97, 0.0, 0.0, 0.23", "0.01, 0.0, 0.0, 0.05"))
+
+
 def test_defaults_names_and_gravity_filled_in():
     s = S.parse(
         """

@@ -405,11 +405,11 @@ def test_check_names_the_object_and_time():
     pos = np.zeros((3, 2, 3))
     vel = np.zeros((3, 2, 6))
     pos[2, 1, 0] = np.nan
-    ok, reason = sim._check(s, pos, vel, 0, t)
+    ok, reason = sim.check_states(s, pos, vel, 0, t)
     assert not ok and "sphere_0" in reason and "t=0.067" in reason
     pos[2, 1, 0] = 0.0
     pos[1, 0, 2] = -1.0
-    ok, reason = sim._check(s, pos, vel, 0, t)
+    ok, reason = sim.check_states(s, pos, vel, 0, t)
     assert not ok and reason.startswith("tunnelled: a")
 
 

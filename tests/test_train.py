@@ -79,7 +79,14 @@ def test_cli_command_as_written(tmp_path, dataset_dir):
     assert (out / "checkpoints" / "last.ckpt").is_file()
     with open(out / "csv" / "metrics.csv") as f:
         header = next(csv.reader(f))
-    assert {"train/loss", "val/loss", "val/yaml_valid", "val/iou_full", "val/baseline/iou_full"} <= set(header)
+    assert {
+        "train/loss",
+        "val/loss",
+        "val/image_gap",
+        "val/yaml_valid",
+        "val/iou_full",
+        "val/baseline/iou_full",
+    } <= set(header)
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2
     assert "yaml_valid" in done.stdout  # the validation table
 
