@@ -24,6 +24,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+import timing  # noqa: E402
 
 from aynamics import generate as gen  # noqa: E402
 
@@ -50,12 +51,8 @@ def _full(job: tuple[int, int]) -> dict:
 
 
 def _best(fn, repeats: int) -> tuple[float, object]:
-    best, out = float("inf"), None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
+    t = timing.timed(fn, repeats)
+    return t.best, t.result
 
 
 def stages(config: gen.GenerateConfig, indices: range) -> dict[str, float]:

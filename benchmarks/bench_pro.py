@@ -21,6 +21,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from timing import timed  # noqa: E402
 
 from aynamics import lm  # noqa: E402
 from aynamics import reward as rw  # noqa: E402
@@ -41,13 +42,9 @@ def perturbed(scene, rng: np.random.Generator):
     return scene.model_copy(update={"objects": tuple(objs)})
 
 
-def timed(fn, repeats: int):
-    best, out = float("inf"), None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
+def best_and_result(fn, repeats: int):
+    t = timed(fn, repeats)
+    return t.best, t.result
 
 
 def main() -> None:
@@ -102,12 +99,12 @@ def main() -> None:
             min_new_tokens=n_tokens,
         )
 
-    t_sample, (s_ids, _) = timed(sample, 1)
+    t_sample, (s_ids, _) = best_and_result(sample, 1)
     got = int(np.mean([len(i) for row in s_ids for i in row]))
 
     observations = [v.observation for v in videos]
-    t_score, scores = timed(lambda: rw.score_completions(texts, observations), args.repeats)
-    t_score2, _ = timed(lambda: rw.score_completions(texts, observations, workers=2), args.repeats)
+    t_score, scores = best_and_result(lambda: rw.score_completions(texts, observations), args.repeats)
+    t_score2, _ = best_and_result(lambda: rw.score_completions(texts, observations, workers=2), args.repeats)
     valid = sum(s.valid for row in scores for s in row)
     rewards = rw.rewards_of(scores)
 
@@ -118,7 +115,7 @@ def main() -> None:
         return loss
 
     fwd_bwd()  # warm-up
-    t_fb, _ = timed(fwd_bwd, args.repeats)
+    t_fb, _ = best_and_result(fwd_bwd, args.repeats)
     total = t_sample + t_score + t_fb
     print(f"\nOne PRO step ({n_cands} candidates), tiny model, CPU:")
     print(f"  sampling          {t_sample:8.2f} s   ({n_cands * got / t_sample:7.0f} tokens/s, {got} tokens each)")

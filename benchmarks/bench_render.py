@@ -11,24 +11,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
-import numpy as np
+from timing import timed
 
 from aynamics import flow as flowlib
 from aynamics import render as renderlib
 from aynamics import scene as S
 from aynamics import simulate as sim
-
-
-def timed(fn, repeats: int) -> tuple[float, float, object]:
-    """Best and median seconds of `repeats` calls, and the last result."""
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return float(np.min(times)), float(np.median(times)), out
 
 
 def main() -> None:

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
 import numpy as np
+from timing import timed
 
 from aynamics import flow as flowlib
 from aynamics import metrics, scorer
@@ -74,12 +74,7 @@ def naive(cands: list[S.Scene], obs: scorer.Observation, r: renderlib.Renderer) 
 
 
 def median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return timed(fn, repeats).median
 
 
 def main() -> None:

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
 import mujoco
 import numpy as np
+from timing import timed
 
 from aynamics import scene as S
 from aynamics import simulate as sim
@@ -48,12 +48,7 @@ def three_object_scenes(n: int, seed: int = 0) -> list[S.Scene]:
 
 
 def best_of(fn, repeats: int = 3) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
+    return timed(fn, repeats).best
 
 
 def main() -> None:
