@@ -77,11 +77,12 @@ class SFTDataset(Dataset):
         return len(self.split)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        i = int(i)
         if self._cache is None:
-            return self._build(int(i))
-        if int(i) not in self._cache:  # the same tensors every epoch: build once (a worker keeps its own copy)
-            self._cache[int(i)] = self._build(int(i))
-        return self._cache[int(i)]
+            return self._build(i)
+        if i not in self._cache:  # the same tensors every epoch: build once (a worker keeps its own copy)
+            self._cache[i] = self._build(i)
+        return self._cache[i]
 
     def _build(self, i: int) -> dict[str, torch.Tensor]:
         record = self.split[i]

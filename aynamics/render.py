@@ -209,18 +209,15 @@ def sample_appearance(
         looks.append(ObjectLook(kind, rgb1, rgb2))
     if backdrop == "plain":
         floor_rgb = tuple(float(x) for x in rng.uniform(0.25, 0.75, 3))
-        sky_rgb = tuple(float(x) for x in rng.uniform(0.4, 0.9, 3))
-        return Appearance(
-            tuple(lights), float(rng.uniform(0.15, 0.35)), tuple(looks), None, None, 1.0, floor_rgb, sky_rgb
-        )
-    floor, sky = rng.choice(len(images), size=2, replace=len(images) < 2)
+        backdrop_look = {"floor_rgb": floor_rgb, "sky_rgb": tuple(float(x) for x in rng.uniform(0.4, 0.9, 3))}
+        backdrop_look |= {"floor_image": None, "sky_image": None}
+    else:
+        floor, sky = rng.choice(len(images), size=2, replace=len(images) < 2)
+        backdrop_look = {"floor_image": images[int(floor)], "sky_image": images[int(sky)]}
+    ambient = float(rng.uniform(0.15, 0.35))
+    floor_repeat = float(rng.uniform(0.2, 0.6)) if backdrop == "photos" else 1.0  # a flat floor has no repeat
     return Appearance(
-        lights=tuple(lights),
-        ambient=float(rng.uniform(0.15, 0.35)),
-        objects=tuple(looks),
-        floor_image=images[int(floor)],
-        sky_image=images[int(sky)],
-        floor_repeat=float(rng.uniform(0.2, 0.6)),
+        lights=tuple(lights), ambient=ambient, objects=tuple(looks), floor_repeat=floor_repeat, **backdrop_look
     )
 
 
