@@ -43,13 +43,13 @@ test-all: setup  ## run every test, slow ones included
 bench: setup  ## run the benchmark scripts; they print measured figures and ratios
 	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done
 
-TRAIN_DATA ?= data/generated/make_train
-TRAIN_SCENES ?= 384
+TRAIN_DATA ?= data/generated/make_train_plain
+TRAIN_SCENES ?= 1536
 TRAIN_OUT ?= runs/make_train
 
 train: setup  ## generate a small data set if missing, train the tiny model on the CPU (~15 min), print the validation table
 	@test -f $(TRAIN_DATA)/dataset_dict.json || $(BIN)/aynamics generate --num $(TRAIN_SCENES) --out $(TRAIN_DATA) \
-	  --seed 0 --quiet width=112 height=80
+	  --seed 0 --quiet width=112 height=80 backdrop=plain
 	$(BIN)/python train.py experiment=make_train data.dir=$(TRAIN_DATA) hydra.run.dir=$(TRAIN_OUT)
 
 lint: setup  ## ruff lint + format check

@@ -23,8 +23,9 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from aynamics import lm
 from aynamics import scene as scene_lib
-from aynamics.processor import build_prompt, build_sft_example, collate
+from aynamics.processor import build_prompt, build_sft_example, collate, sample_frames
 from aynamics.scene import Scene, from_items, parse, to_items
+from aynamics.visual_targets import token_targets
 
 SPLITS = ("train", "validation", "test")
 
@@ -66,11 +67,15 @@ class SFTDataset(Dataset):
         limit: int | None = None,
         decimals: int | None = None,
         cache: bool = False,
+        visual_targets: bool = False,
+        object_names: bool = True,
     ) -> None:
         self.split = split if limit is None else split.select(range(min(limit, len(split))))
         self.processor = processor
         self.prompt = prompt
         self.decimals = decimals
+        self.visual_targets = visual_targets
+        self.object_names = object_names
         self._cache: dict[int, dict[str, torch.Tensor]] | None = {} if cache else None
 
     def __len__(self) -> int:
@@ -87,15 +92,29 @@ class SFTDataset(Dataset):
     def _build(self, i: int) -> dict[str, torch.Tensor]:
         record = self.split[i]
         p = self.prompt
-        return build_sft_example(
+        ex = build_sft_example(
             self.processor,
             frames_of(record, p.modality),
-            lm.response_text(record, p.target, self.decimals),
+            lm.response_text(record, p.target, self.decimals, self.object_names),
             system_prompt=p.system_prompt,
             user_prompt=p.user_prompt,
             examples=p.examples,
             as_video=p.as_video,
         )
+        if self.visual_targets:  # flow frame f is the motion from frame f: the same masks for both modalities
+            masks = sample_frames(record["segmentation"], self.processor.num_frames)
+            grid = ex["video_grid_thw"] if p.as_video else ex["image_grid_thw"]
+            ip = self.processor.image_processor
+            ex["visual_targets"] = token_targets(
+                masks,
+                record["shapes"],
+                grid,
+                as_video=p.as_video,
+                patch_size=ip.patch_size,
+                merge_size=ip.merge_size,
+                temporal_patch_size=ip.temporal_patch_size,
+            )
+        return ex
 
 
 class ResumableSampler(Sampler[int]):
@@ -197,6 +216,11 @@ class SceneDataModule(L.LightningDataModule):
         cache: Keep every built example (decoded frames + tokens) in memory after its first use: later epochs
             skip PNG decoding and the processor (~30 ms per example at 112×80; memory ~0.5 MB per example there).
         group_by_length: Batch scenes with similar object counts together (less padding; see ResumableSampler).
+        visual_targets: Add per-visual-token targets from the segmentation to every example (`visual_targets`:
+            objects and shapes each merged token covers), for `SFTModule(vision_aux_weight > 0)`.
+        object_names: Write the objects' names in the target YAML. False leaves out the default names
+            (`box_0`, `box_1`, ...), which the parser fills back in: the same scene, and one thing less for a
+            small model to get wrong (a repeated name makes the scene invalid).
     """
 
     def __init__(
@@ -219,6 +243,8 @@ class SceneDataModule(L.LightningDataModule):
         decimals: int | None = None,
         cache: bool = False,
         group_by_length: bool = False,
+        visual_targets: bool = False,
+        object_names: bool = True,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -235,9 +261,11 @@ class SceneDataModule(L.LightningDataModule):
         if decimals is not None and not 0 <= decimals <= scene_lib.DECIMALS:
             raise ValueError(f"decimals = {decimals}: must be in [0, {scene_lib.DECIMALS}] or null")
         self.decimals, self.cache, self.group_by_length = decimals, cache, group_by_length
+        self.visual_targets, self.object_names = visual_targets, object_names
         self.prompt = lm.PromptSpec(target, modality, as_video, num_frames, min_pixels, max_pixels)  # checks values
         self.splits = None
         self.processor = None
+        self._datasets: dict[tuple[str, int | None], SFTDataset] = {}
 
     def setup(self, stage: str | None = None) -> None:
         if self.splits is not None:
@@ -265,11 +293,26 @@ class SceneDataModule(L.LightningDataModule):
         return collate(examples, self.pad_token_id)
 
     def dataset(self, split: str, limit: int | None = None) -> SFTDataset:
+        """The examples of `split` (the same object on every call when `cache`: built examples are shared)."""
         if split not in self.splits or len(self.splits[split]) == 0:
             raise ValueError(
                 f"data.dir = {self.dir!r} has no {split!r} examples (splits: {dict(self.splits.num_rows)})"
             )
-        return SFTDataset(self.splits[split], self.processor, self.prompt, limit, self.decimals, self.cache)
+        if (split, limit) in self._datasets:
+            return self._datasets[(split, limit)]
+        ds = SFTDataset(
+            self.splits[split],
+            self.processor,
+            self.prompt,
+            limit,
+            self.decimals,
+            self.cache,
+            self.visual_targets,
+            self.object_names,
+        )
+        if self.cache:
+            self._datasets[(split, limit)] = ds
+        return ds
 
     def train_dataloader(self) -> DataLoader:
         ds = self.dataset("train", self.limit_train)

@@ -81,11 +81,12 @@ class PromptSpec:
         return f"{MODALITY_NOTE[self.modality]} {USER_PROMPTS[self.target]}"
 
 
-def response_text(record: dict[str, Any], target: str, decimals: int | None = None) -> str:
+def response_text(record: dict[str, Any], target: str, decimals: int | None = None, names: bool = True) -> str:
     """The SFT target of one data-set record: its `target_answer` or `target_think` column.
 
     `decimals` (None: as stored, the canonical 4) rounds every number of the YAML in the target: a shorter
-    target whose last digits are not noise the model has to fit (`data.decimals`).
+    target whose last digits are not noise the model has to fit (`data.decimals`). `names=False` leaves out
+    the default object names (`box_0`, `box_1`, ...), which the parser fills back in (`data.object_names`).
     """
     column = {"answer": "target_answer", "think_answer": "target_think"}.get(target)
     if column is None:
@@ -93,12 +94,12 @@ def response_text(record: dict[str, Any], target: str, decimals: int | None = No
     if column not in record:
         raise ValueError(f"data-set record lacks the column {column!r} (has {sorted(record)})")
     text = record[column]
-    if decimals is None or decimals == scene_lib.DECIMALS:
+    if (decimals is None or decimals == scene_lib.DECIMALS) and names:
         return text
     yaml_text = record["scene_yaml"]
     if yaml_text not in text:
         raise ValueError(f"record {record.get('index')!r}: its {column!r} does not hold its scene_yaml verbatim")
-    rounded = scene_lib.dump(scene_lib.parse(yaml_text), decimals)
+    rounded = scene_lib.dump(scene_lib.parse(yaml_text), scene_lib.DECIMALS if decimals is None else decimals, names)
     scene_lib.parse(rounded)  # rounding must keep the scene valid (SceneError names the field otherwise)
     return text.replace(yaml_text, rounded)
 

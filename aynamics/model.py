@@ -189,12 +189,13 @@ def lora_target_regex(target_modules: Sequence[str] = DEFAULT_LORA_TARGETS) -> s
 
 def set_vision_trainable(model: torch.nn.Module, trainable: bool) -> None:
     """Freeze (`trainable=False`) or unfreeze the vision tower (`model.visual`, patch merger included)."""
-    visual = _find_visual(model)
+    visual = find_visual(model)
     for p in visual.parameters():
         p.requires_grad_(trainable)
 
 
-def _find_visual(model: torch.nn.Module) -> torch.nn.Module:
+def find_visual(model: torch.nn.Module) -> torch.nn.Module:
+    """The vision tower of a Qwen2.5-VL model, bare or wrapped by peft."""
     for name, module in model.named_modules():
         if name == "visual" or name.endswith(".visual"):
             return module

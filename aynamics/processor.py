@@ -380,6 +380,7 @@ _CAT_KEYS = (
     "pixel_values_videos",
     "video_grid_thw",
     "second_per_grid_ts",
+    "visual_targets",  # per visual token (aynamics.visual_targets), when the data module adds them
 )
 
 

@@ -683,16 +683,31 @@ def _emit(value: Any, indent: int, lines: list[str], key: str | None = None, dec
     lines.append(f"{pad}{key}: {text}")
 
 
-def dump(scene: Scene, decimals: int = DECIMALS) -> str:
+def default_names(structure: tuple[str, ...]) -> tuple[str, ...]:
+    """The names `parse` gives objects written without one: `{type}_{k}`, k counting objects of that type."""
+    seen: dict[str, int] = {}
+    out = []
+    for t in structure:
+        out.append(f"{t}_{seen.get(t, 0)}")
+        seen[t] = seen.get(t, 0) + 1
+    return tuple(out)
+
+
+def dump(scene: Scene, decimals: int = DECIMALS, names: bool = True) -> str:
     """Canonical YAML: fixed key order (the paper's), numbers with at most `decimals` decimals.
 
     `parse(dump(s)) == s` for every valid scene (at the default `DECIMALS`). Fewer decimals round every number
     (shorter training targets: `data.decimals`); the result is validated again by whoever parses it.
+    `names=False` leaves the `name` lines out when every name is the default one (`default_names`), which
+    `parse` fills back in, so the scene read back is the same; a scene with any other name keeps them all.
     """
     if not 0 <= decimals <= DECIMALS:
         raise ValueError(f"decimals = {decimals}: must be in [0, {DECIMALS}]")
+    drop_names = not names and scene.names == default_names(scene.structure)
     lines: list[str] = []
     for item in to_items(scene):
+        if drop_names:
+            item.pop("name", None)
         first = True
         for k, v in item.items():
             sub: list[str] = []

@@ -12,6 +12,7 @@ continues exactly; `callbacks.AdapterExport` writes the peft folder that `PeftMo
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import random
 
@@ -19,10 +20,12 @@ import lightning as L
 import numpy as np
 import torch
 
-from aynamics import lm
+from aynamics import lm, visual_targets
+from aynamics.model import find_visual
 from aynamics.processor import model_inputs
 
 SCHEDULES = ("cosine", "constant")
+log = logging.getLogger(__name__)
 
 
 def lr_factor(step: int, *, warmup_steps: int, total_steps: int, schedule: str, min_ratio: float) -> float:
@@ -46,6 +49,14 @@ class SFTModule(L.LightningModule):
         schedule: "cosine" (decay to `min_lr_ratio * lr` at the last step) or "constant".
         min_lr_ratio: Final learning rate as a share of `lr` (cosine), in [0, 1].
         betas: AdamW betas.
+        vision_aux_weight: Weight of the dense visual loss (`aynamics.visual_targets`): a linear head on the
+            merged visual tokens learns what each token covers. For vision towers trained from scratch (the
+            tiny model), which the language loss alone does not teach to see; needs `data.visual_targets=true`
+            and a trainable vision tower. 0 (default): off.
+        vision_warmup_steps: Steps of the dense visual loss alone (vision tower + head, batches of the data's
+            batch size, peak `lr`) at the start of a fresh run, before the language model trains: learnt only
+            jointly, the visual tokens become informative after the language model has learned to ignore them.
+            Needs vision_aux_weight > 0. Skipped on resume (the checkpoint holds the warmed-up tower).
     """
 
     def __init__(
@@ -57,6 +68,8 @@ class SFTModule(L.LightningModule):
         schedule: str = "cosine",
         min_lr_ratio: float = 0.1,
         betas: tuple[float, float] = (0.9, 0.999),
+        vision_aux_weight: float = 0.0,
+        vision_warmup_steps: int = 0,
     ) -> None:
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= min_lr_ratio <= 1:
@@ -66,6 +79,13 @@ class SFTModule(L.LightningModule):
             )
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule = {schedule!r}: must be one of {SCHEDULES}")
+        if not (vision_aux_weight >= 0 and math.isfinite(vision_aux_weight)):
+            raise ValueError(f"vision_aux_weight = {vision_aux_weight}: must be a finite number >= 0")
+        if vision_warmup_steps < 0 or (vision_warmup_steps and not vision_aux_weight):
+            raise ValueError(
+                f"vision_warmup_steps = {vision_warmup_steps}: must be >= 0, and > 0 only with vision_aux_weight > 0"
+                f" (got {vision_aux_weight})"
+            )
         spec = spec if isinstance(spec, lm.ModelSpec) else lm.ModelSpec(**spec)  # a dict: from a checkpoint
         self.save_hyperparameters(
             {
@@ -76,30 +96,108 @@ class SFTModule(L.LightningModule):
                 "schedule": schedule,
                 "min_lr_ratio": min_lr_ratio,
                 "betas": list(betas),
+                "vision_aux_weight": vision_aux_weight,
+                "vision_warmup_steps": vision_warmup_steps,
             }
         )
         self.spec = spec
         self.model = lm.build_model(spec)
+        self.visual_head: torch.nn.Linear | None = None
+        self._visual_tokens: torch.Tensor | None = None
+        if vision_aux_weight > 0:
+            if not spec.train_vision:
+                raise ValueError(
+                    f"vision_aux_weight = {vision_aux_weight} trains the vision tower: set model.train_vision=true"
+                )
+            visual = find_visual(self.model)
+            self.visual_head = torch.nn.Linear(visual.config.out_hidden_size, visual_targets.NUM_OUTPUTS)
+            visual.register_forward_hook(self._keep_visual_tokens)
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
         self._rng_to_restore: dict | None = None
 
     # ------------------------------------------------------------------ steps
+    def _keep_visual_tokens(self, module, args, output) -> None:
+        self._visual_tokens = getattr(output, "pooler_output", output)  # merged tokens, in the processor's order
+
     def _loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         out = self.model(**model_inputs(batch), use_cache=False)
         return lm.sft_loss(out.logits, batch["labels"])
+
+    def _vision_aux(self, batch: dict[str, torch.Tensor], bs: int, prefix: str) -> torch.Tensor | None:
+        """The dense visual loss of the forward just run (None when off), with its statistics logged."""
+        if self.visual_head is None:
+            return None
+        if "visual_targets" not in batch:
+            raise ValueError(
+                f"vision_aux_weight = {self.hparams.vision_aux_weight} needs per-token targets: set "
+                "data.visual_targets=true"
+            )
+        tokens, targets = self._visual_tokens, batch["visual_targets"]
+        if tokens is None or tokens.shape[0] != targets.shape[0]:
+            got = None if tokens is None else tuple(tokens.shape)
+            raise ValueError(f"visual tokens {got} do not match visual_targets {tuple(targets.shape)}")
+        aux, stats = visual_targets.aux_loss(self.visual_head(tokens), targets)
+        self.log(f"{prefix}/vision_aux", aux, batch_size=bs, sync_dist=prefix != "train")
+        for k, v in stats.items():
+            self.log(f"{prefix}/vision_{k}", v, batch_size=bs, sync_dist=prefix != "train")
+        self._visual_tokens = None
+        return aux
+
+    def on_fit_start(self) -> None:
+        """With the dense visual loss: check the data has its targets; on a fresh run with vision_warmup_steps > 0,
+        train the vision tower on that loss alone first."""
+        if self.visual_head is None:
+            return
+        datamodule = self.trainer.datamodule
+        if datamodule is None or not getattr(datamodule, "visual_targets", False):
+            raise ValueError(
+                f"vision_aux_weight = {self.hparams.vision_aux_weight} needs per-token targets: set "
+                "data.visual_targets=true"
+            )
+        steps = self.hparams.vision_warmup_steps
+        # Resuming (global_step is restored only after this hook): the checkpoint holds the warmed-up weights.
+        if not steps or self.trainer.ckpt_path is not None:
+            return
+        history = visual_targets.warm_up(
+            find_visual(self.model),
+            self.visual_head,
+            datamodule.dataset("train", datamodule.limit_train),
+            steps=steps,
+            batch_size=datamodule.batch_size,
+            lr=self.hparams.lr,
+            seed=datamodule.seed,
+        )
+        if self.trainer.world_size > 1:  # every rank ran the same steps; make sure they hold rank 0's weights
+            warmed = {k: v.detach().clone() for k, v in self.state_dict().items() if "visual" in k}
+            self.load_state_dict(self.trainer.strategy.broadcast(warmed), strict=False)
+        for row in history:
+            for k, v in row.items():
+                if k != "step" and self.logger is not None:
+                    self.logger.log_metrics({f"warmup/vision_{k}": v}, step=row["step"])
+        last = history[-1]
+        log.info(
+            "vision warm-up: %d steps, token count accuracy %.3f, object recall %.3f",
+            steps,
+            last["count_acc"],
+            last["object_recall"],
+        )
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         loss, n = self._loss(batch)
         bs = batch["input_ids"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        aux = self._vision_aux(batch, bs, "train")
+        if aux is not None:
+            self.log("train/total_loss", loss + self.hparams.vision_aux_weight * aux, batch_size=bs)
         self.log("train/response_tokens", n.float(), batch_size=bs, reduce_fx="sum", on_step=True, on_epoch=False)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=bs, on_step=True, on_epoch=False)
-        return loss
+        return loss if aux is None else loss + self.hparams.vision_aux_weight * aux
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         loss, _ = self._loss(batch)
         bs = batch["input_ids"].shape[0]
         self.log("val/loss", loss, prog_bar=True, batch_size=bs, sync_dist=True)
+        self._vision_aux(batch, bs, "val")
         shifted = lm.shifted_visuals(batch)
         if shifted is not None:  # does the model look? loss with another example's frames minus the true loss
             self.log("val/image_gap", self._loss(shifted)[0] - loss, batch_size=bs, sync_dist=True)
@@ -109,7 +207,7 @@ class SFTModule(L.LightningModule):
         self.log("test/loss", loss, batch_size=batch["input_ids"].shape[0], sync_dist=True)
 
     def configure_optimizers(self):
-        params = [p for p in self.model.parameters() if p.requires_grad]
+        params = [p for p in self.parameters() if p.requires_grad]  # the model's, and the visual head's
         if not params:
             raise ValueError("no trainable parameters: check model.lora_* and model.train_vision")
         hp = self.hparams
@@ -130,7 +228,7 @@ class SFTModule(L.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Keep only the trainable weights (the adapter) and record the RNG states for an exact resume."""
-        trainable = {f"model.{k}" for k, p in self.model.named_parameters() if p.requires_grad}
+        trainable = {k for k, p in self.named_parameters() if p.requires_grad}
         checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
         kind, keys, pos, has_gauss, gauss = np.random.get_state()
         # plain types and tensors only: Lightning loads checkpoints with torch.load(weights_only=True)
@@ -141,9 +239,7 @@ class SFTModule(L.LightningModule):
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        missing = {f"model.{k}" for k, p in self.model.named_parameters() if p.requires_grad} - set(
-            checkpoint["state_dict"]
-        )
+        missing = {k for k, p in self.named_parameters() if p.requires_grad} - set(checkpoint["state_dict"])
         if missing:
             raise ValueError(
                 f"checkpoint lacks {len(missing)} trainable weights of this model (e.g. {sorted(missing)[0]!r}): "

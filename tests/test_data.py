@@ -62,6 +62,15 @@ def test_rounded_targets_hold_the_same_scene_to_fewer_decimals(dataset_dir, targ
         _dm(dataset_dir, decimals=7)
 
 
+def test_targets_without_object_names_read_back_as_the_same_scene(dataset_dir):
+    dm = _dm(dataset_dir, object_names=False)
+    for i, record in enumerate(dm.splits["train"]):
+        text = lm.response_text(record, "answer", names=False)
+        assert "name:" not in text and parse(text) == parse(record["scene_yaml"])
+        labelled = dm.dataset("train")[i]["labels"]
+        assert dm.processor.tokenizer.decode(labelled[labelled != IGNORE_INDEX]) == text + "<|im_end|>"
+
+
 def test_cached_examples_are_built_once_and_equal(dataset_dir):
     plain, cached = _dm(dataset_dir).dataset("train"), _dm(dataset_dir, cache=True).dataset("train")
     first = cached[1]

@@ -293,3 +293,15 @@ def test_round_trip_random_scenes(objects, camera, gravity):
 def test_readme_holds_the_range_table():
     readme = (Path(__file__).parents[1] / "README.md").read_text()
     assert S.ranges_markdown() in readme, "README's scene-format table is stale: paste `aynamics ranges --markdown`"
+
+
+def test_dump_without_names_keeps_the_scene():
+    """Default names are left out and filled back in; a scene with any other name keeps every name."""
+    items = S.to_items(S.parse(EXAMPLE))  # box_0, cylinder_0, camera, gravity
+    second_box = {k: v for k, v in items[0].items() if k != "name"}
+    scene = S.from_items([items[0], items[1], second_box, *items[2:]])
+    assert scene.names == ("box_0", "cylinder_0", "box_1") == S.default_names(scene.structure)
+    short = S.dump(scene, names=False)
+    assert "name:" not in short and S.parse(short) == scene
+    renamed = S.from_items([items[0], {**items[1], "name": "can"}, second_box, *items[2:]])
+    assert S.dump(renamed, names=False) == S.dump(renamed) and "name: can" in S.dump(renamed)

@@ -133,11 +133,14 @@ def test_adapter_save_and_reload_give_identical_outputs(tmp_path, dataset_dir):
     assert torch.equal(expected, got)
 
 
-def test_resume_continues_exactly(tmp_path, dataset_dir):
+@pytest.mark.parametrize("vision_aux", [False, True])
+def test_resume_continues_exactly(tmp_path, dataset_dir, vision_aux):
     """4 steps straight vs 2 steps + resume from the step-2 checkpoint: the same adapter weights, bit for bit.
 
     LoRA dropout is on (0.1), so the RNG state must be restored too; 5 training records at batch size 2 make
     3 batches per epoch, so the resumed run starts mid-epoch (step 2 of 3) and crosses an epoch boundary.
+    With the dense visual loss, the fresh runs warm the vision tower up first and the resumed one must not
+    (its checkpoint holds the warmed-up tower and the head).
     """
     common = [
         f"data.dir={dataset_dir}",
@@ -148,6 +151,9 @@ def test_resume_continues_exactly(tmp_path, dataset_dir):
         "trainer.enable_progress_bar=false",
         "model.lora_dropout=0.1",
     ]
+    if vision_aux:
+        common += ["data.visual_targets=true", "stage.module.vision_aux_weight=0.5"]
+        common += ["stage.module.vision_warmup_steps=3"]
     train(_cfg(tmp_path / "a", *common, "trainer.max_steps=4"))
     train(_cfg(tmp_path / "b", *common, "trainer.max_steps=2"))
     ckpt = tmp_path / "b" / "checkpoints" / "step000002.ckpt"
@@ -159,7 +165,38 @@ def test_resume_continues_exactly(tmp_path, dataset_dir):
     for k in a["state_dict"]:
         assert torch.equal(a["state_dict"][k], c["state_dict"][k]), k
     # the checkpoint holds only trainable weights (the adapter), not the frozen base
-    assert all("lora_" in k or "modules_to_save" in k for k in a["state_dict"])
+    assert all("lora_" in k or "modules_to_save" in k or "visual" in k for k in a["state_dict"])
+    assert ("visual_head.weight" in a["state_dict"]) == vision_aux
+
+
+def test_vision_aux_is_logged_and_misconfigurations_are_named(tmp_path, dataset_dir):
+    """The dense visual loss and its warm-up reach the CSV; wrong combinations fail before training, naming the keys."""
+    cfg = _cfg(
+        tmp_path,
+        f"data.dir={dataset_dir}",
+        "data.visual_targets=true",
+        "stage.module.vision_aux_weight=1.0",
+        "stage.module.vision_warmup_steps=2",
+        "logger=csv",
+        "trainer.max_steps=2",
+        "trainer.log_every_n_steps=1",
+        "trainer.val_check_interval=2",
+        "callbacks.evaluation=null",
+        "trainer.enable_progress_bar=false",
+    )
+    metrics = train(cfg)
+    assert {"train/vision_aux", "val/vision_aux", "val/vision_count_acc"} <= set(metrics)
+    with open(tmp_path / "csv" / "metrics.csv") as f:
+        header = next(csv.reader(f))
+    assert {"warmup/vision_loss", "train/vision_aux", "train/total_loss"} <= set(header)
+
+    with pytest.raises(ValueError, match="model.train_vision=true"):
+        SFTModule(lm.ModelSpec(kind="tiny", train_vision=False), vision_aux_weight=1.0)
+    with pytest.raises(ValueError, match="vision_warmup_steps = 5"):
+        SFTModule(lm.ModelSpec(kind="tiny"), vision_warmup_steps=5)
+    with pytest.raises(ValueError, match="data.visual_targets=true"):
+        overrides = [f"data.dir={dataset_dir}", "stage.module.vision_aux_weight=1.0", "trainer.max_steps=1"]
+        train(_cfg(tmp_path / "x", *overrides))
 
 
 @pytest.mark.slow
