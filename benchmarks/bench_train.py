@@ -5,7 +5,7 @@ checkpointing off vs on.
 
 Each configuration runs in a fresh process (so its peak resident memory is its own): build the model and the
 data module, run `steps` optimizer steps (the first is a warm-up, not timed), print samples/s and the peak RSS
-increase over the process after setup. Uses `data/generated/make_train` when present, else generates 12 scenes at
+increase over the process after setup. Uses `data/generated/make_train_plain` when present, else generates 12 scenes at
 64×48 into a temporary folder with the real generator. Numbers depend on the machine and its load: compare the
 ratios printed at the end, measured in one run.
 """
@@ -73,7 +73,7 @@ def _measure(args: tuple) -> dict:
 def _dataset(path: str | None) -> str:
     if path:
         return path
-    default = ROOT / "data" / "generated" / "make_train"
+    default = ROOT / "data" / "generated" / "make_train_plain"
     if (default / "dataset_dict.json").is_file():
         return str(default)
     from aynamics.generate import GenerateConfig, generate_dataset
@@ -88,7 +88,7 @@ def _dataset(path: str | None) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", help="generated data set folder (default: data/generated/make_train or a fresh one)")
+    p.add_argument("--data", help="generated data set folder (default: data/generated/make_train_plain or a fresh one)")
     p.add_argument("--steps", type=int, default=6, help="optimizer steps per configuration (first untimed)")
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--frames", type=int, default=4, help="frames per example")
