@@ -76,7 +76,10 @@ def test_data_stage_and_callbacks_instantiate(tmp_path):
 
 def test_experiment_overrides_compose(tmp_path):
     cfg = _compose(tmp_path, "experiment=make_train")
-    assert cfg.model.tiny.hidden_size == 128 and cfg.data.dir == "data/generated/make_train"
+    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text()
+    assert f"TRAIN_DATA ?= {cfg.data.dir}\n" in makefile  # the folder `make train` generates is the one it reads
+    assert cfg.model.tiny.hidden_size == 128
+    assert cfg.data.visual_targets and cfg.stage.module.vision_aux_weight > 0  # the dense loss needs its targets
     cfg = _compose(tmp_path, "experiment=make_train", "trainer.max_steps=7")
     assert cfg.trainer.max_steps == 7
 
