@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from aynamics import lm
 from aynamics import scene as scene_lib
-from aynamics.processor import build_prompt, build_sft_example, collate, sample_frames
+from aynamics.processor import IGNORE_INDEX, build_prompt, build_sft_example, collate, sample_frames, type_tokens
 from aynamics.scene import Scene, from_items, parse, to_items
 from aynamics.visual_targets import token_targets
 
@@ -69,6 +69,7 @@ class SFTDataset(Dataset):
         cache: bool = False,
         visual_targets: bool = False,
         object_names: bool = True,
+        type_weight: float = 1.0,
     ) -> None:
         self.split = split if limit is None else split.select(range(min(limit, len(split))))
         self.processor = processor
@@ -76,6 +77,7 @@ class SFTDataset(Dataset):
         self.decimals = decimals
         self.visual_targets = visual_targets
         self.object_names = object_names
+        self.type_weight = type_weight
         self._cache: dict[int, dict[str, torch.Tensor]] | None = {} if cache else None
 
     def __len__(self) -> int:
@@ -92,15 +94,20 @@ class SFTDataset(Dataset):
     def _build(self, i: int) -> dict[str, torch.Tensor]:
         record = self.split[i]
         p = self.prompt
+        response = lm.response_text(record, p.target, self.decimals, self.object_names)
         ex = build_sft_example(
             self.processor,
             frames_of(record, p.modality),
-            lm.response_text(record, p.target, self.decimals, self.object_names),
+            response,
             system_prompt=p.system_prompt,
             user_prompt=p.user_prompt,
             examples=p.examples,
             as_video=p.as_video,
         )
+        types = type_tokens(self.processor, response)
+        ex["type_tokens"] = torch.cat([torch.zeros(len(ex["input_ids"]) - len(types), dtype=torch.bool), types])
+        if self.type_weight != 1.0:  # 0 on the prompt (no loss there anyway), 1 or type_weight on the response
+            ex["loss_weights"] = (ex["labels"] != IGNORE_INDEX) * (1.0 + (self.type_weight - 1.0) * ex["type_tokens"])
         if self.visual_targets:  # flow frame f is the motion from frame f: the same masks for both modalities
             masks = sample_frames(record["segmentation"], self.processor.num_frames)
             grid = ex["video_grid_thw"] if p.as_video else ex["image_grid_thw"]
@@ -221,6 +228,8 @@ class SceneDataModule(L.LightningDataModule):
         object_names: Write the objects' names in the target YAML. False leaves out the default names
             (`box_0`, `box_1`, ...), which the parser fills back in: the same scene, and one thing less for a
             small model to get wrong (a repeated name makes the scene invalid).
+        type_weight: Training-loss weight of the tokens that spell each entry's type (`processor.type_tokens`):
+            > 1 stresses the few choices that set the object count and shapes. 1: no weights (plain mean).
     """
 
     def __init__(
@@ -245,6 +254,7 @@ class SceneDataModule(L.LightningDataModule):
         group_by_length: bool = False,
         visual_targets: bool = False,
         object_names: bool = True,
+        type_weight: float = 1.0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -262,6 +272,9 @@ class SceneDataModule(L.LightningDataModule):
             raise ValueError(f"decimals = {decimals}: must be in [0, {scene_lib.DECIMALS}] or null")
         self.decimals, self.cache, self.group_by_length = decimals, cache, group_by_length
         self.visual_targets, self.object_names = visual_targets, object_names
+        if not (type_weight > 0 and math.isfinite(type_weight)):
+            raise ValueError(f"type_weight = {type_weight}: must be a finite number > 0")
+        self.type_weight = type_weight
         self.prompt = lm.PromptSpec(target, modality, as_video, num_frames, min_pixels, max_pixels)  # checks values
         self.splits = None
         self.processor = None
@@ -309,6 +322,7 @@ class SceneDataModule(L.LightningDataModule):
             self.cache,
             self.visual_targets,
             self.object_names,
+            self.type_weight,
         )
         if self.cache:
             self._datasets[(split, limit)] = ds

@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from aynamics import scene as scene_lib
-from aynamics.processor import token_logprobs
+from aynamics.processor import IGNORE_INDEX, token_logprobs
 
 TARGETS = ("answer", "think_answer")  # stage.target: the YAML alone, or motion reasoning then the YAML
 MODALITIES = ("rgb", "flow")  # data.modality: the frames shown to the model
@@ -190,12 +190,16 @@ def load_processor(spec: ModelSpec, prompt: PromptSpec):
     )
 
 
-def sft_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def sft_loss(
+    logits: torch.Tensor, labels: torch.Tensor, weights: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Token-mean negative log-likelihood of the labelled tokens (the usual next-token shift).
 
     Args:
         logits: (B, L, V) model outputs.
         labels: (B, L), -100 where no loss (prompt, images, padding).
+        weights: Optional (B, L) per-token weights aligned with `labels` (`processor.type_weights`): the loss
+            is then the weighted mean, sum(w · nll) / sum(w), over the labelled tokens.
 
     Returns:
         (loss, n_tokens): the mean over all labelled tokens of the batch, and their count (a 0-d long tensor).
@@ -203,7 +207,30 @@ def sft_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, 
     """
     logp, mask = token_logprobs(logits, labels)  # (B, L-1) each
     n = mask.sum()
-    return -(logp.sum() / n.clamp(min=1)), n
+    if weights is None:
+        return -(logp.sum() / n.clamp(min=1)), n
+    if weights.shape != labels.shape:
+        raise ValueError(f"loss weights {tuple(weights.shape)} do not match labels {tuple(labels.shape)}")
+    w = weights[:, 1:].to(logp.dtype) * mask
+    return -((w * logp).sum() / w.sum().clamp(min=1e-12)), n
+
+
+def token_accuracy(logits: torch.Tensor, labels: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Teacher-forced accuracy of the greedy next token on the labelled tokens where `mask` is True (with the
+    usual shift: labels[:, t] is predicted by logits[:, t - 1]); NaN when there are none.
+
+    On the type tokens (`processor.type_tokens`) with the true frames, and again with another example's frames
+    (`shifted_visuals`), it says whether the model reads what is in the video: the two are equal when it
+    does not.
+    """
+    if logits.shape[:2] != labels.shape or mask.shape != labels.shape:
+        raise ValueError(
+            f"logits {tuple(logits.shape)}, labels {tuple(labels.shape)}, mask {tuple(mask.shape)} disagree on (B, L)"
+        )
+    keep = mask[:, 1:] & (labels[:, 1:] != IGNORE_INDEX)
+    if not keep.any():
+        return torch.tensor(float("nan"))
+    return (logits[:, :-1][keep].argmax(-1) == labels[:, 1:][keep]).float().mean()
 
 
 def shifted_visuals(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:

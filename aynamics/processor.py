@@ -23,6 +23,7 @@ training is indifferent to it because Qwen2.5-VL derives its 3-D positions from 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -337,6 +338,25 @@ def response_ids(processor: ImageOnlyQwenProcessor, response: str) -> list[int]:
     return list(ids) + [processor.tokenizer.convert_tokens_to_ids("<|im_end|>")]
 
 
+TYPE_VALUE = re.compile(r"\btype:[ \t]*([A-Za-z_]+)")
+
+
+def type_tokens(processor: ImageOnlyQwenProcessor, response: str) -> torch.Tensor:
+    """Which tokens of `response_ids(processor, response)` spell an entry's type (the `box` of `type: box`, and
+    `camera`, `gravity`, ...): a bool mask, <|im_end|> included (False).
+
+    Those few tokens are the choices that decide how many objects a scene has and of which shapes: among ~450
+    number and format tokens they carry little of the mean loss (`data.type_weight` stresses them), and the
+    model's accuracy on them says whether it reads the frames (`val/type_acc`).
+    """
+    enc = processor.tokenizer(response, add_special_tokens=False, return_offsets_mapping=True)
+    spans = [m.span(1) for m in TYPE_VALUE.finditer(response)]
+    out = torch.zeros(len(enc["input_ids"]) + 1, dtype=torch.bool)  # + <|im_end|>
+    for k, (a, b) in enumerate(enc["offset_mapping"]):
+        out[k] = any(a < e and b > s for s, e in spans)
+    return out
+
+
 def build_sft_example(
     processor: ImageOnlyQwenProcessor,
     frames: Sequence[Frame],
@@ -373,7 +393,14 @@ def append_response(prompt: dict[str, torch.Tensor], completion: Sequence[int]) 
 # --------------------------------------------------------------------------------------------
 # Batching
 # --------------------------------------------------------------------------------------------
-_PAD_VALUES = {"input_ids": None, "attention_mask": 0, "labels": IGNORE_INDEX, "mm_token_type_ids": TEXT}
+_PAD_VALUES = {
+    "input_ids": None,
+    "attention_mask": 0,
+    "labels": IGNORE_INDEX,
+    "mm_token_type_ids": TEXT,
+    "type_tokens": False,  # per token (`type_tokens`), added by the data module
+    "loss_weights": 0.0,  # per token, when the data module has a type_weight
+}
 _CAT_KEYS = (
     "pixel_values",
     "image_grid_thw",

@@ -57,6 +57,8 @@ class SFTModule(L.LightningModule):
             batch size, peak `lr`) at the start of a fresh run, before the language model trains: learnt only
             jointly, the visual tokens become informative after the language model has learned to ignore them.
             Needs vision_aux_weight > 0. Skipped on resume (the checkpoint holds the warmed-up tower).
+        vision_augment: Mirror and recolour the frames during that warm-up (`visual_targets.Augment`).
+        vision_share_weight: Weight of the pixel-share term of the dense loss (`visual_targets.aux_loss`).
     """
 
     def __init__(
@@ -70,6 +72,8 @@ class SFTModule(L.LightningModule):
         betas: tuple[float, float] = (0.9, 0.999),
         vision_aux_weight: float = 0.0,
         vision_warmup_steps: int = 0,
+        vision_augment: bool = True,
+        vision_share_weight: float = visual_targets.SHARE_WEIGHT,
     ) -> None:
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= min_lr_ratio <= 1:
@@ -81,6 +85,8 @@ class SFTModule(L.LightningModule):
             raise ValueError(f"schedule = {schedule!r}: must be one of {SCHEDULES}")
         if not (vision_aux_weight >= 0 and math.isfinite(vision_aux_weight)):
             raise ValueError(f"vision_aux_weight = {vision_aux_weight}: must be a finite number >= 0")
+        if not (vision_share_weight >= 0 and math.isfinite(vision_share_weight)):
+            raise ValueError(f"vision_share_weight = {vision_share_weight}: must be a finite number >= 0")
         if vision_warmup_steps < 0 or (vision_warmup_steps and not vision_aux_weight):
             raise ValueError(
                 f"vision_warmup_steps = {vision_warmup_steps}: must be >= 0, and > 0 only with vision_aux_weight > 0"
@@ -98,6 +104,8 @@ class SFTModule(L.LightningModule):
                 "betas": list(betas),
                 "vision_aux_weight": vision_aux_weight,
                 "vision_warmup_steps": vision_warmup_steps,
+                "vision_augment": vision_augment,
+                "vision_share_weight": vision_share_weight,
             }
         )
         self.spec = spec
@@ -119,9 +127,12 @@ class SFTModule(L.LightningModule):
     def _keep_visual_tokens(self, module, args, output) -> None:
         self._visual_tokens = getattr(output, "pooler_output", output)  # merged tokens, in the processor's order
 
-    def _loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.model(**model_inputs(batch), use_cache=False)
-        return lm.sft_loss(out.logits, batch["labels"])
+    def _loss(
+        self, batch: dict[str, torch.Tensor], weighted: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Mean response NLL, token count, logits; `weighted`: with the data's `loss_weights` if any (training)."""
+        logits = self.model(**model_inputs(batch), use_cache=False).logits
+        return *lm.sft_loss(logits, batch["labels"], batch.get("loss_weights") if weighted else None), logits
 
     def _vision_aux(self, batch: dict[str, torch.Tensor], bs: int, prefix: str) -> torch.Tensor | None:
         """The dense visual loss of the forward just run (None when off), with its statistics logged."""
@@ -136,7 +147,14 @@ class SFTModule(L.LightningModule):
         if tokens is None or tokens.shape[0] != targets.shape[0]:
             got = None if tokens is None else tuple(tokens.shape)
             raise ValueError(f"visual tokens {got} do not match visual_targets {tuple(targets.shape)}")
-        aux, stats = visual_targets.aux_loss(self.visual_head(tokens), targets)
+        grid = batch["video_grid_thw"] if "video_grid_thw" in batch else batch["image_grid_thw"]
+        merge = find_visual(self.model).spatial_merge_size
+        aux, stats = visual_targets.aux_loss(
+            self.visual_head(tokens),
+            targets,
+            visual_targets.frame_tokens(grid, merge),
+            self.hparams.vision_share_weight,
+        )
         self.log(f"{prefix}/vision_aux", aux, batch_size=bs, sync_dist=prefix != "train")
         for k, v in stats.items():
             self.log(f"{prefix}/vision_{k}", v, batch_size=bs, sync_dist=prefix != "train")
@@ -166,6 +184,10 @@ class SFTModule(L.LightningModule):
             batch_size=datamodule.batch_size,
             lr=self.hparams.lr,
             seed=datamodule.seed,
+            augment=visual_targets.Augment.of(datamodule.processor.image_processor)
+            if self.hparams.vision_augment
+            else None,
+            share_weight=self.hparams.vision_share_weight,
         )
         if self.trainer.world_size > 1:  # every rank ran the same steps; make sure they hold rank 0's weights
             warmed = {k: v.detach().clone() for k, v in self.state_dict().items() if "visual" in k}
@@ -176,14 +198,15 @@ class SFTModule(L.LightningModule):
                     self.logger.log_metrics({f"warmup/vision_{k}": v}, step=row["step"])
         last = history[-1]
         log.info(
-            "vision warm-up: %d steps, token count accuracy %.3f, object recall %.3f",
+            "vision warm-up: %d steps, token count accuracy %.3f, object recall %.3f, frame count accuracy %.3f",
             steps,
             last["count_acc"],
             last["object_recall"],
+            last["frame_count_acc"],
         )
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
-        loss, n = self._loss(batch)
+        loss, n, _ = self._loss(batch, weighted=True)  # validation and test report the plain mean
         bs = batch["input_ids"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         aux = self._vision_aux(batch, bs, "train")
@@ -194,16 +217,23 @@ class SFTModule(L.LightningModule):
         return loss if aux is None else loss + self.hparams.vision_aux_weight * aux
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
-        loss, _ = self._loss(batch)
+        loss, _, logits = self._loss(batch)
         bs = batch["input_ids"].shape[0]
         self.log("val/loss", loss, prog_bar=True, batch_size=bs, sync_dist=True)
         self._vision_aux(batch, bs, "val")
+        types = batch.get("type_tokens")
+        if types is not None and types.any():  # teacher-forced: which shape comes next, or the camera (no more)
+            self.log("val/type_acc", lm.token_accuracy(logits, batch["labels"], types), batch_size=bs, sync_dist=True)
         shifted = lm.shifted_visuals(batch)
-        if shifted is not None:  # does the model look? loss with another example's frames minus the true loss
-            self.log("val/image_gap", self._loss(shifted)[0] - loss, batch_size=bs, sync_dist=True)
+        if shifted is not None:  # does the model look? the same with another example's frames
+            other_loss, _, other = self._loss(shifted)
+            self.log("val/image_gap", other_loss - loss, batch_size=bs, sync_dist=True)
+            if types is not None and types.any():
+                acc = lm.token_accuracy(other, batch["labels"], types)
+                self.log("val/type_acc_other_frames", acc, batch_size=bs, sync_dist=True)
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
-        loss, _ = self._loss(batch)
+        loss, _, _ = self._loss(batch)
         self.log("test/loss", loss, batch_size=batch["input_ids"].shape[0], sync_dist=True)
 
     def configure_optimizers(self):

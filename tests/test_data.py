@@ -71,6 +71,27 @@ def test_targets_without_object_names_read_back_as_the_same_scene(dataset_dir):
         assert dm.processor.tokenizer.decode(labelled[labelled != IGNORE_INDEX]) == text + "<|im_end|>"
 
 
+def test_type_weights_cover_the_response_types_only(dataset_dir):
+    """`data.type_weight` weighs the tokens spelling each entry's type (and only those); `type_tokens` marks them."""
+    dm = _dm(dataset_dir, type_weight=4.0, object_names=False)
+    tok = dm.processor.tokenizer
+    for i, record in enumerate(dm.splits["train"]):
+        ex = dm.dataset("train")[i]
+        w, labels = ex["loss_weights"], ex["labels"]
+        assert w.shape == labels.shape and (w[labels == IGNORE_INDEX] == 0).all()  # the prompt weighs nothing
+        types = [tok.decode([int(t)]).strip() for t in ex["input_ids"][w == 4.0]]
+        assert types == [o.type for o in parse(record["scene_yaml"]).objects] + ["camera", "gravity"]
+        assert set(w[labels != IGNORE_INDEX].tolist()) == {1.0, 4.0}
+        assert torch.equal(ex["type_tokens"], w == 4.0)
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["loss_weights"].shape == batch["labels"].shape
+    assert (batch["loss_weights"][batch["attention_mask"] == 0] == 0).all()  # padding weighs nothing
+    plain = _dm(dataset_dir).dataset("train")[0]
+    assert "loss_weights" not in plain and plain["type_tokens"].sum() >= 3  # weight 1: no weights, types marked
+    with pytest.raises(ValueError, match="type_weight = 0"):
+        _dm(dataset_dir, type_weight=0)
+
+
 def test_cached_examples_are_built_once_and_equal(dataset_dir):
     plain, cached = _dm(dataset_dir).dataset("train"), _dm(dataset_dir, cache=True).dataset("train")
     first = cached[1]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from aynamics.lm import sft_loss, token_accuracy
 from aynamics.processor import (
     IGNORE_INDEX,
     IMAGE,
@@ -20,9 +21,11 @@ from aynamics.processor import (
     collate,
     load_processor,
     mean_token_logprob,
+    response_ids,
     sample_frames,
     token_logprobs,
     trim_completion,
+    type_tokens,
 )
 from aynamics.tokenizer_build import SPECIAL_TOKENS, TAG_TOKENS, TINY_ASSET_DIR, build_tokenizer
 
@@ -183,6 +186,41 @@ def test_mean_token_logprob_hand_computed():
     lp, mask = token_logprobs(logits, labels)
     assert mask.tolist() == [[True, True], [False, False]]
     assert lp[0].tolist() == pytest.approx([math.log(0.5), math.log(0.75)], abs=1e-6)
+
+
+def test_weighted_sft_loss_by_hand():
+    """The logits of the test above: token NLLs log 2 and log 4/3. Weights 1 and 3 on the two labelled tokens:
+    (1 · log 2 + 3 · log 4/3) / 4; the unweighted mean is (log 2 + log 4/3) / 2."""
+    logits = torch.tensor([[[0.0, 0.0], [math.log(3.0), 0.0], [5.0, -5.0]]])
+    labels = torch.tensor([[IGNORE_INDEX, 1, 0]])
+    plain, n = sft_loss(logits, labels)
+    assert plain.item() == pytest.approx((math.log(2) + math.log(4 / 3)) / 2, abs=1e-6) and n.item() == 2
+    weighted, n = sft_loss(logits, labels, torch.tensor([[0.0, 1.0, 3.0]]))
+    assert weighted.item() == pytest.approx((math.log(2) + 3 * math.log(4 / 3)) / 4, abs=1e-6) and n.item() == 2
+    assert sft_loss(logits, labels, torch.ones(1, 3))[0].item() == pytest.approx(plain.item())
+    with pytest.raises(ValueError, match=r"loss weights \(1, 2\) do not match labels \(1, 3\)"):
+        sft_loss(logits, labels, torch.ones(1, 2))
+
+
+def test_type_tokens_mark_the_type_values(proc):
+    response = "<answer>- type: sphere\n  radius: 0.1\n- type: camera\n  fovy: 50.0\n</answer>"
+    mask = type_tokens(proc, response)
+    ids = response_ids(proc, response)
+    assert mask.dtype == torch.bool and len(mask) == len(ids)
+    assert [proc.tokenizer.decode([i]) for i, m in zip(ids, mask.tolist()) if m] == [" sphere", " camera"]
+    assert not type_tokens(proc, "<answer>no types here</answer>").any()
+
+
+def test_token_accuracy_by_hand():
+    """Labels [-, 1, 0, 1]; greedy predictions from logits[0..2]: 1, 1, 0. The mask keeps tokens 1 and 3:
+    1 right (token 1), 1 wrong (token 3: predicted 0): 0.5. Token 2 alone: wrong, 0.0."""
+    logits = torch.tensor([[[0.0, 1.0], [0.0, 2.0], [3.0, 0.0], [0.0, 0.0]]])
+    labels = torch.tensor([[IGNORE_INDEX, 1, 0, 1]])
+    assert token_accuracy(logits, labels, torch.tensor([[False, True, False, True]])).item() == 0.5
+    assert token_accuracy(logits, labels, torch.tensor([[False, False, True, False]])).item() == 0.0
+    assert math.isnan(token_accuracy(logits, labels, torch.zeros(1, 4, dtype=torch.bool)).item())
+    with pytest.raises(ValueError, match=r"mask \(1, 3\)"):
+        token_accuracy(logits, labels, torch.ones(1, 3, dtype=torch.bool))
 
 
 def test_errors_name_the_bad_value(proc, frames):

@@ -104,7 +104,7 @@ def test_one_step_changes_trainable_only(dataset_dir):
     trainable = {k for k, p in module.model.named_parameters() if p.requires_grad}
     assert trainable and all("lora_" in k for k in trainable)
     opt = torch.optim.AdamW([p for p in module.model.parameters() if p.requires_grad], lr=1e-2)
-    loss, _ = module._loss(batch)
+    loss, _, _ = module._loss(batch)
     loss.backward()
     opt.step()
     for k, p in module.model.named_parameters():
@@ -169,12 +169,29 @@ def test_resume_continues_exactly(tmp_path, dataset_dir, vision_aux):
     assert ("visual_head.weight" in a["state_dict"]) == vision_aux
 
 
+def test_type_weights_reach_the_training_loss_only(dataset_dir):
+    """Training takes the weighted mean of `data.type_weight`; validation reports the plain one."""
+    dm = SceneDataModule(
+        str(dataset_dir), lm.ModelSpec(kind="tiny").processor_path, num_frames=2, batch_size=2, type_weight=5.0
+    )
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    module = SFTModule(lm.ModelSpec(kind="tiny"))
+    with torch.no_grad():
+        logits = module.model(**model_inputs(batch), use_cache=False).logits
+        weighted, plain = module._loss(batch, weighted=True)[0].item(), module._loss(batch)[0].item()
+    assert weighted == pytest.approx(lm.sft_loss(logits, batch["labels"], batch["loss_weights"])[0].item(), rel=1e-5)
+    assert plain == pytest.approx(lm.sft_loss(logits, batch["labels"])[0].item(), rel=1e-5)
+    assert abs(weighted - plain) > 1e-4
+
+
 def test_vision_aux_is_logged_and_misconfigurations_are_named(tmp_path, dataset_dir):
     """The dense visual loss and its warm-up reach the CSV; wrong combinations fail before training, naming the keys."""
     cfg = _cfg(
         tmp_path,
         f"data.dir={dataset_dir}",
         "data.visual_targets=true",
+        "data.type_weight=5",
         "stage.module.vision_aux_weight=1.0",
         "stage.module.vision_warmup_steps=2",
         "logger=csv",
@@ -185,13 +202,16 @@ def test_vision_aux_is_logged_and_misconfigurations_are_named(tmp_path, dataset_
         "trainer.enable_progress_bar=false",
     )
     metrics = train(cfg)
-    assert {"train/vision_aux", "val/vision_aux", "val/vision_count_acc"} <= set(metrics)
+    assert {"train/vision_aux", "val/vision_aux", "val/vision_count_acc", "val/vision_frame_count_acc"} <= set(metrics)
+    assert 0 <= metrics["val/type_acc"] <= 1 and 0 <= metrics["val/type_acc_other_frames"] <= 1
     with open(tmp_path / "csv" / "metrics.csv") as f:
         header = next(csv.reader(f))
     assert {"warmup/vision_loss", "train/vision_aux", "train/total_loss"} <= set(header)
 
     with pytest.raises(ValueError, match="model.train_vision=true"):
         SFTModule(lm.ModelSpec(kind="tiny", train_vision=False), vision_aux_weight=1.0)
+    with pytest.raises(ValueError, match="vision_share_weight = -1"):
+        SFTModule(lm.ModelSpec(kind="tiny"), vision_aux_weight=1.0, vision_share_weight=-1.0)
     with pytest.raises(ValueError, match="vision_warmup_steps = 5"):
         SFTModule(lm.ModelSpec(kind="tiny"), vision_warmup_steps=5)
     with pytest.raises(ValueError, match="data.visual_targets=true"):
