@@ -198,8 +198,9 @@ def sft_loss(
     Args:
         logits: (B, L, V) model outputs.
         labels: (B, L), -100 where no loss (prompt, images, padding).
-        weights: Optional (B, L) per-token weights aligned with `labels` (`processor.type_weights`): the loss
-            is then the weighted mean, sum(w · nll) / sum(w), over the labelled tokens.
+        weights: Optional (B, L) per-token weights aligned with `labels` (`data.type_weight` on the
+            `processor.type_tokens`): the loss is then the weighted mean, sum(w · nll) / sum(w), over the
+            labelled tokens.
 
     Returns:
         (loss, n_tokens): the mean over all labelled tokens of the batch, and their count (a 0-d long tensor).

@@ -112,12 +112,14 @@ class SFTModule(L.LightningModule):
         self.model = lm.build_model(spec)
         self.visual_head: torch.nn.Linear | None = None
         self._visual_tokens: torch.Tensor | None = None
+        self._merge_size = 2
         if vision_aux_weight > 0:
             if not spec.train_vision:
                 raise ValueError(
                     f"vision_aux_weight = {vision_aux_weight} trains the vision tower: set model.train_vision=true"
                 )
             visual = find_visual(self.model)
+            self._merge_size = visual.spatial_merge_size  # tokens per frame, for the frame-count statistic
             self.visual_head = torch.nn.Linear(visual.config.out_hidden_size, visual_targets.NUM_OUTPUTS)
             visual.register_forward_hook(self._keep_visual_tokens)
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
@@ -134,25 +136,27 @@ class SFTModule(L.LightningModule):
         logits = self.model(**model_inputs(batch), use_cache=False).logits
         return *lm.sft_loss(logits, batch["labels"], batch.get("loss_weights") if weighted else None), logits
 
+    def _no_targets(self) -> ValueError:
+        return ValueError(
+            f"vision_aux_weight = {self.hparams.vision_aux_weight} needs per-token targets: set "
+            "data.visual_targets=true"
+        )
+
     def _vision_aux(self, batch: dict[str, torch.Tensor], bs: int, prefix: str) -> torch.Tensor | None:
         """The dense visual loss of the forward just run (None when off), with its statistics logged."""
         if self.visual_head is None:
             return None
         if "visual_targets" not in batch:
-            raise ValueError(
-                f"vision_aux_weight = {self.hparams.vision_aux_weight} needs per-token targets: set "
-                "data.visual_targets=true"
-            )
+            raise self._no_targets()
         tokens, targets = self._visual_tokens, batch["visual_targets"]
         if tokens is None or tokens.shape[0] != targets.shape[0]:
             got = None if tokens is None else tuple(tokens.shape)
             raise ValueError(f"visual tokens {got} do not match visual_targets {tuple(targets.shape)}")
         grid = batch["video_grid_thw"] if "video_grid_thw" in batch else batch["image_grid_thw"]
-        merge = find_visual(self.model).spatial_merge_size
         aux, stats = visual_targets.aux_loss(
             self.visual_head(tokens),
             targets,
-            visual_targets.frame_tokens(grid, merge),
+            visual_targets.frame_tokens(grid, self._merge_size),
             self.hparams.vision_share_weight,
         )
         self.log(f"{prefix}/vision_aux", aux, batch_size=bs, sync_dist=prefix != "train")
@@ -168,10 +172,7 @@ class SFTModule(L.LightningModule):
             return
         datamodule = self.trainer.datamodule
         if datamodule is None or not getattr(datamodule, "visual_targets", False):
-            raise ValueError(
-                f"vision_aux_weight = {self.hparams.vision_aux_weight} needs per-token targets: set "
-                "data.visual_targets=true"
-            )
+            raise self._no_targets()
         steps = self.hparams.vision_warmup_steps
         # Resuming (global_step is restored only after this hook): the checkpoint holds the warmed-up weights.
         if not steps or self.trainer.ckpt_path is not None:
@@ -222,13 +223,14 @@ class SFTModule(L.LightningModule):
         self.log("val/loss", loss, prog_bar=True, batch_size=bs, sync_dist=True)
         self._vision_aux(batch, bs, "val")
         types = batch.get("type_tokens")
-        if types is not None and types.any():  # teacher-forced: which shape comes next, or the camera (no more)
+        has_types = types is not None and bool(types.any())
+        if has_types:  # teacher-forced: which shape comes next, or the camera (no more)
             self.log("val/type_acc", lm.token_accuracy(logits, batch["labels"], types), batch_size=bs, sync_dist=True)
         shifted = lm.shifted_visuals(batch)
         if shifted is not None:  # does the model look? the same with another example's frames
             other_loss, _, other = self._loss(shifted)
             self.log("val/image_gap", other_loss - loss, batch_size=bs, sync_dist=True)
-            if types is not None and types.any():
+            if has_types:
                 acc = lm.token_accuracy(other, batch["labels"], types)
                 self.log("val/type_acc_other_frames", acc, batch_size=bs, sync_dist=True)
 

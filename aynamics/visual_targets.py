@@ -7,8 +7,8 @@ to ignore the frames (see the README's status). The generator already knows what
 reads) is trained to say, for every token, how many objects have their centre in its 28×28-pixel block (0, 1, 2,
 3 or more), of which shapes, and what share of each object's pixels it holds (a density map: summed over a
 frame's tokens it is the number of objects in view, with no block-boundary ambiguity — the usual way to count
-with dense maps). `vision_warmup_steps` trains on this loss alone first, on flipped and recoloured frames
-(`augment`): ~1 200 scenes are few for a tower learnt from zero. A pretrained tower (Qwen's) needs none of this;
+with dense maps). `vision_warmup_steps` trains on this loss alone first, optionally on mirrored and recoloured
+frames (`Augment`): ~1 200 scenes are few for a tower learnt from zero. A pretrained tower (Qwen's) needs none of this;
 the default weight is 0.
 
 Token order is the model's: per image, row-major over the (h/28, w/28) merge blocks; for a video, per frame pair
@@ -278,7 +278,7 @@ def warm_up(
         grid_thw = torch.cat([ex[grid] for ex in examples])
         out = visual(torch.cat(pixels), grid_thw=grid_thw)
         tokens = getattr(out, "pooler_output", out)
-        merge = augment.merge_size if augment is not None else getattr(visual, "spatial_merge_size", 2)
+        merge = getattr(visual, "spatial_merge_size", 2)
         loss, stats = aux_loss(head(tokens), torch.cat(targets), frame_tokens(grid_thw, merge), share_weight)
         for g in opt.param_groups:
             g["lr"] = lr * min(1.0, (step + 1) / max(1, warmup_steps))
