@@ -70,6 +70,7 @@ class SFTDataset(Dataset):
         visual_targets: bool = False,
         object_names: bool = True,
         type_weight: float = 1.0,
+        objects_last: bool = False,
     ) -> None:
         self.split = split if limit is None else split.select(range(min(limit, len(split))))
         self.processor = processor
@@ -78,6 +79,7 @@ class SFTDataset(Dataset):
         self.visual_targets = visual_targets
         self.object_names = object_names
         self.type_weight = type_weight
+        self.objects_last = objects_last
         self._cache: dict[int, dict[str, torch.Tensor]] | None = {} if cache else None
 
     def __len__(self) -> int:
@@ -94,7 +96,7 @@ class SFTDataset(Dataset):
     def _build(self, i: int) -> dict[str, torch.Tensor]:
         record = self.split[i]
         p = self.prompt
-        response = lm.response_text(record, p.target, self.decimals, self.object_names)
+        response = lm.response_text(record, p.target, self.decimals, self.object_names, self.objects_last)
         ex = build_sft_example(
             self.processor,
             frames_of(record, p.modality),
@@ -230,6 +232,9 @@ class SceneDataModule(L.LightningDataModule):
             small model to get wrong (a repeated name makes the scene invalid).
         type_weight: Training-loss weight of the tokens that spell each entry's type (`processor.type_tokens`):
             > 1 stresses the few choices that set the object count and shapes. 1: no weights (plain mean).
+        objects_last: Write the camera and gravity before the objects in the target YAML and the in-context
+            examples (`scene.dump`): "one more object or the end" is then one token, not "camera" weighed
+            against each shape, which greedy decoding picks too early.
     """
 
     def __init__(
@@ -255,6 +260,7 @@ class SceneDataModule(L.LightningDataModule):
         visual_targets: bool = False,
         object_names: bool = True,
         type_weight: float = 1.0,
+        objects_last: bool = False,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
@@ -274,7 +280,7 @@ class SceneDataModule(L.LightningDataModule):
         self.visual_targets, self.object_names = visual_targets, object_names
         if not (type_weight > 0 and math.isfinite(type_weight)):
             raise ValueError(f"type_weight = {type_weight}: must be a finite number > 0")
-        self.type_weight = type_weight
+        self.type_weight, self.objects_last = type_weight, objects_last
         self.prompt = lm.PromptSpec(target, modality, as_video, num_frames, min_pixels, max_pixels)  # checks values
         self.splits = None
         self.processor = None
@@ -289,9 +295,8 @@ class SceneDataModule(L.LightningDataModule):
         if len(self.splits["train"]) == 0:
             raise ValueError(f"data.dir = {self.dir!r}: the train split is empty")
         if self.num_examples:
-            examples = tuple(
-                self.splits["train"].select(range(min(self.num_examples, len(self.splits["train"]))))["scene_yaml"]
-            )
+            stored = self.splits["train"].select(range(min(self.num_examples, len(self.splits["train"]))))["scene_yaml"]
+            examples = tuple(lm.scene_text(y, self.decimals, self.object_names, self.objects_last) for y in stored)
             self.prompt = lm.PromptSpec(**{**self.prompt.__dict__, "examples": examples})
         p = self.prompt
         self.processor = load_processor(
@@ -318,11 +323,12 @@ class SceneDataModule(L.LightningDataModule):
             self.processor,
             self.prompt,
             limit,
-            self.decimals,
-            self.cache,
-            self.visual_targets,
-            self.object_names,
-            self.type_weight,
+            decimals=self.decimals,
+            cache=self.cache,
+            visual_targets=self.visual_targets,
+            object_names=self.object_names,
+            type_weight=self.type_weight,
+            objects_last=self.objects_last,
         )
         if self.cache:
             self._datasets[(split, limit)] = ds

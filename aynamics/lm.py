@@ -81,12 +81,15 @@ class PromptSpec:
         return f"{MODALITY_NOTE[self.modality]} {USER_PROMPTS[self.target]}"
 
 
-def response_text(record: dict[str, Any], target: str, decimals: int | None = None, names: bool = True) -> str:
+def response_text(
+    record: dict[str, Any], target: str, decimals: int | None = None, names: bool = True, objects_last: bool = False
+) -> str:
     """The SFT target of one data-set record: its `target_answer` or `target_think` column.
 
     `decimals` (None: as stored, the canonical 4) rounds every number of the YAML in the target: a shorter
     target whose last digits are not noise the model has to fit (`data.decimals`). `names=False` leaves out
     the default object names (`box_0`, `box_1`, ...), which the parser fills back in (`data.object_names`).
+    `objects_last=True` writes the camera and gravity before the objects (`scene.dump`; `data.objects_last`).
     """
     column = {"answer": "target_answer", "think_answer": "target_think"}.get(target)
     if column is None:
@@ -94,14 +97,27 @@ def response_text(record: dict[str, Any], target: str, decimals: int | None = No
     if column not in record:
         raise ValueError(f"data-set record lacks the column {column!r} (has {sorted(record)})")
     text = record[column]
-    if (decimals is None or decimals == scene_lib.DECIMALS) and names:
+    if _as_stored(decimals, names, objects_last):
         return text
     yaml_text = record["scene_yaml"]
     if yaml_text not in text:
         raise ValueError(f"record {record.get('index')!r}: its {column!r} does not hold its scene_yaml verbatim")
-    rounded = scene_lib.dump(scene_lib.parse(yaml_text), scene_lib.DECIMALS if decimals is None else decimals, names)
-    scene_lib.parse(rounded)  # rounding must keep the scene valid (SceneError names the field otherwise)
-    return text.replace(yaml_text, rounded)
+    return text.replace(yaml_text, scene_text(yaml_text, decimals, names, objects_last))
+
+
+def _as_stored(decimals: int | None, names: bool, objects_last: bool) -> bool:
+    return (decimals is None or decimals == scene_lib.DECIMALS) and names and not objects_last
+
+
+def scene_text(yaml_text: str, decimals: int | None = None, names: bool = True, objects_last: bool = False) -> str:
+    """A stored scene YAML as a target or in-context example writes it (see `response_text`); unchanged by default."""
+    if _as_stored(decimals, names, objects_last):
+        return yaml_text
+    out = scene_lib.dump(
+        scene_lib.parse(yaml_text), scene_lib.DECIMALS if decimals is None else decimals, names, objects_last
+    )
+    scene_lib.parse(out)  # rounding must keep the scene valid (SceneError names the field otherwise)
+    return out
 
 
 @dataclass(frozen=True)

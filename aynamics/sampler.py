@@ -44,6 +44,7 @@ RANGE_KEYS: dict[str, str] = {
     "camera_z": "camera.position",
     "gravity_z": "gravity.gravity",
 }
+OBJECT_ORDERS = ("drawn", "left_to_right")
 _COMPONENT = {"sliding_friction": 0, "rolling_friction": 1, "camera_x": 0, "camera_y": 1, "camera_z": 2}
 
 
@@ -65,6 +66,10 @@ class SamplerConfig:
         max_distance: m, farthest an object is placed from the camera.
         gap: m, minimum clearance between objects in the floor plane.
         duration: s, simulated time (used to give aimed objects enough speed to arrive).
+        object_order: "drawn" (default) lists the objects in the order they were drawn, which no frame reveals;
+            "left_to_right" by where their centres appear in the first frame (image x, left first): an order a
+            model writing the objects one by one can read off the video. Same draws either way (same seed, same
+            objects and camera), only the order and the default names differ.
     """
 
     min_objects: int = 1
@@ -99,6 +104,7 @@ class SamplerConfig:
     max_distance: float = 9.0
     gap: float = 0.05
     duration: float = 1.0
+    object_order: str = "drawn"
 
     def __post_init__(self):
         if not 1 <= self.min_objects <= self.max_objects <= 16:
@@ -125,6 +131,8 @@ class SamplerConfig:
                 _check_interval(f.name, getattr(self, f.name))
         if self.mass[0] <= 0:
             raise ValueError(f"mass = {self.mass}: lower bound must be > 0 (log-uniform)")
+        if self.object_order not in OBJECT_ORDERS:
+            raise ValueError(f"object_order = {self.object_order!r}: must be one of {OBJECT_ORDERS}")
 
 
 def _check_share(name: str, value: float) -> None:
@@ -295,6 +303,9 @@ def sample_scene(rng: np.random.Generator, cfg: SamplerConfig = SamplerConfig())
             w = np.array([-vy, vx]) / item["radius"]
             w *= min(1.0, spin_max / max(np.abs(w).max(), 1e-12))
             item["state"]["angular_velocity"] = [float(w[0]), float(w[1]), 0.0]
+    if cfg.object_order == "left_to_right":
+        u = cam.project(np.array([item["state"]["position"] for item in items]))[0][:, 0]
+        items = [items[i] for i in np.argsort(u, kind="stable")]
     return from_items([*items, camera, {"type": "gravity", "gravity": [0.0, 0.0, gravity]}])
 
 

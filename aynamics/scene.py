@@ -693,19 +693,26 @@ def default_names(structure: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(out)
 
 
-def dump(scene: Scene, decimals: int = DECIMALS, names: bool = True) -> str:
+def dump(scene: Scene, decimals: int = DECIMALS, names: bool = True, objects_last: bool = False) -> str:
     """Canonical YAML: fixed key order (the paper's), numbers with at most `decimals` decimals.
 
     `parse(dump(s)) == s` for every valid scene (at the default `DECIMALS`). Fewer decimals round every number
     (shorter training targets: `data.decimals`); the result is validated again by whoever parses it.
     `names=False` leaves the `name` lines out when every name is the default one (`default_names`), which
     `parse` fills back in, so the scene read back is the same; a scene with any other name keeps them all.
+    `objects_last=True` writes the camera, gravity and environment before the objects (`parse` takes the items in
+    any order): a model writing the list then chooses "one more object or the end" in one token (`- ` or the
+    closing tag) and the shape in the next, instead of weighing "camera" against each shape on its own.
     """
     if not 0 <= decimals <= DECIMALS:
         raise ValueError(f"decimals = {decimals}: must be in [0, {DECIMALS}]")
     drop_names = not names and scene.names == default_names(scene.structure)
     lines: list[str] = []
-    for item in to_items(scene):
+    items = to_items(scene)
+    if objects_last:
+        n = len(scene.objects)
+        items = items[n:] + items[:n]
+    for item in items:
         if drop_names:
             item.pop("name", None)
         first = True

@@ -71,6 +71,21 @@ def test_targets_without_object_names_read_back_as_the_same_scene(dataset_dir):
         assert dm.processor.tokenizer.decode(labelled[labelled != IGNORE_INDEX]) == text + "<|im_end|>"
 
 
+def test_objects_last_targets_and_examples_put_camera_and_gravity_first(dataset_dir):
+    dm = _dm(dataset_dir, objects_last=True, object_names=False, decimals=2, num_examples=1)
+    for i, record in enumerate(dm.splits["train"]):
+        text = lm.response_text(record, "answer", 2, names=False, objects_last=True)
+        types = [line.split(": ")[1] for line in text.splitlines() if line.startswith("- type: ")]
+        objects = [o.type for o in parse(record["scene_yaml"]).objects]
+        assert types == ["camera", "gravity", *objects]
+        assert parse(text) == parse(lm.response_text(record, "answer", 2, names=False))  # the same scene
+        labelled = dm.dataset("train")[i]["labels"]
+        assert dm.processor.tokenizer.decode(labelled[labelled != IGNORE_INDEX]) == text + "<|im_end|>"
+    (example,) = dm.prompt.examples  # in-context examples are written the way the targets are
+    assert example == lm.scene_text(dm.splits["train"][0]["scene_yaml"], 2, False, True)
+    assert example.startswith("- type: camera") and "name:" not in example
+
+
 def test_type_weights_cover_the_response_types_only(dataset_dir):
     """`data.type_weight` weighs the tokens spelling each entry's type (and only those); `type_tokens` marks them."""
     dm = _dm(dataset_dir, type_weight=4.0, object_names=False)

@@ -90,3 +90,19 @@ def test_sampled_scenes_simulate_validly():
     rollouts = simulate_batch(_scenes(40), nthread=2)
     assert np.mean([r.valid for r in rollouts]) >= 0.95
     assert np.mean([r.in_view[0].all() for r in rollouts]) == 1.0
+
+
+def test_objects_listed_left_to_right_in_the_first_frame():
+    """left_to_right: image x of the centres increasing; the same draws as `drawn`, only reordered and renamed."""
+    with pytest.raises(ValueError, match="object_order = 'random'"):
+        SamplerConfig(object_order="random")
+    sorted_, drawn = _scenes(30, SamplerConfig(object_order="left_to_right")), _scenes(30)
+    reordered = 0
+    for s, d in zip(sorted_, drawn):
+        u = camlib.matrices(s.camera, 150, 100).project(np.array([o.state.position for o in s.objects]))[0][:, 0]
+        assert np.all(np.diff(u) > 0)
+        key = sorted(o.state.position for o in s.objects)
+        assert key == sorted(o.state.position for o in d.objects)  # same objects, same camera
+        assert s.camera == d.camera and s.gravity == d.gravity
+        reordered += [o.state.position for o in s.objects] != [o.state.position for o in d.objects]
+    assert reordered >= 5  # the draw order is not already left to right

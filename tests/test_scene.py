@@ -305,3 +305,15 @@ def test_dump_without_names_keeps_the_scene():
     assert "name:" not in short and S.parse(short) == scene
     renamed = S.from_items([items[0], {**items[1], "name": "can"}, second_box, *items[2:]])
     assert S.dump(renamed, names=False) == S.dump(renamed) and "name: can" in S.dump(renamed)
+
+
+def test_dump_objects_last_writes_camera_and_gravity_first():
+    scene = S.parse(EXAMPLE)  # box_0, cylinder_0, camera, gravity
+    text = S.dump(scene, objects_last=True)
+    assert [line for line in text.splitlines() if line.startswith("- ")] == [
+        "- type: camera",
+        "- type: gravity",
+        "- type: box",
+        "- type: cylinder",
+    ]
+    assert S.parse(text) == scene and sorted(text.splitlines()) == sorted(S.dump(scene).splitlines())
