@@ -19,7 +19,7 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
 from aynamics import lm
 from aynamics import scene as scene_lib
@@ -113,16 +113,88 @@ class SFTDataset(Dataset):
         if self.visual_targets:  # flow frame f is the motion from frame f: the same masks for both modalities
             masks = sample_frames(record["segmentation"], self.processor.num_frames)
             grid = ex["video_grid_thw"] if p.as_video else ex["image_grid_thw"]
-            ip = self.processor.image_processor
-            ex["visual_targets"] = token_targets(
-                masks,
-                record["shapes"],
-                grid,
-                as_video=p.as_video,
-                patch_size=ip.patch_size,
-                merge_size=ip.merge_size,
-                temporal_patch_size=ip.temporal_patch_size,
+            ex["visual_targets"] = _token_targets(self.processor, masks, record["shapes"], grid, p.as_video)
+        return ex
+
+
+def _token_targets(processor, masks: list, shapes: list[str], grid: torch.Tensor, as_video: bool) -> torch.Tensor:
+    ip = processor.image_processor
+    return token_targets(
+        masks,
+        shapes,
+        grid,
+        as_video=as_video,
+        patch_size=ip.patch_size,
+        merge_size=ip.merge_size,
+        temporal_patch_size=ip.temporal_patch_size,
+    )
+
+
+def frame_windows(n_stored: int, num_frames: int) -> list[tuple[int, ...]]:
+    """Other choices of `num_frames` frames than the model's (evenly spaced, first to last stored frame):
+    evenly spaced over every window [a, b] of the stored frames that spans at least half of them, ends included.
+
+    With 10 stored frames and 2 per clip: (0, 5), (0, 6), ..., (4, 9) — 14 pairs, (0, 9) left out.
+    """
+    if n_stored < 1 or num_frames < 1:
+        raise ValueError(f"n_stored = {n_stored}, num_frames = {num_frames}: both must be >= 1")
+    model = tuple(np.linspace(0, n_stored - 1, num_frames).round().astype(int).tolist())
+    out: list[tuple[int, ...]] = []
+    for a in range(n_stored):
+        for b in range(a, n_stored):
+            w = tuple(np.linspace(a, b, num_frames).round().astype(int).tolist())
+            if 2 * (b - a) >= n_stored - 1 and w != model and w not in out:
+                out.append(w)
+    return out
+
+
+class WarmupViews(Dataset):
+    """Visual-only examples for the vision tower's warm-up: each training scene seen in `views` other choices of
+    its stored frames (`frame_windows`, drawn per scene from (seed, index)), with their `visual_targets`.
+
+    The objects stand elsewhere in those frames (some leave the view, the targets follow the masks), so a tower
+    learnt from zero on ~1 200 scenes sees more layouts without new scenes being generated. Measured (`make
+    train` data and model, 4 000 warm-up steps): the frame count implied on the held-out scenes rose from
+    0.37 to 0.49 with 4 views per scene (README: status). Examples hold pixels, grid and targets only; with
+    `cache` they are built once (~5 ms each at 112×80).
+    """
+
+    def __init__(self, split, processor, prompt: lm.PromptSpec, views: int, seed: int = 0, cache: bool = False):
+        self.split, self.processor, self.prompt, self.views, self.seed = split, processor, prompt, views, seed
+        n_stored = len(split[0][prompt.modality]) if len(split) else 0
+        self.windows = frame_windows(n_stored, prompt.num_frames) if n_stored else []
+        if not 1 <= views <= len(self.windows):
+            raise ValueError(
+                f"data.warmup_views = {views}: must be in [1, {len(self.windows)}] for {n_stored} stored frames "
+                f"and num_frames = {prompt.num_frames}"
             )
+        self._cache: dict[int, dict[str, torch.Tensor]] | None = {} if cache else None
+
+    def __len__(self) -> int:
+        return len(self.split) * self.views
+
+    def window(self, i: int) -> tuple[int, ...]:
+        """The frames of example `i`: view `i % views` of scene `i // views`."""
+        scene, view = divmod(int(i), self.views)
+        rng = np.random.default_rng([self.seed, scene])
+        return self.windows[rng.permutation(len(self.windows))[view]]
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        i = int(i)
+        if self._cache is not None and i in self._cache:
+            return self._cache[i]
+        record, w, p = self.split[i // self.views], self.window(i), self.prompt
+        frames = [frames_of(record, p.modality)[f] for f in w]
+        masks = [record["segmentation"][f] for f in w]
+        if p.as_video:
+            v = self.processor.process_video(frames)
+            ex = {"pixel_values_videos": v["pixel_values_videos"], "video_grid_thw": v["video_grid_thw"]}
+        else:
+            ex = self.processor.process_images(frames)
+        grid = ex["video_grid_thw"] if p.as_video else ex["image_grid_thw"]
+        ex["visual_targets"] = _token_targets(self.processor, masks, record["shapes"], grid, p.as_video)
+        if self._cache is not None:
+            self._cache[i] = ex
         return ex
 
 
@@ -223,7 +295,7 @@ class SceneDataModule(L.LightningDataModule):
         limit_train, limit_val: Use only the first examples of the split (None: all).
         decimals: Round the numbers of the target YAML to this many decimals (None: the stored 4).
         cache: Keep every built example (decoded frames + tokens) in memory after its first use: later epochs
-            skip PNG decoding and the processor (~30 ms per example at 112×80; memory ~0.5 MB per example there).
+            skip PNG decoding and the processor (~15 ms per example at 112×80; memory ~0.5 MB per example there).
         group_by_length: Batch scenes with similar object counts together (less padding; see ResumableSampler).
         visual_targets: Add per-visual-token targets from the segmentation to every example (`visual_targets`:
             objects and shapes each merged token covers), for `SFTModule(vision_aux_weight > 0)`.
@@ -235,6 +307,8 @@ class SceneDataModule(L.LightningDataModule):
         objects_last: Write the camera and gravity before the objects in the target YAML and the in-context
             examples (`scene.dump`): "one more object or the end" is then one token, not "camera" weighed
             against each shape, which greedy decoding picks too early.
+        warmup_views: For the vision tower's warm-up (`SFTModule(vision_warmup_steps > 0)`), add this many
+            other frame choices of every training scene (`WarmupViews`); 0: the training examples only.
     """
 
     def __init__(
@@ -261,9 +335,15 @@ class SceneDataModule(L.LightningDataModule):
         object_names: bool = True,
         type_weight: float = 1.0,
         objects_last: bool = False,
+        warmup_views: int = 0,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
+        if warmup_views < 0 or (warmup_views and not visual_targets):
+            raise ValueError(
+                f"data.warmup_views = {warmup_views}: must be >= 0, and > 0 only with data.visual_targets=true"
+            )
+        self.warmup_views = warmup_views
         if batch_size < 1 or num_examples < 0 or num_workers < 0:
             raise ValueError(
                 f"batch_size = {batch_size}, num_examples = {num_examples}, num_workers = {num_workers}: "
@@ -333,6 +413,15 @@ class SceneDataModule(L.LightningDataModule):
         if self.cache:
             self._datasets[(split, limit)] = ds
         return ds
+
+    def warmup_dataset(self) -> Dataset:
+        """What the vision warm-up trains on: the training examples, plus `warmup_views` other frame choices of
+        each training scene."""
+        train = self.dataset("train", self.limit_train)
+        if not self.warmup_views:
+            return train
+        views = WarmupViews(train.split, self.processor, self.prompt, self.warmup_views, self.seed, self.cache)
+        return ConcatDataset([train, views])
 
     def train_dataloader(self) -> DataLoader:
         ds = self.dataset("train", self.limit_train)

@@ -180,7 +180,7 @@ class SFTModule(L.LightningModule):
         history = visual_targets.warm_up(
             find_visual(self.model),
             self.visual_head,
-            datamodule.dataset("train", datamodule.limit_train),
+            datamodule.warmup_dataset(),
             steps=steps,
             batch_size=datamodule.batch_size,
             lr=self.hparams.lr,

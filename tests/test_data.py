@@ -7,10 +7,11 @@ import torch
 from train_fixtures import tiny_dataset
 
 from aynamics import lm
-from aynamics.data import ResumableSampler, SceneDataModule, load_splits, mean_scene
+from aynamics.data import ResumableSampler, SceneDataModule, WarmupViews, frame_windows, load_splits, mean_scene
 from aynamics.processor import IGNORE_INDEX, IMAGE, TEXT, VIDEO
 from aynamics.scene import parse
 from aynamics.tokenizer_build import TINY_ASSET_DIR
+from aynamics.visual_targets import token_targets
 
 
 @pytest.fixture(scope="module")
@@ -251,3 +252,47 @@ def test_bad_input_is_named(tmp_path):
         SceneDataModule(str(tmp_path), str(TINY_ASSET_DIR), modality="depth")
     with pytest.raises(ValueError, match="target = 'yaml'"):
         SceneDataModule(str(tmp_path), str(TINY_ASSET_DIR), target="yaml")
+
+
+def test_frame_windows_by_hand():
+    pairs = frame_windows(10, 2)  # every window of >= 5 frame steps, the model's (0, 9) left out
+    assert len(pairs) == 14 and (0, 9) not in pairs
+    assert pairs[:2] == [(0, 5), (0, 6)] and pairs[-1] == (4, 9)
+    triples = frame_windows(10, 3)  # linspace(0, 5, 3) = 0, 2.5, 5: rounded half to even
+    assert len(triples) == 14 and triples[0] == (0, 2, 5) and (0, 4, 9) not in triples
+    assert frame_windows(1, 1) == []
+    with pytest.raises(ValueError, match="num_frames = 0"):
+        frame_windows(10, 0)
+
+
+@pytest.mark.parametrize("as_video", [False, True])
+def test_warmup_views_are_other_frames_with_their_targets(dataset_dir, as_video):
+    dm = _dm(dataset_dir, as_video=as_video, visual_targets=True, warmup_views=2, cache=True)
+    train, ds = dm.dataset("train"), dm.warmup_dataset()
+    views = ds.datasets[1]
+    assert isinstance(views, WarmupViews) and ds.datasets[0] is train and len(ds) == 3 * len(train)
+    n_stored = len(train.split[0]["rgb"])
+    for scene in range(len(train)):
+        w = [views.window(2 * scene), views.window(2 * scene + 1)]
+        assert w[0] != w[1] and all(x in frame_windows(n_stored, 2) for x in w)
+    rec, w = train.split[1], views.window(3)  # scene 1, view 1: the processor on those frames, by hand
+    frames, masks = [rec["rgb"][f] for f in w], [rec["segmentation"][f] for f in w]
+    if as_video:
+        want = dm.processor.process_video(frames)
+        pix, grid = want["pixel_values_videos"], want["video_grid_thw"]
+    else:
+        want = dm.processor.process_images(frames)
+        pix, grid = want["pixel_values"], want["image_grid_thw"]
+    ex = ds[len(train) + 3]
+    assert torch.equal(ex["pixel_values_videos" if as_video else "pixel_values"], pix)
+    assert torch.equal(ex["visual_targets"], token_targets(masks, rec["shapes"], grid, as_video=as_video))
+    assert ds[len(train) + 3] is ex  # cached
+    again = _dm(dataset_dir, as_video=as_video, visual_targets=True, warmup_views=2).warmup_dataset().datasets[1]
+    assert [again.window(i) for i in range(len(again))] == [views.window(i) for i in range(len(views))]
+
+
+def test_warmup_views_misconfigurations_are_named(dataset_dir):
+    with pytest.raises(ValueError, match="data.warmup_views = 2: .*visual_targets=true"):
+        _dm(dataset_dir, warmup_views=2)
+    with pytest.raises(ValueError, match=r"data.warmup_views = 99: must be in \[1, 14\]"):
+        _dm(dataset_dir, visual_targets=True, warmup_views=99).warmup_dataset()

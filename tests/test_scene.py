@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -317,3 +318,27 @@ def test_dump_objects_last_writes_camera_and_gravity_first():
         "- type: cylinder",
     ]
     assert S.parse(text) == scene and sorted(text.splitlines()) == sorted(S.dump(scene).splitlines())
+
+
+def _load_with(text, loader):
+    try:
+        return yaml.load(text, Loader=loader)  # noqa: S506 - the two safe loaders compared
+    except yaml.YAMLError as e:
+        return type(e).__name__
+
+
+@pytest.mark.skipif(S._FAST_LOADER is None, reason="PyYAML built without libyaml")
+@pytest.mark.parametrize("text", [m[1] for m in MALFORMED if isinstance(m[1], str)] + [OK_BOX + CAMERA])
+def test_fast_loader_reads_what_the_safe_python_loader_reads(text):
+    # libyaml is used for texts without anchors or aliases: the same data (or the same error) as the checked loader
+    if "&" in text or "*" in text:
+        assert S._loader_for(text) is S._NoAliasLoader
+    else:
+        assert S._loader_for(text) is S._FAST_LOADER
+        assert _load_with(text, S._FAST_LOADER) == _load_with(text, S._NoAliasLoader)
+
+
+def test_text_with_an_ampersand_takes_the_checked_loader():
+    text = "# boxes & cylinders\n" + OK_BOX + CAMERA
+    assert S._loader_for(text) is S._NoAliasLoader
+    assert S.parse(text) == S.parse(OK_BOX + CAMERA)

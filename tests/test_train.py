@@ -194,6 +194,7 @@ def test_vision_aux_is_logged_and_misconfigurations_are_named(tmp_path, dataset_
         "data.type_weight=5",
         "stage.module.vision_aux_weight=1.0",
         "stage.module.vision_warmup_steps=2",
+        "data.warmup_views=1",
         "logger=csv",
         "trainer.max_steps=2",
         "trainer.log_every_n_steps=1",
