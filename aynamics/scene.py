@@ -510,8 +510,9 @@ class _NoAliasLoader(yaml.SafeLoader):
         return super().compose_node(parent, index)
 
 
-# libyaml's safe loader (PyYAML's C extension) parses a scene ~10x faster than the pure-Python one; it cannot refuse
-# aliases itself, so it only reads texts without `&` and `*`, in which no anchor or alias can occur.
+# libyaml's safe loader (PyYAML's C extension) parses a scene ~6x faster than the pure-Python one
+# (benchmarks/bench_parse.py); it can't refuse aliases itself, so it only reads texts without `&` and `*`, in which
+# no anchor or alias can occur.
 _FAST_LOADER = getattr(yaml, "CSafeLoader", None)
 
 

@@ -56,7 +56,9 @@ class SFTModule(L.LightningModule):
         vision_warmup_steps: Steps of the dense visual loss alone (vision tower + head, batches of the data's
             batch size, peak `lr`) at the start of a fresh run, before the language model trains: learnt only
             jointly, the visual tokens become informative after the language model has learned to ignore them.
-            Needs vision_aux_weight > 0. Skipped on resume (the checkpoint holds the warmed-up tower).
+            Needs vision_aux_weight > 0. Skipped on resume (the checkpoint holds the warmed-up tower). Trains on
+            the data module's `warmup_dataset()`: the training examples, plus `data.warmup_views` other frame
+            choices of each scene.
         vision_augment: Mirror and recolour the frames during that warm-up (`visual_targets.Augment`).
         vision_share_weight: Weight of the pixel-share term of the dense loss (`visual_targets.aux_loss`).
     """
