@@ -61,6 +61,12 @@ class SFTModule(L.LightningModule):
             choices of each scene.
         vision_augment: Mirror and recolour the frames during that warm-up (`visual_targets.Augment`).
         vision_share_weight: Weight of the pixel-share term of the dense loss (`visual_targets.aux_loss`).
+        vision_lr_scale: Learning rate of a trainable vision tower (and of the dense head) in training, as a
+            share of `lr` (a vision warm-up itself uses `lr`): below 1 for a pretrained tower fine-tuned beside
+            the adapter; 0 keeps a warmed-up tower as it is while the language model learns to read it. 1
+            (default): one parameter group. Measured (`make train`, count accuracy on 32 held-out scenes, ±0.08):
+            after a 1000-step warm-up, 0 gave 0.25 against 0.47 with the tower trained on; after the 4000-step
+            warm-up with `data.warmup_views=4`, 0.56 and 0.44 (seeds 0, 1) against 0.31 (seed 0).
     """
 
     def __init__(
@@ -76,6 +82,7 @@ class SFTModule(L.LightningModule):
         vision_warmup_steps: int = 0,
         vision_augment: bool = True,
         vision_share_weight: float = visual_targets.SHARE_WEIGHT,
+        vision_lr_scale: float = 1.0,
     ) -> None:
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= min_lr_ratio <= 1:
@@ -89,6 +96,8 @@ class SFTModule(L.LightningModule):
             raise ValueError(f"vision_aux_weight = {vision_aux_weight}: must be a finite number >= 0")
         if not (vision_share_weight >= 0 and math.isfinite(vision_share_weight)):
             raise ValueError(f"vision_share_weight = {vision_share_weight}: must be a finite number >= 0")
+        if not (vision_lr_scale >= 0 and math.isfinite(vision_lr_scale)):
+            raise ValueError(f"vision_lr_scale = {vision_lr_scale}: must be a finite number >= 0")
         if vision_warmup_steps < 0 or (vision_warmup_steps and not vision_aux_weight):
             raise ValueError(
                 f"vision_warmup_steps = {vision_warmup_steps}: must be >= 0, and > 0 only with vision_aux_weight > 0"
@@ -108,6 +117,7 @@ class SFTModule(L.LightningModule):
                 "vision_warmup_steps": vision_warmup_steps,
                 "vision_augment": vision_augment,
                 "vision_share_weight": vision_share_weight,
+                "vision_lr_scale": vision_lr_scale,
             }
         )
         self.spec = spec
@@ -245,7 +255,16 @@ class SFTModule(L.LightningModule):
         if not params:
             raise ValueError("no trainable parameters: check model.lora_* and model.train_vision")
         hp = self.hparams
-        opt = torch.optim.AdamW(params, lr=hp.lr, weight_decay=hp.weight_decay, betas=tuple(hp.betas))
+        scale = hp.get("vision_lr_scale", 1.0)
+        groups: list[dict] = [{"params": params}]
+        if scale != 1.0:  # a second group only when it differs: optimizer states of earlier runs still load
+            vision = {id(p) for p in find_visual(self.model).parameters()}
+            if self.visual_head is not None:
+                vision |= {id(p) for p in self.visual_head.parameters()}
+            rest = [p for p in params if id(p) not in vision]
+            tower = [p for p in params if id(p) in vision]
+            groups = [g for g in ({"params": rest}, {"params": tower, "lr": hp.lr * scale}) if g["params"]]
+        opt = torch.optim.AdamW(groups, lr=hp.lr, weight_decay=hp.weight_decay, betas=tuple(hp.betas))
         total = int(self.trainer.estimated_stepping_batches) if self._trainer is not None else 1
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt,

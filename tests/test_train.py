@@ -233,3 +233,31 @@ def test_ddp_two_processes_on_cpu(tmp_path, dataset_dir):
     record = json.loads((out / "metrics.json").read_text())
     assert record["global_step"] == 2 and "val/yaml_valid" in record["metrics"]
     assert (out / "adapter" / "adapter_model.safetensors").is_file()
+
+
+def test_vision_lr_scale_sets_the_tower_group(dataset_dir):
+    """vision_lr_scale = 0 leaves the (warmed-up) tower and the dense head as they are while the adapter moves;
+    another value puts them in a second group at lr × scale; 1 keeps one group; a bad value is named."""
+    spec = lm.ModelSpec(kind="tiny", lora_dropout=0.0, train_vision=True)
+    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2, visual_targets=True)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    module = SFTModule(spec, lr=1e-2, vision_aux_weight=1.0, vision_lr_scale=0.0)
+    opt = module.configure_optimizers()["optimizer"]
+    tower = {k for k, p in module.named_parameters() if "visual" in k and p.requires_grad}  # the trained copy
+    assert [g["lr"] for g in opt.param_groups] == [1e-2, 0.0]
+    assert {id(p) for p in opt.param_groups[1]["params"]} == {id(p) for k, p in module.named_parameters() if k in tower}
+    before = {k: p.detach().clone() for k, p in module.named_parameters()}
+    loss, _, _ = module._loss(batch)
+    (loss + module._vision_aux(batch, 2, "train")).backward()
+    opt.step()
+    for k, p in module.named_parameters():
+        if k in tower:
+            assert torch.equal(before[k], p.detach()), k
+    assert tower and any(not torch.equal(before[k], p) for k, p in module.named_parameters() if "lora_B" in k)
+
+    half = SFTModule(spec, lr=1e-2, vision_aux_weight=1.0, vision_lr_scale=0.5).configure_optimizers()["optimizer"]
+    assert [g["lr"] for g in half.param_groups] == [1e-2, 5e-3]
+    assert len(SFTModule(spec, lr=1e-2).configure_optimizers()["optimizer"].param_groups) == 1
+    with pytest.raises(ValueError, match="vision_lr_scale = -1"):
+        SFTModule(spec, vision_lr_scale=-1.0)
