@@ -428,10 +428,11 @@ def from_items(items: Any) -> Scene:
             problems.append(Problem(f"items[{i}]", _short_type(item), "must be a mapping with a 'type' key"))
             continue
         kind = item.get("type")
-        if kind in OBJECT_TYPES:
+        known = isinstance(kind, str)  # a list or mapping (`type: [box]`) would not even hash: an unknown type
+        if known and kind in OBJECT_TYPES:
             path = f"objects[{n_obj}]"
             n_obj += 1
-        elif kind in counts:
+        elif known and kind in counts:
             counts[kind] += 1
             path = kind if counts[kind] == 1 else f"{kind}[{counts[kind] - 1}]"
         else:

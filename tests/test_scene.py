@@ -147,6 +147,9 @@ MALFORMED = [
     ("zero size", _box(size="[0.2, 0, 0.2]"), "objects[0].size[1]"),
     ("negative radius", "- type: sphere\n  radius: -1\n  state: {position: [0, 0, 1]}\n" + CAMERA, "objects[0].radius"),
     ("unknown type", "- type: pyramid\n  size: 1\n" + OK_BOX + CAMERA, "items[0].type"),
+    ("type as a list", "- type: [box]\n  size: 1\n" + OK_BOX + CAMERA, "items[0].type"),  # unhashable: no TypeError
+    ("type as a mapping", OK_BOX + "- type: {camera: 1}\n" + CAMERA, "items[1].type"),
+    ("missing type", OK_BOX + "- size: 1\n" + CAMERA, "items[1].type"),
     ("unknown field", _box(physics="{mass: 1, bounciness: 3}"), "objects[0].physics.bounciness"),
     ("duplicate names", OK_BOX + OK_BOX + CAMERA, "objects[1].name"),
     ("two cameras", OK_BOX + CAMERA + CAMERA, "camera"),
@@ -187,6 +190,27 @@ def test_malformed_input_through_the_cli_exits_2_without_traceback(text, path, t
     err = capsys.readouterr().err
     assert path in err and "Traceback" not in err
     assert err.count("\n") == 1  # one paragraph
+
+
+def test_any_value_swapped_for_junk_gives_a_scene_error_or_a_scene():
+    """Model output puts anything anywhere: every `key: value` line of the paper's example with its value
+    replaced by a list, mapping, null, non-finite number, string, date, ... parses or raises SceneError, never
+    another exception (`type: [box]` once raised TypeError: a list does not hash)."""
+    junk = ["[box]", "{a: 1}", "null", "", "[]", "[[1, 2], [3]]", "1e999", ".nan", "'str'", "yes", "2001-12-14"]
+    lines = EXAMPLE.splitlines()
+    tried = 0
+    for i, line in enumerate(lines):
+        if ":" not in line or line.lstrip().startswith("#"):
+            continue
+        key = line.split(":", 1)[0]
+        for value in junk:
+            text = "\n".join([*lines[:i], f"{key}: {value}", *lines[i + 1 :]])
+            try:
+                S.parse(text)
+            except S.SceneError:
+                pass
+            tried += 1
+    assert tried > 200
 
 
 def test_all_problems_reported_at_once():
