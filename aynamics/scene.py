@@ -179,7 +179,10 @@ class SceneError(ValueError):
 
 
 def _show(value: Any, limit: int = 200) -> str:
-    text = repr(value) if isinstance(value, str) else str(value)
+    try:
+        text = repr(value) if isinstance(value, str) else str(value)
+    except RecursionError:  # a list nested thousands deep
+        return f"<{type(value).__name__} nested too deeply to print>"
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -190,7 +193,10 @@ def _number(value: Any) -> float:
     # YAML gives int/float; refuse bool ('yes' → True) and strings ('1.0' quoted) explicitly
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ValueError(f"must be a number, got {type(value).__name__}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise ValueError("must be finite") from None
     if not math.isfinite(value):
         raise ValueError("must be finite")
     return round(value, DECIMALS)
@@ -543,6 +549,10 @@ def load_yaml(text: str | bytes) -> Any:
         if isinstance(e, yaml.constructor.ConstructorError):
             problem = f"refused YAML tag: {problem}"
         raise SceneError([Problem("yaml", _NO_VALUE, f"{problem}{where}")]) from None
+    except RecursionError:
+        raise SceneError([Problem("yaml", _NO_VALUE, "nested too deeply")]) from None
+    except ValueError as e:  # e.g. an integer past Python's 4300-digit conversion limit
+        raise SceneError([Problem("yaml", _NO_VALUE, f"unreadable value: {e}")]) from None
 
 
 _ANSWER = re.compile(r"<answer>(.*?)(?:</answer>|$)", re.S)

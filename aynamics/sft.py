@@ -298,7 +298,21 @@ class SFTModule(L.LightningModule):
                 f"checkpoint lacks {len(missing)} trainable weights of this model (e.g. {sorted(missing)[0]!r}): "
                 "it was written for a different model.* / LoRA setting"
             )
+        saved = checkpoint.get("hyper_parameters", {}).get("vision_lr_scale", 1.0)
+        if saved != self.hparams.vision_lr_scale:  # other parameter groups: the optimizer state would not fit
+            raise ValueError(
+                f"stage.module.vision_lr_scale = {self.hparams.vision_lr_scale}, but the checkpoint was trained with "
+                f"{saved}: resume with the same value"
+            )
         self._rng_to_restore = checkpoint.get("rng")
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        # Before clipping: a group at lr 0 (vision_lr_scale = 0) is fixed, so its gradients must not count in the
+        # clipped norm (they would shrink the adapter's steps), nor reach AdamW (which skips a None gradient).
+        for group in optimizer.param_groups:
+            if group.get("initial_lr", group["lr"]) == 0:  # its base rate (schedulers keep it as initial_lr)
+                for p in group["params"]:
+                    p.grad = None
 
     def on_train_batch_start(self, batch, batch_idx: int) -> None:
         # Restored here, not at load: Lightning draws random numbers between loading and the first batch.

@@ -196,7 +196,8 @@ def test_any_value_swapped_for_junk_gives_a_scene_error_or_a_scene():
     """Model output puts anything anywhere: every `key: value` line of the paper's example with its value
     replaced by a list, mapping, null, non-finite number, string, date, ... parses or raises SceneError, never
     another exception (`type: [box]` once raised TypeError: a list does not hash)."""
-    junk = ["[box]", "{a: 1}", "null", "", "[]", "[[1, 2], [3]]", "1e999", ".nan", "'str'", "yes", "2001-12-14"]
+    junk = ["[box]", "{a: 1}", "null", "", "[]", "[[1, 2], [3]]", "1e999", "1.0e+999", "1" + "0" * 400, ".nan"]
+    junk += ["'str'", "yes", "2001-12-14", "1" * 5000, "[" * 3000 + "]" * 3000]
     lines = EXAMPLE.splitlines()
     tried = 0
     for i, line in enumerate(lines):

@@ -250,6 +250,9 @@ def test_vision_lr_scale_sets_the_tower_group(dataset_dir):
     before = {k: p.detach().clone() for k, p in module.named_parameters()}
     loss, _, _ = module._loss(batch)
     (loss + module._vision_aux(batch, 2, "train")).backward()
+    module.on_before_optimizer_step(opt)  # Lightning calls it before clipping: the fixed group's norm must not count
+    assert all(p.grad is None for p in opt.param_groups[1]["params"])
+    assert all(p.grad is not None for p in opt.param_groups[0]["params"])  # the adapter's are kept
     opt.step()
     for k, p in module.named_parameters():
         if k in tower:
@@ -261,3 +264,12 @@ def test_vision_lr_scale_sets_the_tower_group(dataset_dir):
     assert len(SFTModule(spec, lr=1e-2).configure_optimizers()["optimizer"].param_groups) == 1
     with pytest.raises(ValueError, match="vision_lr_scale = -1"):
         SFTModule(spec, vision_lr_scale=-1.0)
+    # resuming with another value would load one optimizer group into two (or keep the old rate): refused
+    ckpt = {
+        "state_dict": {k: p for k, p in module.named_parameters() if p.requires_grad},
+        "hyper_parameters": {"vision_lr_scale": 1.0},
+    }
+    with pytest.raises(ValueError, match="vision_lr_scale = 0.0, but the checkpoint was trained with 1.0"):
+        module.on_load_checkpoint(ckpt)
+    ckpt["hyper_parameters"]["vision_lr_scale"] = 0.0
+    module.on_load_checkpoint(ckpt)
