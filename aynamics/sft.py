@@ -63,10 +63,11 @@ class SFTModule(L.LightningModule):
         vision_share_weight: Weight of the pixel-share term of the dense loss (`visual_targets.aux_loss`).
         vision_lr_scale: Learning rate of a trainable vision tower (and of the dense head) in training, as a
             share of `lr` (a vision warm-up itself uses `lr`): below 1 for a pretrained tower fine-tuned beside
-            the adapter; 0 keeps a warmed-up tower as it is while the language model learns to read it. 1
-            (default): one parameter group. Measured (`make train`, count accuracy on 32 held-out scenes, ±0.08):
-            after a 1000-step warm-up, 0 gave 0.25 against 0.47 with the tower trained on; after the 4000-step
-            warm-up with `data.warmup_views=4`, 0.56 and 0.44 (seeds 0, 1) against 0.31 (seed 0).
+            the adapter; 0 keeps a warmed-up tower as it is while the language model learns to read it (its
+            gradients are dropped before clipping). 1 (default): one parameter group. A run resumes only with
+            the value it was trained with. Measured (`make train` data and model, count accuracy on 32 held-out
+            scenes, ±0.08): after a 4000-step warm-up with `data.warmup_views=4`, 0 gave 0.56 and 0.38 (seeds 0,
+            1) against 0.31 with the tower trained on (seed 0), and `make train`'s 0.47 and 0.41 (README: status).
     """
 
     def __init__(
