@@ -256,7 +256,7 @@ class SFTModule(L.LightningModule):
         if not params:
             raise ValueError("no trainable parameters: check model.lora_* and model.train_vision")
         hp = self.hparams
-        scale = hp.get("vision_lr_scale", 1.0)
+        scale = hp.vision_lr_scale
         groups: list[dict] = [{"params": params}]
         if scale != 1.0:  # a second group only when it differs: optimizer states of earlier runs still load
             vision = {id(p) for p in find_visual(self.model).parameters()}
