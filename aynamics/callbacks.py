@@ -10,7 +10,7 @@
     val/position_mae, val/velocity_mae   initial-state errors (m, m/s), the metrics' penalties if unparsable
     val/baseline/...     the same metrics of the constant "average scene" predictor (`data.mean_scene`)
 
-and writes `eval/predictions_epochNNN.jsonl` and `eval/epochNNN_sampleK.gif` (observed | predicted rollout,
+and writes `eval/predictions_stepNNNNNN.jsonl` and `eval/stepNNNNNN_sampleK.gif` (observed | predicted rollout,
 side by side) under the run folder, plus the text and a frame strip to TensorBoard. A bad response never
 raises: it is counted invalid with its reason.
 """

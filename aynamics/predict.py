@@ -1,6 +1,6 @@
 """`aynamics predict`: write the scene (and the reasoning) of a video with a trained adapter.
 
-    aynamics predict --adapter OUT/adapter VIDEO.mp4            # any video imageio reads (needs its plugin)
+    aynamics predict --adapter OUT/adapter VIDEO.mp4            # MP4, WebM, AVI, GIF...: what FFmpeg (PyAV) decodes
     aynamics predict --adapter OUT/adapter FRAMES_DIR/          # a folder of PNG/JPEG frames, in name order
     aynamics predict --adapter OUT/adapter FRAMES_DIR/ --json   # {"reasoning", "yaml", "valid", "problems"}
 
@@ -61,15 +61,13 @@ def read_frames(path: str | Path) -> list[np.ndarray]:
     return out
 
 
-def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048) -> dict:
-    """Greedy response of the adapter's model for `frames`: {"response", "reasoning", "yaml", "valid", "problems"}."""
-    from aynamics import lm
+def prompt_inputs(processor, prompt, frames: list[np.ndarray]) -> dict:
+    """The generation input for `frames` as training built it (`aynamics.lm.PromptSpec` `prompt`): the frames
+    sampled evenly to the trained count, the system and user prompt, the in-context examples, images or one video.
+    """
     from aynamics.processor import build_prompt
-    from aynamics.scene import SceneError, dump, parse
 
-    model, spec, prompt = lm.load_adapter(adapter)
-    processor = lm.load_processor(spec, prompt)
-    inputs = build_prompt(
+    return build_prompt(
         processor,
         frames,
         system_prompt=prompt.system_prompt,
@@ -77,6 +75,16 @@ def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int =
         examples=prompt.examples,
         as_video=prompt.as_video,
     )
+
+
+def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048) -> dict:
+    """Greedy response of the adapter's model for `frames`: {"response", "reasoning", "yaml", "valid", "problems"}."""
+    from aynamics import lm
+    from aynamics.scene import SceneError, dump, parse
+
+    model, spec, prompt = lm.load_adapter(adapter)
+    processor = lm.load_processor(spec, prompt)
+    inputs = prompt_inputs(processor, prompt, frames)
     response = lm.greedy_texts(model, processor, [inputs], max_new_tokens)[0]
     think = _THINK.search(response)
     result = {"response": response, "reasoning": think.group(1).strip() if think else None}

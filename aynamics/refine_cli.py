@@ -2,7 +2,7 @@
 
     aynamics refine PRED.yaml [PRED2.yaml ...] --observed SCENE.yaml|DIR [--budget 1000] [--seconds 60]
         [--params position,linear_velocity] [--seed 0] [--stop-at 0.95] [--out REFINED.yaml]
-        [--animation before_after.gif] --json
+        [--animation before_after.gif] --json         # or .mp4
 
 `--json` prints `{"iou_full_before", "iou_full_after", "iou_first_after", "simulations", "refined_yaml", ...}`.
 """
@@ -31,7 +31,7 @@ def colour_segmentation(segmentation: np.ndarray) -> np.ndarray:
 
 
 def write_refine_animation(result, observed, path, scale: int = 3) -> str:
-    """GIF of the observed segmentation next to the start's and the refined scene's (`result`, a
+    """Animation (.gif or .mp4) of the observed segmentation next to the start's and the refined scene's (`result`, a
     `aynamics.refine.RefineResult`), at the sampled frames.
 
     Raises:
@@ -72,7 +72,9 @@ def add_refine_command(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
     p.add_argument("--stop-at", type=float, default=None, help="stop once IoU_full reaches this (default: no)")
     p.add_argument("--out", help="write the refined scene YAML here")
-    p.add_argument("--animation", help="write a before/after segmentation GIF here (needs headless OpenGL)")
+    p.add_argument(
+        "--animation", help="write a before/after segmentation animation here, .gif or .mp4 (needs headless OpenGL)"
+    )
     p.add_argument("--json", action="store_true", help="print scores before/after, simulations and the YAML")
     p.set_defaults(run=run_refine_command)
 

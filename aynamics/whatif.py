@@ -24,7 +24,7 @@ import numpy as np
 
 from aynamics.scene import Scene, dump
 
-ANIMATION_FPS = 15  # playback speed of the GIFs (the video is 30 FPS; half speed is easier to follow)
+ANIMATION_FPS = 15  # playback speed of the animations (the video is 30 FPS; half speed is easier to follow)
 
 
 class VideoSynthesizer(Protocol):
@@ -53,17 +53,19 @@ def _label(image: np.ndarray, text: str) -> np.ndarray:
 
 
 def write_animation(path: str | Path, grid: list[list[np.ndarray]], labels: list[list[str]], fps: int = ANIMATION_FPS):
-    """Tile videos into one animated GIF: `grid[row][col]` is (T, H, W, 3) uint8 (T may differ: shorter ones hold
-    their last frame); `labels` caption each tile.
+    """Tile videos into one animation, a looping GIF or an H.264 MP4 by the path's suffix: `grid[row][col]` is
+    (T, H, W, 3) uint8 (T may differ: shorter ones hold their last frame); `labels` caption each tile. An MP4's
+    frames are padded to even sizes with black (H.264 in yuv420p, what players expect, needs them).
 
     Raises:
-        ValueError: the path is not a .gif (MP4 needs imageio-ffmpeg, not installed here), or tiles differ in size.
+        ValueError: the suffix is neither .gif nor .mp4, or tiles differ in size.
     """
     import imageio.v3 as iio
 
     path = Path(path)
-    if path.suffix.lower() != ".gif":
-        raise ValueError(f"animation path {str(path)!r}: only .gif is written (MP4 would need imageio-ffmpeg)")
+    kind = path.suffix.lower()
+    if kind not in (".gif", ".mp4"):
+        raise ValueError(f"animation path {str(path)!r}: the suffix must be .gif or .mp4")
     t = max(v.shape[0] for row in grid for v in row)
     rows = []
     for row, names in zip(grid, labels, strict=True):
@@ -76,7 +78,12 @@ def write_animation(path: str | Path, grid: list[list[np.ndarray]], labels: list
         rows.append(np.concatenate(tiles, axis=2))
     frames = np.concatenate(rows, axis=1)  # (T, rows·H, cols·W, 3)
     path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, frames, duration=1000 / fps, loop=0)
+    if kind == ".gif":
+        iio.imwrite(path, frames, duration=1000 / fps, loop=0)
+    else:
+        h, w = frames.shape[1:3]
+        frames = np.pad(frames, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)))
+        iio.imwrite(path, frames, plugin="pyav", codec="libx264", fps=fps, out_pixel_format="yuv420p")
     return path
 
 

@@ -256,3 +256,25 @@ def test_render_what_if(tmp_path, scene):
 def test_diff_names_leaves(scene):
     edited = apply_instruction(scene, "set the mass of box_0 to 3").scene
     assert [str(c) for c in diff(scene, edited)] == ["box_0.physics.mass: 1.0 -> 3.0"]
+
+
+def test_write_animation_gif_and_mp4_read_back(tmp_path):
+    """Two tiles of a square moving right by 4 px per frame, side by side; odd sizes (15 × 21 per tile) make
+    the MP4 pad to 16 × 42. Both files read back (the MP4 through PyAV, as `aynamics predict` reads a video)
+    with the frames' count, size and content: the square's column in the GIF exactly, in the lossy MP4 to 1 px."""
+    from aynamics.predict import read_frames
+    from aynamics.whatif import write_animation
+
+    video = np.zeros((6, 15, 21, 3), np.uint8)
+    for k in range(6):
+        video[k, 8:13, 4 * k : 4 * k + 4] = 255  # below the caption band
+    for name in ("a.gif", "a.mp4"):
+        out = write_animation(tmp_path / name, [[video, video]], [["", ""]], fps=10)
+        frames = read_frames(out)
+        assert len(frames) == 6
+        assert frames[0].shape == ((15, 42, 3) if name.endswith("gif") else (16, 42, 3))
+        for k, f in enumerate(frames):
+            cols = np.nonzero(f[8:13, :21].mean(axis=(0, 2)) > 128)[0]
+            assert abs(cols.min() - 4 * k) <= (0 if name.endswith("gif") else 1), (name, k, cols)
+    with pytest.raises(ValueError, match="'a.avi'.*.gif or .mp4"):
+        write_animation("a.avi", [[video]], [[""]])

@@ -3,13 +3,16 @@ adapter save/reload, exact resume, and DDP on the CPU (slow)."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -63,6 +66,46 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video):
     assert (tmp_path / "adapter" / "adapter_model.safetensors").is_file()
     rows = [json.loads(x) for x in (tmp_path / "eval" / "predictions_step000001.jsonl").read_text().splitlines()]
     assert len(rows) == 2 and all(r["reason"] for r in rows)
+    _predict_gives_the_evaluation_response(cfg, tmp_path / "adapter", rows[0])
+
+
+def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> None:
+    """`aynamics predict --adapter` on the stored frames of the first evaluated record, written out as PNG files:
+    the prompt it rebuilds from the adapter folder and the files (frame choice, pixels, text, images or video)
+    equals, tensor for tensor, the one the run's data module gave the evaluation, and it prints the evaluation's
+    greedy response. The same frames as an MP4 (lossy) are read and answered too."""
+    import hydra
+    import imageio.v3 as iio
+
+    from aynamics.cli import main
+    from aynamics.data import frames_of
+    from aynamics.predict import prompt_inputs, read_frames
+
+    spec = hydra.utils.instantiate(cfg.model)
+    dm = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
+    dm.setup("fit")
+    expected = dm.eval_records("validation", 1)[0]
+    assert expected["index"] == row["index"]
+    record = dm.splits["validation"][0]
+    frames = [np.asarray(im.convert("RGB")) for im in frames_of(record, cfg.data.modality)]
+    folder = adapter.parent / "frames"
+    folder.mkdir()
+    for k, f in enumerate(frames):
+        iio.imwrite(folder / f"{k:03d}.png", f)
+    iio.imwrite(adapter.parent / "video.mp4", np.stack(frames), plugin="pyav", codec="libx264", fps=10)
+    saved_spec, prompt = lm.read_adapter_meta(adapter)
+    ours = prompt_inputs(lm.load_processor(saved_spec, prompt), prompt, read_frames(folder))
+    assert sorted(ours) == sorted(expected["prompt"])
+    for key, value in expected["prompt"].items():
+        assert torch.equal(ours[key], value), key
+    for source, same in ((folder, True), (adapter.parent / "video.mp4", False)):
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            code = main(["predict", "--adapter", str(adapter), str(source), "--max-new-tokens", "16", "--json"])
+        result = json.loads(out.getvalue())
+        assert code == (0 if result["valid"] else 1) and isinstance(result["response"], str)
+        if same:
+            assert result["response"] == row["prediction"]
 
 
 def test_cli_command_as_written(tmp_path, dataset_dir):
