@@ -102,7 +102,8 @@ def format_table(rows: dict[str, dict[str, float]]) -> str:
 
 
 class AdapterExport(L.Callback):
-    """Write the peft adapter (+ `aynamics.json`) to `dirpath` at every checkpoint and at the end of training.
+    """Write the peft adapter (+ `aynamics.json`) to `dirpath` at every checkpoint and at the end of training, and
+    put the specs into each checkpoint (`aynamics export-adapter CKPT --out DIR` writes that step's adapter).
 
     Args:
         dirpath: Folder of the adapter (default: `<trainer.default_root_dir>/adapter`).
@@ -114,15 +115,20 @@ class AdapterExport(L.Callback):
     def _dir(self, trainer: L.Trainer) -> Path:
         return Path(self.dirpath) if self.dirpath else Path(trainer.default_root_dir) / "adapter"
 
+    @staticmethod
+    def _prompt(trainer: L.Trainer) -> lm.PromptSpec:
+        return trainer.datamodule.prompt if trainer.datamodule is not None else lm.PromptSpec()
+
     @rank_zero_only
     def export(self, trainer: L.Trainer, pl_module: L.LightningModule) -> Path:
-        prompt = trainer.datamodule.prompt if trainer.datamodule is not None else lm.PromptSpec()
-        return lm.save_adapter(pl_module.model, self._dir(trainer), pl_module.spec, prompt)
+        return lm.save_adapter(pl_module.model, self._dir(trainer), pl_module.spec, self._prompt(trainer))
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
         # plain JSON types (peft's dict holds enums and sets): checkpoints load with torch.load(weights_only=True)
         configs = {k: v.to_dict() for k, v in pl_module.model.peft_config.items()}
         checkpoint["adapter_config"] = json.loads(json.dumps(configs, default=_plain))
+        # the specs too: `aynamics export-adapter CKPT` writes any checkpoint's adapter folder, not only the latest
+        checkpoint["aynamics_meta"] = lm.adapter_meta(pl_module.spec, self._prompt(trainer))
         self.export(trainer, pl_module)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

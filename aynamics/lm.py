@@ -279,9 +279,20 @@ def save_adapter(model: torch.nn.Module, out: str | Path, spec: ModelSpec, promp
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model.save_pretrained(str(out))
-    meta = {"model": dataclasses.asdict(spec), "prompt": dataclasses.asdict(prompt)}
-    (out / ADAPTER_META).write_text(json.dumps(meta, indent=2))
+    (out / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
     return out
+
+
+def adapter_meta(spec: ModelSpec, prompt: PromptSpec) -> dict:
+    """What `aynamics.json` holds (and a training checkpoint, under "aynamics_meta"): the two specs, plain JSON."""
+    return {"model": dataclasses.asdict(spec), "prompt": dataclasses.asdict(prompt)}
+
+
+def specs_of_meta(meta: dict) -> tuple[ModelSpec, PromptSpec]:
+    """The specs of an `adapter_meta` dict (lists back to tuples)."""
+    prompt = dict(meta["prompt"])
+    prompt["examples"] = tuple(prompt.get("examples", ()))
+    return ModelSpec(**meta["model"]), PromptSpec(**prompt)
 
 
 def read_adapter_meta(adapter_dir: str | Path) -> tuple[ModelSpec, PromptSpec]:
@@ -291,10 +302,42 @@ def read_adapter_meta(adapter_dir: str | Path) -> tuple[ModelSpec, PromptSpec]:
         raise FileNotFoundError(
             f"{str(path)!r} not found: --adapter must be a folder written by training (adapter/ under the run)"
         )
-    meta = json.loads(path.read_text())
-    prompt = meta["prompt"]
-    prompt["examples"] = tuple(prompt.get("examples", ()))
-    return ModelSpec(**meta["model"]), PromptSpec(**prompt)
+    return specs_of_meta(json.loads(path.read_text()))
+
+
+def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
+    """Write the peft adapter folder (what `save_adapter` writes) of a training checkpoint: any step's, while
+    `OUT/adapter` holds the latest. The checkpoint keeps the trained weights only (LoRA, `modules_to_save`, a
+    trainable vision tower) and the specs; the base is rebuilt from the spec, as `load_adapter` does.
+
+    Raises:
+        FileNotFoundError: no such checkpoint.
+        ValueError: not an aynamics training checkpoint, or its weights do not fit the model its spec builds.
+    """
+    checkpoint = Path(checkpoint)
+    if not checkpoint.is_file():
+        raise FileNotFoundError(2, "no such checkpoint", str(checkpoint))
+    try:
+        ckpt = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises pickle, zip and runtime errors for a file that is no checkpoint
+        raise ValueError(f"{str(checkpoint)!r} is not a readable checkpoint: {type(e).__name__}") from None
+    if not isinstance(ckpt, dict) or "aynamics_meta" not in ckpt or "state_dict" not in ckpt:
+        raise ValueError(
+            f"{str(checkpoint)!r} holds no 'aynamics_meta': not a checkpoint of `train.py` with the adapter callback"
+        )
+    spec, prompt = specs_of_meta(ckpt["aynamics_meta"])
+    model = build_model(spec)
+    params = dict(model.named_parameters())
+    state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+    trainable = {k for k, p in params.items() if p.requires_grad}
+    missing, unexpected = sorted(trainable - set(state)), sorted(set(state) - set(params))
+    if missing or unexpected:
+        raise ValueError(
+            f"{str(checkpoint)!r} does not fit the model its spec builds: {len(missing)} trained weights missing "
+            f"{missing[:2]}, {len(unexpected)} unknown {unexpected[:2]}"
+        )
+    model.load_state_dict(state, strict=False)
+    return save_adapter(model, out, spec, prompt)
 
 
 def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, PromptSpec]:

@@ -3,6 +3,7 @@
     aynamics predict --adapter OUT/adapter VIDEO.mp4            # MP4, WebM, AVI, GIF...: what FFmpeg (PyAV) decodes
     aynamics predict --adapter OUT/adapter FRAMES_DIR/          # a folder of PNG/JPEG frames, in name order
     aynamics predict --adapter OUT/adapter FRAMES_DIR/ --json   # {"reasoning", "yaml", "valid", "problems"}
+    aynamics export-adapter OUT/checkpoints/step000200.ckpt --out step200/   # any step's adapter folder
 
 The adapter folder (written by training: peft files + `aynamics.json`) says which base model to rebuild and how
 the prompt was made (modality, number of frames, images or one video, target). Frames are sampled evenly to the
@@ -131,3 +132,26 @@ def run_predict(args) -> int:
             sys.stdout.write(f"# the response holds no valid scene: {'; '.join(result['problems'][:5])}\n")
             sys.stdout.write(result["response"] + "\n")
     return 0 if result["valid"] else 1
+
+
+def add_export_command(sub) -> None:
+    """Register `aynamics export-adapter` on the CLI's subparsers."""
+    p = sub.add_parser(
+        "export-adapter",
+        help="write the peft adapter folder of a training checkpoint (OUT/adapter holds the latest only)",
+    )
+    p.add_argument("checkpoint", help="a checkpoint written by train.py (OUT/checkpoints/stepNNNNNN.ckpt)")
+    p.add_argument("--out", required=True, help="folder to write (PeftModel.from_pretrained and --adapter read it)")
+    p.set_defaults(run=run_export)
+
+
+def run_export(args) -> int:
+    from aynamics import lm
+    from aynamics.cli import UsageError
+
+    try:
+        out = lm.adapter_from_checkpoint(args.checkpoint, args.out)
+    except ValueError as e:
+        raise UsageError(f"export-adapter: {e}") from None
+    sys.stdout.write(f"{out}\n")
+    return 0

@@ -1,22 +1,24 @@
 """Training throughput and peak memory of the tiny model on the CPU: frames as images vs one video, and gradient
 checkpointing off vs on.
 
-    python benchmarks/bench_train.py [--data DIR] [--steps 6] [--batch-size 4] [--frames 4]
+    python benchmarks/bench_train.py [--data DIR] [--steps 6] [--batch-size B] [--frames F] [OVERRIDE ...]
+    python benchmarks/bench_train.py experiment=make_train      # the model and targets `make train` trains
 
-Each configuration runs in a fresh process (so its peak resident memory is its own): build the model and the
-data module, run `steps` optimizer steps (the first is a warm-up, not timed), print samples/s and the peak RSS
-increase over the process after setup. Uses `data/generated/make_train_plain` when present, else generates 12 scenes at
-64×48 into a temporary folder with the real generator. Numbers depend on the machine and its load: compare the
-ratios printed at the end, measured in one run.
+The model, the LoRA setting and the data options are `train.py`'s, composed from `conf/` with the Hydra overrides
+given (default: `model=tiny` as configured); --frames and --batch-size set data.num_frames / data.batch_size.
+Each configuration runs in a fresh process: build the SFT module and the data module, run `steps` AdamW steps on
+the module's training loss (the first is a warm-up, not timed), print samples/s and the peak resident memory of
+the training steps above the memory before them (the kernel's high-water mark is reset first, through
+/proc/self/clear_refs). Uses `data/generated/make_train_plain` when present, else generates 12 scenes at 64×48
+into a temporary folder with the real generator. Numbers depend on the machine and its load: compare the ratios
+printed at the end, measured in one run.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
-import resource
 import sys
 import tempfile
 import time
@@ -31,31 +33,56 @@ CONFIGS = [
 ]
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kB
+def _status_mb(key: str) -> float:
+    """VmRSS / VmHWM (current / peak resident memory) of this process in MB, from /proc/self/status."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024  # kB
+    raise RuntimeError(f"{key} not in /proc/self/status")
+
+
+def _reset_peak() -> bool:
+    """Reset the kernel's peak-RSS mark (VmHWM) to the current RSS (Linux >= 4.0); False where not allowed."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def _compose(overrides: list[str], data: str):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=[*overrides, f"data.dir={data}", "output_dir=/tmp"])
 
 
 def _measure(args: tuple) -> dict:
-    data, as_video, checkpointing, steps, batch_size, frames, tiny = args
+    overrides, data, as_video, checkpointing, steps = args
+    import dataclasses
+
+    import hydra
     import torch
 
-    from aynamics import lm
-    from aynamics.data import SceneDataModule
-    from aynamics.processor import model_inputs
+    from aynamics.sft import SFTModule
 
+    cfg = _compose(overrides, data)
     torch.manual_seed(0)
-    spec = lm.ModelSpec(kind="tiny", tiny=tiny, gradient_checkpointing=checkpointing, lora_dropout=0.0)
-    model = lm.build_model(spec)
-    dm = SceneDataModule(data, spec.processor_path, num_frames=frames, as_video=as_video, batch_size=batch_size)
+    spec = dataclasses.replace(hydra.utils.instantiate(cfg.model), gradient_checkpointing=checkpointing)
+    module = SFTModule(spec)
+    dm = hydra.utils.instantiate(
+        cfg.data, processor_path=spec.processor_path, target=cfg.stage.target, as_video=as_video, cache=False
+    )
     dm.setup("fit")
-    ds = dm.dataset("train")
+    ds, batch_size = dm.dataset("train"), dm.hparams.batch_size
     batches = [dm._collate([ds[(s * batch_size + i) % len(ds)] for i in range(batch_size)]) for s in range(steps)]
-    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-3)
-    base = _peak_rss_mb()
+    opt = torch.optim.AdamW([p for p in module.parameters() if p.requires_grad], lr=1e-3)
+    module.train()
+    base, exact = _status_mb("VmRSS"), _reset_peak()
     times = []
     for batch in batches:
         t = time.perf_counter()
-        loss, _ = lm.sft_loss(model(**model_inputs(batch), use_cache=False).logits, batch["labels"])
+        loss, _, _ = module._loss(batch, weighted=True)  # the training step's loss
         loss.backward()
         opt.step()
         opt.zero_grad(set_to_none=True)
@@ -65,8 +92,9 @@ def _measure(args: tuple) -> dict:
         "samples_per_s": batch_size * len(timed) / sum(timed),
         "step_s": sum(timed) / len(timed),
         "tokens": int(batches[0]["input_ids"].numel()),
-        "peak_rss_mb": _peak_rss_mb(),
-        "train_rss_mb": _peak_rss_mb() - base,
+        "peak_rss_mb": _status_mb("VmHWM"),
+        "train_rss_mb": _status_mb("VmHWM") - base,
+        "exact_peak": exact,
     }
 
 
@@ -90,28 +118,32 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", help="generated data set folder (default: data/generated/make_train_plain or a fresh one)")
     p.add_argument("--steps", type=int, default=6, help="optimizer steps per configuration (first untimed)")
-    p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--frames", type=int, default=4, help="frames per example")
-    p.add_argument("--tiny", default="{}", help="tiny model overrides as JSON, e.g. '{\"hidden_size\": 128}'")
+    p.add_argument("--batch-size", type=int, help="data.batch_size (default: the config's)")
+    p.add_argument("--frames", type=int, help="data.num_frames (default: the config's)")
+    p.add_argument("overrides", nargs="*", help="train.py overrides, e.g. experiment=make_train model.lora_rank=8")
     args = p.parse_args(argv)
     if args.steps < 2:
         raise SystemExit(f"--steps = {args.steps}: need >= 2 (the first is a warm-up)")
     data = _dataset(args.data)
-    tiny = json.loads(args.tiny)
+    overrides = [*args.overrides]
+    overrides += [f"data.batch_size={args.batch_size}"] if args.batch_size else []
+    overrides += [f"data.num_frames={args.frames}"] if args.frames else []
+    cfg = _compose(overrides, data)
     print(
-        f"tiny model {tiny or 'default'}, batch {args.batch_size}, {args.frames} frames, {args.steps} steps, CPU "
-        f"threads {os.cpu_count()}, data {data}"
+        f"model {dict(cfg.model.tiny) if cfg.model.kind == 'tiny' else cfg.model.path}, LoRA r {cfg.model.lora_rank}, "
+        f"vision trained {cfg.model.train_vision}, batch {cfg.data.batch_size}, {cfg.data.num_frames} frames, "
+        f"{args.steps} steps, overrides {args.overrides or 'none'}, CPU threads {os.cpu_count()}, data {data}"
     )
     results = {}
     ctx = mp.get_context("spawn")
     for name, as_video, ckpt in CONFIGS:
         with ctx.Pool(1) as pool:
-            r = pool.apply(_measure, ((data, as_video, ckpt, args.steps, args.batch_size, args.frames, tiny),))
+            r = pool.apply(_measure, ((overrides, data, as_video, ckpt, args.steps),))
         results[name] = r
         print(
             f"  {name:<24} {r['samples_per_s']:7.2f} samples/s  {r['step_s'] * 1000:8.0f} ms/step  "
             f"{r['tokens']:6d} tokens/batch  peak RSS {r['peak_rss_mb']:7.0f} MB  "
-            f"(+{r['train_rss_mb']:.0f} MB in training)",
+            f"(+{r['train_rss_mb']:.0f} MB in training{'' if r['exact_peak'] else ', peak since start'})",
             flush=True,
         )
     img, vid = results["images"], results["video"]

@@ -48,6 +48,21 @@ def test_wrong_object_count_is_counted(truth):
     assert 0.0 < per["iou_full"][0] < 1.0
 
 
+def test_first_frame_and_full_metrics_and_state_errors_are_told_apart(truth):
+    """Two wrong starts of the paper's example, each wrong in one way, on cylinder_0 (box_0 starts out of view).
+    1.2 m/s faster along x: frame 0 is the same (IoU first 1), later frames and the flow of every frame are not;
+    position MAE 0, velocity MAE 1.2 / (2 objects × 3 components) = 0.2. 0.6 m further along x, same velocity:
+    frame 0 already differs; position MAE 0.6 / 6 = 0.1, velocity MAE 0."""
+    scene, obs = truth
+    texts = [dump(_moved(scene, "linear_velocity", 1.2)), dump(_moved(scene, "position", 0.6))]
+    per = evaluate_texts(texts, [scene] * 2, [obs] * 2)
+    assert per["yaml_valid"] == [1.0, 1.0] and per["count_acc"] == [1.0, 1.0]
+    assert per["iou_first"][0] == pytest.approx(1.0) and per["iou_full"][0] < 0.9  # measured 0.67
+    assert per["epe_first"][0] > 1.0 and per["epe_full"][0] > 0.3  # px at 480 wide; measured 3.5 and 0.81
+    assert per["iou_first"][1] < 0.5 and per["iou_full"][1] < 0.5  # measured 0.03 and 0.28
+    assert per["position_mae"] == pytest.approx([0.0, 0.1]) and per["velocity_mae"] == pytest.approx([0.2, 0.0])
+
+
 def test_format_table():
     table = format_table({"model": {"yaml_valid": 0.5, "iou_full": 0.25}, "average scene": {"yaml_valid": 1.0}})
     lines = table.splitlines()
@@ -56,16 +71,70 @@ def test_format_table():
     assert lines[2].split() == ["iou_full", "0.2500", "nan"]
 
 
-def test_side_by_side_animation(truth):
+def _moved(scene, field: str, dx: float):
+    """The scene with cylinder_0's initial `field` (position or linear_velocity) moved by dx along x."""
+    cyl = scene.objects[1]
+    value = list(getattr(cyl.state, field))
+    value[0] += dx
+    state = cyl.state.model_copy(update={field: value})
+    return scene.model_copy(update={"objects": [scene.objects[0], cyl.model_copy(update={"state": state})]})
+
+
+def _need_gl():
     from aynamics.render import gl_available
 
     ok, why = gl_available()
     if not ok:
         pytest.skip(why)
+
+
+def test_side_by_side_animation(truth):
+    """Observed left, predicted right: a prediction 1.2 m/s faster keeps the left half of the true pair and
+    changes the right one (frame 0 is the same start, so only later frames differ)."""
+    _need_gl()
     scene, _ = truth
-    frames = side_by_side(scene, scene, width=64, height=48)
-    assert frames.shape == (30, 48, 128, 3) and frames.dtype == np.uint8
-    assert np.array_equal(frames[:, :, :64], frames[:, :, 64:])  # same scene, same seed: identical halves
+    same = side_by_side(scene, scene, width=64, height=48)
+    assert same.shape == (30, 48, 128, 3) and same.dtype == np.uint8
+    assert np.array_equal(same[:, :, :64], same[:, :, 64:])  # same scene, same seed: identical halves
+    faster = side_by_side(scene, _moved(scene, "linear_velocity", 1.2), width=64, height=48)
+    assert np.array_equal(faster[:, :, :64], same[:, :, :64])
+    assert np.array_equal(faster[0, :, 64:], same[0, :, 64:]) and not np.array_equal(
+        faster[-1, :, 64:], same[-1, :, 64:]
+    )
+
+
+def test_evaluation_writes_predictions_animation_and_tensorboard(tmp_path, truth):
+    """`SceneEvaluation._write` with a real TensorBoard logger: the JSONL rows (index, prediction, metrics,
+    reason), the observed | predicted GIF for the valid prediction only, and the text and rollout strip in the
+    event file."""
+    from types import SimpleNamespace
+
+    import imageio.v3 as iio
+    from lightning.pytorch.loggers import TensorBoardLogger
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from aynamics.callbacks import SceneEvaluation
+
+    _need_gl()
+    scene, obs = truth
+    texts = [dump(_moved(scene, "linear_velocity", 1.2)), "no scene here"]
+    records = [{"index": 3, "scene_yaml": dump(scene), "scene": scene}, {"index": 5, "scene_yaml": "x", "scene": scene}]
+    per = evaluate_texts(texts, [scene] * 2, [obs] * 2)
+    tb = TensorBoardLogger(str(tmp_path), name="tb", version=0)
+    trainer = SimpleNamespace(global_step=7, default_root_dir=str(tmp_path), loggers=[tb])
+    SceneEvaluation(num_samples=2, max_new_tokens=8, num_animations=2)._write(trainer, texts, records, per)
+
+    rows = [json.loads(x) for x in (tmp_path / "eval" / "predictions_step000007.jsonl").read_text().splitlines()]
+    assert [(r["index"], r["prediction"]) for r in rows] == [(3, texts[0]), (5, texts[1])]
+    assert rows[0]["reason"] is None and rows[1]["reason"] and rows[0]["velocity_mae"] == pytest.approx(0.2)
+    gif = iio.imread(tmp_path / "eval" / "step000007_sample0.gif")
+    assert gif.shape[1:3] == (106, 320) and len(gif) > 10  # Pillow merges repeated frames (objects at rest)
+    assert not (tmp_path / "eval" / "step000007_sample1.gif").exists()  # no scene: nothing to animate
+    tb.experiment.flush()
+    events = EventAccumulator(str(tmp_path / "tb" / "version_0"))
+    events.Reload()
+    assert events.Tags()["images"] == ["val/rollout_0"]
+    assert {"val/prediction_0/text_summary", "val/prediction_1/text_summary"} <= set(events.Tags()["tensors"])
 
 
 def test_collect_multirun_folder(tmp_path):

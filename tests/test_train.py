@@ -7,6 +7,7 @@ import contextlib
 import csv
 import io
 import json
+import math
 import os
 import subprocess
 import sys
@@ -106,6 +107,40 @@ def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> Non
         assert code == (0 if result["valid"] else 1) and isinstance(result["response"], str)
         if same:
             assert result["response"] == row["prediction"]
+
+
+def test_pretrained_config_runs_from_a_model_folder(tmp_path, dataset_dir):
+    """`model=qwen2_5_vl_3b model.path=DIR`, the real-model path end to end, with DIR a Qwen2.5-VL written by
+    `save_pretrained` (the tiny architecture, seed 3) beside the processor files: `from_pretrained` for the model
+    and the processor, the 3B config's LoRA (r 16, tower frozen), one training and validation batch, and an
+    adapter folder naming DIR from which `predict` rebuilds those base weights, not a fresh tiny model."""
+    import shutil
+
+    from aynamics.model import build_tiny_model
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    folder = tmp_path / "qwen"
+    saved = build_tiny_model(seed=3)
+    saved.save_pretrained(folder)
+    shutil.copytree(TINY_ASSET_DIR, folder, dirs_exist_ok=True)  # tokenizer, chat template, image processor
+    cfg = _cfg(
+        tmp_path / "run",
+        "debug=fast_dev_run",
+        f"data.dir={dataset_dir}",
+        "model=qwen2_5_vl_3b",
+        f"model.path={folder}",
+        "model.dtype=float32",
+        "model.gradient_checkpointing=false",
+    )
+    metrics = train(cfg)
+    assert torch.isfinite(torch.tensor(metrics["train/loss"]))
+    spec, _ = lm.read_adapter_meta(tmp_path / "run" / "adapter")
+    assert (spec.kind, spec.path, spec.lora_rank, spec.train_vision) == ("pretrained", str(folder), 16, False)
+    model, _, _ = lm.load_adapter(tmp_path / "run" / "adapter")
+    name = "lm_head.weight"
+    ours = dict(model.base_model.model.named_parameters())[name]
+    assert torch.equal(ours, dict(saved.named_parameters())[name])
+    assert not torch.equal(ours, dict(build_tiny_model(seed=0).named_parameters())[name])
 
 
 def test_cli_command_as_written(tmp_path, dataset_dir):
@@ -210,6 +245,101 @@ def test_resume_continues_exactly(tmp_path, dataset_dir, vision_aux):
     # the checkpoint holds only trainable weights (the adapter), not the frozen base
     assert all("lora_" in k or "modules_to_save" in k or "visual" in k for k in a["state_dict"])
     assert ("visual_head.weight" in a["state_dict"]) == vision_aux
+    # c resumed (a fresh run would also give a's weights): it wrote no step-2 checkpoint of its own
+    assert sorted(p.name for p in (tmp_path / "c" / "checkpoints").glob("step*")) == ["step000004.ckpt"]
+    # and the Lightning loop trained: LoRA B starts at zero, and steps 3-4 moved it further
+    b = torch.load(ckpt, weights_only=False)
+    lora_b = [k for k in a["state_dict"] if "lora_B" in k]
+    assert lora_b and all(b["state_dict"][k].abs().max() > 0 for k in lora_b)
+    assert all(not torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in lora_b)
+    _exported_checkpoint_is_the_adapter_of_its_step(ckpt, tmp_path / "b" / "adapter", tmp_path / "exported")
+
+
+def _exported_checkpoint_is_the_adapter_of_its_step(ckpt: Path, adapter: Path, out: Path) -> None:
+    """`aynamics export-adapter` of run b's step-2 checkpoint writes the folder run b exported when it ended at
+    step 2: the same peft tensors and specs, loadable with `PeftModel.from_pretrained`. A file that is no
+    training checkpoint is named."""
+    from safetensors.torch import load_file
+
+    from aynamics.cli import main
+
+    assert main(["export-adapter", str(ckpt), "--out", str(out)]) == 0
+    ours, theirs = load_file(out / "adapter_model.safetensors"), load_file(adapter / "adapter_model.safetensors")
+    assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
+    assert lm.read_adapter_meta(out) == lm.read_adapter_meta(adapter)
+    assert json.loads((out / "adapter_config.json").read_text()) == json.loads(
+        (adapter / "adapter_config.json").read_text()
+    )
+    lm.load_adapter(out)  # PeftModel.from_pretrained on the rebuilt base
+    torch.save({"state_dict": {}}, out / "other.ckpt")
+    assert main(["export-adapter", str(out / "other.ckpt"), "--out", str(out / "x")]) == 2
+    assert main(["export-adapter", str(out / "adapter_config.json"), "--out", str(out / "x")]) == 2  # not a ckpt
+    assert main(["export-adapter", str(out / "missing.ckpt"), "--out", str(out / "x")]) == 2
+    assert not (out / "x").exists()
+
+
+def test_learning_rate_schedule_by_hand():
+    """Warm-up 4 then cosine to 0.1 over 12 steps: 0.25 at step 0, 1 at 3 and 4, 0.1 + 0.9 · ½(1 + cos ½π) = 0.55
+    half-way (step 8), 0.1 at the end and after; constant stays 1 after warm-up."""
+    from aynamics.sft import lr_factor
+
+    kw = dict(warmup_steps=4, total_steps=12, schedule="cosine", min_ratio=0.1)
+    got = [lr_factor(s, **kw) for s in (0, 3, 4, 8, 12, 20)]
+    assert got == pytest.approx([0.25, 1.0, 1.0, 0.55, 0.1, 0.1])
+    assert lr_factor(8, **(kw | {"schedule": "constant"})) == 1.0
+
+
+def test_training_steps_follow_the_schedule(tmp_path, dataset_dir):
+    """Six Lightning steps at lr 1e-3, warm-up 2, cosine to 0.1: the CSV's train/lr per step is the schedule
+    by hand (progress (step - 2) / 4: 1, 0.868, 0.55, 0.232 after 0.5, 1), and the loss is finite."""
+    cfg = _cfg(
+        tmp_path,
+        f"data.dir={dataset_dir}",
+        "logger=csv",
+        "trainer.max_steps=6",
+        "trainer.log_every_n_steps=1",
+        "trainer.val_check_interval=null",
+        "trainer.check_val_every_n_epoch=100",
+        "callbacks.evaluation=null",
+        "trainer.enable_progress_bar=false",
+        "stage.module.lr=1e-3",
+        "stage.module.warmup_steps=2",
+        "stage.module.schedule=cosine",
+        "stage.module.min_lr_ratio=0.1",
+    )
+    train(cfg)
+    with open(tmp_path / "csv" / "metrics.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("train/lr")]
+    c = [0.1 + 0.45 * (1 + math.cos(math.pi * p)) for p in (0.0, 0.25, 0.5, 0.75)]
+    assert [int(r["step"]) for r in rows] == list(range(6))
+    assert [float(r["train/lr"]) for r in rows] == pytest.approx([1e-3 * x for x in (0.5, 1.0, *c)], rel=1e-5)
+
+
+def test_lora_and_pixel_overrides_reach_peft_and_the_processor(tmp_path, dataset_dir):
+    """model.lora_rank/alpha/dropout from the command line are what peft builds (scaling alpha / r = 3, dropout
+    p = 0.2 on every adapted layer); data.min_pixels = 12544 scales the 64×48 frames up to 112×140 pixels (8×10
+    patches of 14: Qwen's smart_resize rounds each side up to 28 when it enlarges) where the defaults give 56×56
+    (4×4), and data.max_pixels = 3000 down to 28×56 (2×4)."""
+    import hydra
+
+    cfg = _cfg(
+        tmp_path, f"data.dir={dataset_dir}", "model.lora_rank=8", "model.lora_alpha=24", "model.lora_dropout=0.2"
+    )
+    model = lm.build_model(hydra.utils.instantiate(cfg.model))
+    config = model.peft_config["default"]
+    assert (config.r, config.lora_alpha, config.lora_dropout) == (8, 24, 0.2)
+    layers = [m for m in model.modules() if hasattr(m, "lora_A") and "default" in m.lora_A]
+    assert layers and all(m.scaling["default"] == 3.0 and m.lora_dropout["default"].p == 0.2 for m in layers)
+
+    def grid(*overrides):
+        c = _cfg(tmp_path, f"data.dir={dataset_dir}", *overrides)
+        dm = hydra.utils.instantiate(c.data, processor_path=lm.ModelSpec().processor_path, target="answer")
+        dm.setup("fit")
+        return dm.dataset("train")[0]["image_grid_thw"][0].tolist()
+
+    assert grid() == [1, 4, 4]
+    assert grid("data.min_pixels=12544", "data.max_pixels=20000") == [1, 8, 10]
+    assert grid("data.min_pixels=784", "data.max_pixels=3000") == [1, 2, 4]
 
 
 def test_type_weights_reach_the_training_loss_only(dataset_dir):
@@ -261,6 +391,30 @@ def test_vision_aux_is_logged_and_misconfigurations_are_named(tmp_path, dataset_
     with pytest.raises(ValueError, match="data.visual_targets=true"):
         overrides = [f"data.dir={dataset_dir}", "stage.module.vision_aux_weight=1.0", "trainer.max_steps=1"]
         train(_cfg(tmp_path / "x", *overrides))
+
+
+def test_multirun_grid_and_collect(tmp_path, dataset_dir, capsys):
+    """The README's ablation grid, `python train.py -m data.modality=rgb,flow stage.target=answer,think_answer`,
+    at 1 step each: four runs in one sweep folder, and `aynamics collect` gives one row per run with its
+    overrides, status and final metrics, in the printed table and summary.csv."""
+    from aynamics.cli import main
+
+    sweep = tmp_path / "sweep"
+    cmd = [sys.executable, "train.py", "-m", "data.modality=rgb,flow", "stage.target=answer,think_answer"]
+    cmd += [f"data.dir={dataset_dir}", "trainer.max_steps=1", "trainer.val_check_interval=1", *FAST]
+    cmd += ["callbacks.evaluation.num_samples=1", "callbacks.evaluation.max_new_tokens=4"]
+    cmd += ["callbacks.evaluation.num_animations=0", "callbacks.evaluation.baseline=false"]
+    cmd += ["trainer.enable_progress_bar=false", f"hydra.sweep.dir={sweep}"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert main(["collect", str(sweep)]) == 0
+    table = capsys.readouterr().out
+    with open(sweep / "summary.csv") as f:
+        rows = list(csv.DictReader(f))
+    grid = [(r["data.modality"], r["stage.target"], r["status"]) for r in rows]
+    assert sorted(grid) == sorted((m, t, "done") for m in ("rgb", "flow") for t in ("answer", "think_answer"))
+    assert all(r["val/yaml_valid"] == "0.0" for r in rows)  # 4 tokens hold no scene
+    assert all(any(f"| {m} | {t} |" in line and "| done |" in line for line in table.splitlines()) for m, t, _ in grid)
 
 
 @pytest.mark.slow
