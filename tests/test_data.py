@@ -186,6 +186,24 @@ def test_resumable_sampler_order():
     assert list(other) != full
 
 
+def test_train_loader_shards_over_the_trainers_ranks(dataset_dir):
+    """Under a 2-process trainer the data module's loader gives rank 0 and rank 1 disjoint halves of the training
+    split (5 records: 3 and 3, the sampler padding one as DDP does); after 1 step of batch 2 each rank resumes
+    past its own first batch."""
+    from types import SimpleNamespace
+
+    dm = SceneDataModule(str(dataset_dir), str(TINY_ASSET_DIR), num_frames=2, batch_size=2)
+    dm.setup("fit")
+
+    def order(rank: int, step: int = 0) -> list[int]:
+        dm.trainer = SimpleNamespace(global_rank=rank, world_size=2, global_step=step, accumulate_grad_batches=1)
+        return list(dm.train_dataloader().sampler)
+
+    r0, r1 = order(0), order(1)
+    assert len(r0) == len(r1) == 3 and set(r0) | set(r1) == set(range(5)) and len(set(r0) & set(r1)) <= 1
+    assert order(0, step=1) == r0[2:] and order(1, step=1) == r1[2:]
+
+
 def test_length_grouped_order_pads_less_and_still_resumes():
     lengths = [1, 4, 2, 3] * 16  # 64 examples, object counts 1-4
     kw = dict(seed=5, lengths=lengths, batch_size=4)
