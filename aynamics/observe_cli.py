@@ -107,8 +107,10 @@ def _add_score(sub) -> None:
     p.add_argument("predictions", nargs="+", help="predicted scene YAML files (model outputs are fine)")
     p.add_argument("--observed", required=True, help="observed scene YAML, or a folder written by `aynamics render`")
     p.add_argument("--json", action="store_true", help="print a JSON list, one object per prediction, in order")
-    p.add_argument("--width", type=int, default=120, help="scoring resolution width (default 120)")
-    p.add_argument("--height", type=int, default=80, help="scoring resolution height (default 80)")
+    p.add_argument(
+        "--width", type=int, help="scoring resolution width (default: the observed folder's aspect at 80 rows; 120)"
+    )
+    p.add_argument("--height", type=int, help="scoring resolution height (default 80)")
     p.set_defaults(run=_run_score)
 
 
@@ -116,14 +118,15 @@ def _run_score(args) -> int:
     from aynamics import scene as scenelib
     from aynamics import scorer
 
-    if not (8 <= args.width <= 1920 and 8 <= args.height <= 1280):
+    if not (8 <= (args.width or 8) <= 1920 and 8 <= (args.height or 8) <= 1280):
         raise UsageError(f"score: --width {args.width} --height {args.height}: must be in [8, 1920] × [8, 1280]")
     observed = Path(args.observed)
     try:
         if observed.is_dir():
             obs = scorer.Observation.from_dir(observed, width=args.width, height=args.height)
-        else:
-            obs = scorer.Observation.from_scene(scenelib.load(args.observed), width=args.width, height=args.height)
+        else:  # a scene has no image size of its own: the scorer's 120×80 unless given (its aspect: 3:2)
+            width, height = scorer.scoring_size(scorer.WIDTH, scorer.HEIGHT, args.width, args.height)
+            obs = scorer.Observation.from_scene(scenelib.load(args.observed), width=width, height=height)
     except ValueError as e:  # SceneError is a ValueError too; keep its message
         if isinstance(e, scenelib.SceneError):
             raise

@@ -146,6 +146,11 @@ class ProModule(L.LightningModule):
                 f"stage.mode = {self.hparams.mode!r} with preferences_dir = {stored!r}: offline mode trains on a "
                 "stored preference data set (set stage.preferences_dir), online mode samples (leave it null)"
             )
+        if dm is not None and self.reward_config.needs_flow and not getattr(dm, "hparams", {}).get("use_flow", True):
+            raise ValueError(
+                f"stage.reward_metric = {self.reward_config.metric!r} scores the flow, but data.use_flow = false: "
+                "set data.use_flow=true or stage.reward_metric=iou"
+            )
         self.ensure_processor()
         if self.hparams.init_adapter is not None:
             _, trained = lm.read_adapter_meta(self.hparams.init_adapter)

@@ -26,7 +26,7 @@ import torch
 from matplotlib.colors import rgb_to_hsv
 from PIL import Image
 
-from aynamics.scorer import HEIGHT, WIDTH, Observation
+from aynamics.scorer import Observation, scoring_size
 
 # Columns of a generated record that the PRO stage may read; everything else (the labels) is dropped on loading.
 OBSERVED_COLUMNS = ("index", "rgb", "flow", "flow_max", "segmentation", "frame_indices")
@@ -98,7 +98,7 @@ def _nearest(full: int, low: int) -> np.ndarray:
 
 
 def observation_from_record(
-    record: dict, *, width: int = WIDTH, height: int = HEIGHT, use_flow: bool = True
+    record: dict, *, width: int | None = None, height: int | None = None, use_flow: bool = True
 ) -> Observation:
     """The observation of a generated record from its `segmentation` masks (and `flow` images) alone.
 
@@ -120,6 +120,7 @@ def observation_from_record(
     if len({m.shape for m in masks}) != 1 or masks[0].ndim != 2:
         raise ValueError(f"record {key}: segmentation masks must be grey images of one size, got {masks[0].shape}")
     full_h, full_w = masks[0].shape
+    width, height = scoring_size(full_w, full_h, width, height)
     rows, cols = _nearest(full_h, height), _nearest(full_w, width)
     seg = np.stack(masks)[:, rows][:, :, cols].astype(np.int16) - 1  # (F, h, w), -1 background
     flow = None
@@ -135,7 +136,7 @@ def observation_from_record(
 
 
 def video_from_record(
-    record: dict, *, inputs: str = "rgb", width: int = WIDTH, height: int = HEIGHT, use_flow: bool = True
+    record: dict, *, inputs: str = "rgb", width: int | None = None, height: int | None = None, use_flow: bool = True
 ) -> UnlabeledVideo:
     """An `UnlabeledVideo` of a generated record; `inputs` picks the model's images ("rgb" or "flow")."""
     if inputs not in INPUTS:
@@ -157,7 +158,7 @@ class GeneratedVideos(torch.utils.data.Dataset):
         path: Folder written by `aynamics generate` (a DatasetDict) or one split saved on its own.
         split: Split name when `path` holds a DatasetDict.
         inputs: "rgb" or "flow": the images the model sees.
-        width, height: Scorer resolution of the observation.
+        width, height: Scorer resolution of the observation (default: `scorer.scoring_size`, the video's aspect).
         use_flow: Decode the flow images into the observation (needed for EPE rewards).
         limit: Keep only the first `limit` records.
     """
@@ -168,8 +169,8 @@ class GeneratedVideos(torch.utils.data.Dataset):
         split: str = "train",
         *,
         inputs: str = "rgb",
-        width: int = WIDTH,
-        height: int = HEIGHT,
+        width: int | None = None,
+        height: int | None = None,
         use_flow: bool = True,
         limit: int | None = None,
     ) -> None:
@@ -202,7 +203,7 @@ class GeneratedVideos(torch.utils.data.Dataset):
         return video_from_record(rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow)
 
 
-def video_from_folder(path: str | Path, *, width: int = WIDTH, height: int = HEIGHT) -> UnlabeledVideo:
+def video_from_folder(path: str | Path, *, width: int | None = None, height: int | None = None) -> UnlabeledVideo:
     """An `UnlabeledVideo` from `frames/*.png` plus the scorer's observed layout (see the module docstring).
 
     When `frames/` holds every frame of the video, the model sees the sampled frames (those the observation
@@ -230,7 +231,7 @@ def video_from_folder(path: str | Path, *, width: int = WIDTH, height: int = HEI
     return UnlabeledVideo(root.name, frames, obs)
 
 
-def load_folders(path: str | Path, *, width: int = WIDTH, height: int = HEIGHT) -> list[UnlabeledVideo]:
+def load_folders(path: str | Path, *, width: int | None = None, height: int | None = None) -> list[UnlabeledVideo]:
     """One video folder, or every sub-folder (in name order) of a collection that holds one."""
     root = Path(path)
     if not root.is_dir():
@@ -248,8 +249,8 @@ def open_videos(
     split: str = "train",
     *,
     inputs: str = "rgb",
-    width: int = WIDTH,
-    height: int = HEIGHT,
+    width: int | None = None,
+    height: int | None = None,
     use_flow: bool = True,
     limit: int | None = None,
 ) -> Sequence[UnlabeledVideo]:

@@ -103,6 +103,45 @@ def test_all_tied_rewards_give_a_zero_loss_that_keeps_the_graph(dataset_dir):
     loss.backward()  # no error: every trainable parameter is reached with a zero gradient
 
 
+def test_online_pro_scores_logs_and_prefers_fixed_candidates(tmp_path, dataset_dir, monkeypatch):
+    """`train.py stage=pro` with the sampler swapped for two fixed candidates of training video 0 (its true scene
+    and the scene with its first object 0.5 m off along x): the logged reward mean / best and the validation's
+    greedy, Best@1 and Best@N IoU are those candidates' scores, computed here independently, and the loss is > 0
+    (that it moves probability toward the better one: `test_gradient_moves_probability_toward_better_candidates`).
+    With stage.reward_metric=epe and data.use_flow=false the run stops at setup, naming both keys."""
+    from datasets import load_from_disk
+
+    scene = parse(load_from_disk(str(dataset_dir))["train"][0]["scene_yaml"])
+    first = scene.objects[0]
+    moved = first.model_copy(
+        update={
+            "state": first.state.model_copy(
+                update={"position": [first.state.position[0] + 0.5, *first.state.position[1:]]}
+            )
+        }
+    )
+    texts = [dump(scene), dump(scene.model_copy(update={"objects": [moved, *scene.objects[1:]]}))]
+    video = GeneratedVideos(dataset_dir, "train", use_flow=False, limit=1)[0]
+    r = rw.rewards_of(rw.score_completions([texts], [video.observation]))[0].tolist()
+    assert r[0] > 0.9 and r[0] - r[1] > 0.2  # the true scene scores (nearly) 1, the moved one clearly less
+
+    def fixed(model, processor, prompts, *, num_samples, **kw):
+        chosen = texts[:num_samples]
+        return [[response_ids(processor, t) for t in chosen] for _ in prompts], [list(chosen) for _ in prompts]
+
+    monkeypatch.setattr(rw, "sample_completions", fixed)
+    common = [f"data.dir={dataset_dir}", "data.limit_train=1", "data.val_split=train", "stage.module.lr=5e-3"]
+    metrics = train(_cfg(tmp_path / "run", *common, "trainer.max_steps=4", "trainer.val_check_interval=4"))
+    assert metrics["reward/mean"] == pytest.approx(sum(r) / 2, abs=1e-6)
+    assert metrics["reward/best"] == pytest.approx(r[0], abs=1e-6) and metrics["reward/invalid"] == 0.0
+    assert metrics["val/greedy/iou_full"] == pytest.approx(r[0], abs=1e-6)  # greedy: the first candidate
+    assert metrics["val/best1/iou_full"] == pytest.approx(sum(r) / 2, abs=1e-6)
+    assert metrics["val/bestN/iou_full"] == pytest.approx(r[0], abs=1e-6)
+    assert metrics["train/loss"] > 0 and metrics["train/informative"] == 1.0
+    with pytest.raises(ValueError, match="reward_metric = 'epe'.*data.use_flow = false"):
+        train(_cfg(tmp_path / "epe", *common, "stage.module.reward_metric=epe"))
+
+
 def test_module_arguments_are_checked():
     for kw, match in [
         ({"mode": "both"}, "stage.mode = 'both'"),

@@ -22,14 +22,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 def generated(tmp_path_factory):
     """A real generated data set: 4 scenes at 96x64 (about 5 s); skipped when OpenGL cannot render here."""
     from aynamics.generate import GenerateConfig, generate_dataset
+    from aynamics.render import gl_available
 
+    ok, why = gl_available()
+    if not ok:  # no EGL / OSMesa: rendering is another module's concern
+        pytest.skip(why)
     out = tmp_path_factory.mktemp("gen") / "synth"
-    try:
-        return generate_dataset(out, num=4, seed=0, config=GenerateConfig(width=96, height=64, workers=0))
-    except Exception as e:  # no EGL / OSMesa: rendering is another module's concern
-        if "gl" in str(e).lower() or "render" in str(e).lower():
-            pytest.skip(f"OpenGL rendering unavailable: {e}")
-        raise
+    return generate_dataset(out, num=4, seed=0, config=GenerateConfig(width=96, height=64, workers=0))
 
 
 @pytest.fixture(scope="module")
@@ -69,20 +68,53 @@ def test_decode_flow_colors_inverts_the_colour_wheel():
 
 
 def test_observation_from_record_reads_masks_not_labels(records):
-    """The observation equals the stored masks resampled to 120x80; blanking every label changes nothing."""
+    """The observation is the stored 96×64 masks as they are (fewer rows than the scorer's 80: never upsampled
+    by default), or resampled to a size given at their aspect (120×80); blanking every label changes nothing."""
     rec = records[0]
-    obs = observation_from_record(rec)
     masks = np.stack([np.asarray(m) for m in rec["segmentation"]]).astype(int) - 1  # (F, 64, 96)
+    own = observation_from_record(rec)
+    np.testing.assert_array_equal(own.segmentation, masks)
+    assert (own.width, own.height) == (96, 64) and own.flow.shape == (10, 64, 96, 2)
+    obs = observation_from_record(rec, width=120, height=80)
     rows = ((np.arange(80) + 0.5) * 64 / 80).astype(int)
     cols = ((np.arange(120) + 0.5) * 96 / 120).astype(int)
     np.testing.assert_array_equal(obs.segmentation, masks[:, rows][:, :, cols])
     assert obs.flow is not None and obs.flow.shape == (10, 80, 120, 2) and obs.names is None
     blank = dict(rec, scene_yaml="", reasoning="", target_answer="", target_think="", states=None, contacts=None)
-    again = observation_from_record(blank)
+    again = observation_from_record(blank, width=120, height=80)
     np.testing.assert_array_equal(again.segmentation, obs.segmentation)
     np.testing.assert_array_equal(again.flow, obs.flow)
     with pytest.raises(ValueError, match="'segmentation' is missing"):
         observation_from_record({k: v for k, v in rec.items() if k != "segmentation"})
+
+
+def test_scoring_size_keeps_the_videos_aspect():
+    """480×320 -> 120×80; 112×80 stays; 96×64 (fewer rows than 80) stays; a height alone sets the width; a size
+    off the aspect is refused, naming both and the width that fits."""
+    from aynamics.scorer import scoring_size
+
+    assert scoring_size(480, 320) == (120, 80) and scoring_size(112, 80) == (112, 80)
+    assert scoring_size(96, 64) == (96, 64) and scoring_size(480, 320, height=40) == (60, 40)
+    assert scoring_size(64, 48, width=100) == (100, 75) and scoring_size(480, 320, 120, 80) == (120, 80)
+    with pytest.raises(ValueError, match=r"120×80 is off the video's aspect ratio \(112×80\).*width 112"):
+        scoring_size(112, 80, 120, 80)
+
+
+def test_true_scene_scores_one_against_its_own_record(generated, tmp_path):
+    """Generated records' own scenes, scored against the observations built from their masks, at 96×64 (3:2) and
+    at 112×80 (7:5, `make train`'s size): IoU and EPE of a perfect answer. Before `scoring_size`, 112×80 videos
+    were scored at 120×80 and their true scenes got IoU 0.56-0.90."""
+    import datasets
+
+    from aynamics.generate import GenerateConfig, generate_dataset
+
+    other = generate_dataset(tmp_path / "d", num=2, seed=1, config=GenerateConfig(width=112, height=80, workers=0))
+    for path, size in ((generated, (96, 64)), (other, (112, 80))):
+        for rec in [r for split in datasets.load_from_disk(str(path)).values() for r in split][:2]:
+            obs = observation_from_record(rec)
+            assert (obs.width, obs.height) == size
+            s = rw.score_completions([[rec["scene_yaml"]]], [obs])[0][0]
+            assert s.iou_full > 0.98 and s.iou_first > 0.98 and s.epe_full < 0.3, (size, rec["index"], s)
 
 
 def test_reward_does_not_read_scene_yaml(generated, tmp_path, records):
