@@ -43,6 +43,10 @@ def test_iou_per_frame_average_and_missing_objects():
     per_frame = metrics.iou_from_counts(counts)
     np.testing.assert_allclose(per_frame, [1.0, 0.5, 1.0])
     assert counts[:, 0, 0].tolist() == [2, 0, 4]  # background-background pixels per frame
+    # the prediction still shows the object in frame 1 after it left the observed view: 0 / 1 there, not an
+    # empty frame's 1 (a matched pair counts once only when both sides show it)
+    gone = metrics.iou_from_counts(metrics.overlap_counts(_seg([[0, 0]], [[0, 0]]), _seg([[0, 0]], [[-1, -1]]), 1, 1))
+    np.testing.assert_allclose(gone, [1.0, 0.0])
 
 
 def test_iou_falls_with_shift():

@@ -100,7 +100,70 @@ def test_all_tied_rewards_give_a_zero_loss_that_keeps_the_graph(dataset_dir):
     prompts, ids, _ = _fixed_candidates(module, dataset_dir)
     loss, seq = module.preference_loss(prompts, ids, torch.zeros(2, 4))
     assert loss.item() == 0.0 and loss.requires_grad and seq.shape == (2, 4)
-    loss.backward()  # no error: every trainable parameter is reached with a zero gradient
+    loss.backward()  # every trainable parameter is reached (DDP needs it), with a zero gradient
+    grads = [p.grad for p in module.model.parameters() if p.requires_grad]
+    assert grads and all(g is not None and not g.any() for g in grads)
+
+
+def test_sequence_scores_are_length_normalised_per_candidate(dataset_dir):
+    """Each candidate's sequence score in the padded B x N batch is its mean token log-probability computed alone
+    (candidates of 7, 13, 13 and 17 tokens here: a sum would differ by their lengths)."""
+    from aynamics.processor import mean_token_logprob, model_inputs
+
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=4).eval()
+    module.ensure_processor()
+    prompts, ids, rewards = _fixed_candidates(module, dataset_dir)
+    assert len({len(c) for c in ids[0]}) > 2
+    pad = module.processor.tokenizer.pad_token_id
+    with torch.no_grad():
+        _, seq = module.preference_loss(prompts, ids, rewards)
+        for b, n in [(0, 0), (0, 3), (1, 1)]:
+            one = rw.candidate_batch([prompts[b]], [[ids[b][n]]], pad, forbidden=rw.vision_token_ids(module.model))
+            alone = mean_token_logprob(module.model(**model_inputs(one)).logits, one["labels"])[0]
+            assert seq[b, n].item() == pytest.approx(alone.item(), abs=1e-4), (b, n)
+
+
+def test_margin_and_best_by_hand():
+    """Margin: row 0 best-scored (0.9, ℓ 1) minus worst (0.1, ℓ 0) = 1, row 1 tied = 0: mean 0.5. Rewards
+    [[0.2, 0.6], [0.9, 0.1]]: mean 0.45, best = mean of each video's best (0.6 + 0.9) / 2 = 0.75, not the
+    batch's 0.9."""
+    from aynamics.pro import _margin
+    from aynamics.scorer import Score
+
+    seq = torch.tensor([[0.0, 1.0, 2.0], [5.0, 4.0, 3.0]])
+    assert _margin(seq, torch.tensor([[0.1, 0.9, 0.5], [0.3, 0.3, 0.3]])).item() == pytest.approx(0.5)
+    assert _margin(seq, torch.tensor([[0.9, 0.1, 0.5], [0.1, 0.2, 0.9]])).item() == pytest.approx((-1 - 2) / 2)
+    ok = Score(0.5, 0.5, None, None, True)
+    stats = rw.RewardStats.of(torch.tensor([[0.2, 0.6], [0.9, 0.1]]), [[ok, ok], [ok, ok]])
+    assert (stats.mean, stats.best, stats.invalid) == pytest.approx((0.45, 0.75, 0.0))
+
+
+def test_build_preferences_pairs_each_videos_own_candidates(dataset_dir, monkeypatch):
+    """Two videos sampled together (batch_size 2), 4 candidates each, sampling swapped for fixed ones: video 0's
+    rewards all tie (no pair), video 1's [0.2, 0.9, 0.0, 0.5] give (1 best, 2 worst) and (3, 0), each row holding
+    video 1's own texts, ids and rewards in (chosen, rejected) order."""
+    from aynamics.preference_data import build_preferences
+    from aynamics.scorer import Score
+
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=4)
+    module.ensure_processor()
+    videos = GeneratedVideos(dataset_dir, "train", use_flow=False, limit=2)
+    texts = [[f"video {b} candidate {n}" for n in range(4)] for b in range(2)]
+    rewards = torch.tensor([[0.3, 0.3, 0.3, 0.3], [0.2, 0.9, 0.0, 0.5]])
+
+    def fixed(chunk, num_samples, temperature):
+        assert len(chunk) == 2 and num_samples == 4
+        ids = [[response_ids(module.processor, t) for t in row] for row in texts]
+        scores = [[Score(float(r), float(r), None, None, True) for r in row] for row in rewards]
+        return module.prompts([v.frames for v in chunk]), ids, scores, rewards
+
+    monkeypatch.setattr(module, "sample_and_score", fixed)
+    rows, summary = build_preferences(module, [videos[0], videos[1]], num_samples=4, pairs=3, batch_size=2)
+    assert [r["key"] for r in rows] == [videos[1].key] * 2
+    assert [r["completions"] for r in rows] == [[texts[1][1], texts[1][2]], [texts[1][3], texts[1][0]]]
+    assert [r["rewards"] for r in rows] == [pytest.approx([0.9, 0.0]), pytest.approx([0.5, 0.2])]
+    assert rows[0]["completion_ids"] == [response_ids(module.processor, texts[1][k]) for k in (1, 2)]
+    assert (summary["pairs"], summary["videos_without_pairs"]) == (2, 1)
 
 
 def test_online_pro_scores_logs_and_prefers_fixed_candidates(tmp_path, dataset_dir, monkeypatch):

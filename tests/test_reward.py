@@ -153,20 +153,22 @@ def test_invalid_outputs_score_zero_with_their_reason(records):
     scene = parse(records[0]["scene_yaml"])
     bad_mass = dump(scene).replace("mass: ", "mass: -", 1)
     texts = ["", "I think the box slides.", "<answer>\n- type: box\n  size: [1, 2\n</answer>", bad_mass]
-    texts.append(f"<think>it slides</think>\n<answer>\n{dump(scene)}</answer>")
+    sunk = dump(scene) + "- type: sphere\n  name: sunk\n  radius: 0.05\n  state:\n    position: [0, 1, -0.4]\n"
+    texts += [sunk, f"<think>it slides</think>\n<answer>\n{dump(scene)}</answer>"]
     scores = rw.score_completions([texts], [obs])[0]
-    assert [s.valid for s in scores] == [False, False, False, False, True]
-    assert all(s.iou_full == 0 and s.epe_full == EPE_INVALID for s in scores[:4])
-    assert [rw.reason_kind(s.reason) for s in scores] == ["no_yaml", "no_yaml", "no_yaml", "invalid_scene", "valid"]
-    assert "mass = -" in scores[3].reason
+    assert [s.valid for s in scores] == [False, False, False, False, False, True]
+    assert all(s.iou_full == 0 and s.epe_full == EPE_INVALID for s in scores[:5])
+    kinds = ["no_yaml", "no_yaml", "no_yaml", "invalid_scene", "simulation", "valid"]
+    assert [rw.reason_kind(s.reason) for s in scores] == kinds
+    assert "mass = -" in scores[3].reason and "sunk fell through the floor" in scores[4].reason
     rewards = rw.rewards_of([scores])
-    assert rewards.shape == (1, 5) and torch.all(rewards[0, :4] == 0) and rewards[0, 4] > 0.7
+    assert rewards.shape == (1, 6) and torch.all(rewards[0, :5] == 0) and rewards[0, 5] > 0.9
     stats = rw.RewardStats.of(rewards, [scores])
     m = stats.to_metrics()
-    assert m["reward/invalid"] == pytest.approx(0.8) and m["reward/invalid_no_yaml"] == pytest.approx(0.6)
-    assert m["reward/invalid_invalid_scene"] == pytest.approx(0.2) and m["reward/best"] == pytest.approx(
-        m["reward/mean"] * 5
-    )
+    assert m["reward/invalid"] == pytest.approx(5 / 6) and m["reward/invalid_no_yaml"] == pytest.approx(0.5)
+    assert m["reward/invalid_invalid_scene"] == pytest.approx(1 / 6)
+    assert m["reward/invalid_simulation"] == pytest.approx(1 / 6)
+    assert m["reward/best"] == pytest.approx(m["reward/mean"] * 6)
 
 
 def test_scoring_in_parallel_matches_serial(records):
