@@ -44,6 +44,9 @@ MODALITY_NOTE = {
 }
 
 
+PROMPT_KEYS = ("target", "modality", "as_video", "num_frames")  # what a trained adapter / stored data must agree on
+
+
 @dataclass(frozen=True)
 class PromptSpec:
     """What the model is shown and asked: the same at training, evaluation and `aynamics predict`.
@@ -281,6 +284,14 @@ def save_adapter(model: torch.nn.Module, out: str | Path, spec: ModelSpec, promp
     model.save_pretrained(str(out))
     (out / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
     return out
+
+
+def tokenizer_fingerprint(tokenizer) -> str:
+    """A short hash of the vocabulary (token -> id): stored token ids are only meaningful under the same one."""
+    import hashlib
+
+    vocab = sorted(tokenizer.get_vocab().items())
+    return hashlib.sha256(json.dumps(vocab, ensure_ascii=False).encode()).hexdigest()[:16]
 
 
 def adapter_meta(spec: ModelSpec, prompt: PromptSpec) -> dict:

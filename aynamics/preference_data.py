@@ -26,7 +26,9 @@ from typing import Any
 
 import torch
 
+from aynamics import lm
 from aynamics import reward as rw
+from aynamics.lm import PROMPT_KEYS
 from aynamics.unlabeled import UnlabeledVideo
 
 COLUMNS = ("key", "frames", "completions", "completion_ids", "rewards", "reasons", "case_rewards")
@@ -121,8 +123,34 @@ def build_preferences(
         "temperature": temperature,
         "pairs_per_video": pairs,
         **(stats.to_metrics("reward/") if stats else {}),
+        # what the stored frames and token ids mean: offline training checks them against its own
+        "prompt": {k: getattr(module.prompt, k) for k in PROMPT_KEYS},
+        "tokenizer": lm.tokenizer_fingerprint(module.processor.tokenizer),
     }
     return rows, summary
+
+
+def check_made_for(path: str | Path, prompt: Any, tokenizer) -> None:
+    """Refuse a stored preference data set made under another prompt (target, modality, frames) or tokenizer than
+    the training's: its completion ids would be read as other tokens, its frames shown another way.
+
+    Raises:
+        ValueError: naming the stored and the current values. Data sets without the record (older ones) pass.
+    """
+    summary_path = Path(path) / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    stored = summary.get("prompt") or {}
+    diff = [k for k in PROMPT_KEYS if k in stored and stored[k] != getattr(prompt, k)]
+    if diff:
+        was = ", ".join(f"{k}={stored[k]!r}" for k in diff)
+        now = ", ".join(f"{k}={getattr(prompt, k)!r}" for k in diff)
+        raise ValueError(f"preferences {str(path)!r} were sampled with {was}, but the data are set to {now}")
+    made = summary.get("tokenizer")
+    if made is not None and made != lm.tokenizer_fingerprint(tokenizer):
+        raise ValueError(
+            f"preferences {str(path)!r} hold token ids of another tokenizer (vocabulary {made}, this model's "
+            f"{lm.tokenizer_fingerprint(tokenizer)}): sample them again with this model"
+        )
 
 
 def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
@@ -154,12 +182,16 @@ def load_preferences(path: str | Path):
         raise FileNotFoundError(
             2, f"preferences {str(root)!r}: no data set here (run `aynamics preferences`)", str(root)
         )
-    ds = datasets.load_from_disk(str(root))
+    empty = ValueError(f"preferences {str(root)!r} hold 0 pairs: every video's candidates tied")
+    try:
+        ds = datasets.load_from_disk(str(root))
+    except IndexError:  # `datasets` cannot load back a data set of 0 rows (no table to concatenate)
+        raise empty from None
     missing = [c for c in COLUMNS if c not in ds.column_names]
     if missing:
         raise ValueError(f"preferences {str(root)!r}: columns {missing} are missing (has {ds.column_names})")
     if len(ds) == 0:
-        raise ValueError(f"preferences {str(root)!r} holds 0 pairs: every video's candidates tied")
+        raise empty
     return ds
 
 

@@ -41,7 +41,6 @@ from aynamics.unlabeled import UnlabeledVideo, collate_videos, open_videos
 
 LOSSES = ("soft", "ranking")
 MODES = ("online", "offline")
-PROMPT_KEYS = ("target", "modality", "as_video", "num_frames")  # must agree between an SFT adapter and the PRO data
 
 
 def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[torch.nn.Module, lm.ModelSpec]:
@@ -154,7 +153,7 @@ class ProModule(L.LightningModule):
         self.ensure_processor()
         if self.hparams.init_adapter is not None:
             _, trained = lm.read_adapter_meta(self.hparams.init_adapter)
-            diff = [k for k in PROMPT_KEYS if getattr(trained, k) != getattr(self.prompt, k)]
+            diff = [k for k in lm.PROMPT_KEYS if getattr(trained, k) != getattr(self.prompt, k)]
             if diff:
                 was = ", ".join(f"{k}={getattr(trained, k)!r}" for k in diff)
                 now = ", ".join(f"{k}={getattr(self.prompt, k)!r}" for k in diff)
@@ -338,9 +337,10 @@ class ProDataModule(L.LightningDataModule):
         )
         kw = {"inputs": hp.modality, "use_flow": hp.use_flow}
         if hp.preferences_dir is not None:
-            from aynamics.preference_data import load_preferences
+            from aynamics.preference_data import check_made_for, load_preferences
 
             self.train_set = load_preferences(hp.preferences_dir)
+            check_made_for(hp.preferences_dir, self.prompt, self.processor.tokenizer)
         else:
             self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
         if len(self.train_set) == 0:

@@ -249,6 +249,11 @@ def test_train_stage_pro_online_end_to_end(tmp_path, dataset_dir):
         )
 
 
+def summary_keys(summary: dict, **prompt) -> dict:
+    """The command's record of what it sampled under, with `prompt` keys changed."""
+    return {"prompt": summary["prompt"] | prompt, "tokenizer": summary["tokenizer"]}
+
+
 def _handmade_preferences(dataset_dir: Path, out: Path) -> Path:
     """Two pairs (true scene vs the scene moved 0.5 m) on two training videos, scored by the real reward."""
     import datasets
@@ -305,9 +310,23 @@ def test_preferences_command_and_offline_training(tmp_path, dataset_dir, capsys)
             "+trainer.limit_val_batches=0",
         )
     )
-    assert "train/loss" in metrics and "train/margin" in metrics and "reward/mean" not in metrics
+    assert metrics["train/loss"] > 0 and "train/margin" in metrics and "reward/mean" not in metrics
     with pytest.raises(ValueError, match="offline mode trains on a stored preference data set"):
         train(_cfg(tmp_path / "mismatch", f"data.dir={dataset_dir}", "stage.mode=offline"))
+    # stored data say what they were sampled under: the command's 4 frames are not these runs' 2, and token ids of
+    # another vocabulary are refused
+    assert summary["prompt"]["num_frames"] == 4 and len(summary["tokenizer"]) == 16
+    offline = ["stage.mode=offline", "+trainer.limit_val_batches=0", f"data.dir={dataset_dir}"]
+    assert summary["pairs"] == 0  # 8 tokens of a random model never hold a scene: every candidate scores 0
+    with pytest.raises(ValueError, match="hold 0 pairs"):  # loading an empty set raised IndexError in `datasets`
+        load_preferences(tmp_path / "prefs")
+    stored = json.loads((tmp_path / "handmade" / "summary.json").read_text())
+    (tmp_path / "handmade" / "summary.json").write_text(json.dumps(stored | summary_keys(summary, num_frames=4)))
+    with pytest.raises(ValueError, match="sampled with num_frames=4, but the data are set to num_frames=2"):
+        train(_cfg(tmp_path / "frames", *offline, f"stage.preferences_dir={tmp_path / 'handmade'}"))
+    (tmp_path / "handmade" / "summary.json").write_text(json.dumps(stored | {"tokenizer": "0" * 16}))
+    with pytest.raises(ValueError, match="token ids of another tokenizer"):
+        train(_cfg(tmp_path / "vocab", *offline, f"stage.preferences_dir={tmp_path / 'handmade'}"))
 
 
 @pytest.mark.slow
