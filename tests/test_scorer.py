@@ -50,6 +50,26 @@ def test_self_score_is_perfect(observed):
     assert t == s
 
 
+def test_a_batch_that_fails_is_scored_one_by_one(observed, monkeypatch):
+    """When simulating a structure group raises (a MuJoCo error on one candidate), each candidate is scored alone:
+    the good ones get their solo scores, the broken one is invalid naming the error."""
+    good = [_moved(SCENE, 0.1), _moved(SCENE, -0.2)]
+    solo = [scorer.score([g], observed)[0] for g in good]
+    broken = _moved(SCENE, 0.3)
+    original = scorer.cast_group
+
+    def cast_group(scenes, *args, **kw):
+        if any(s is broken for s in scenes):
+            raise RuntimeError("mj_step: bad state")
+        return original(scenes, *args, **kw)
+
+    monkeypatch.setattr(scorer, "cast_group", cast_group)
+    batch = scorer.score([good[0], broken, good[1]], observed)
+    assert [s.valid for s in batch] == [True, False, True]
+    assert batch[0] == solo[0] and batch[2] == solo[1]
+    assert batch[1].reason == "simulation failed: RuntimeError: mj_step: bad state" and batch[1].iou_full == 0.0
+
+
 def test_iou_falls_monotonically_with_position_error(observed):
     scores = scorer.score([_moved(SCENE, dx) for dx in (0.0, 0.05, 0.1, 0.2, 0.4, 0.8)], observed)
     ious = [s.iou_full for s in scores]
