@@ -70,6 +70,31 @@ def test_a_batch_that_fails_is_scored_one_by_one(observed, monkeypatch):
     assert batch[1].reason == "simulation failed: RuntimeError: mj_step: bad state" and batch[1].iou_full == 0.0
 
 
+def test_observed_folder_flow_is_resampled_and_rescaled(tmp_path):
+    """A folder at 240×160 (every frame: masks, flow, occlusion, as `aynamics render` writes) loads at the scorer's
+    120×80: masks taken at the nearest pixel centres, flow vectors halved with the width, occlusion kept; it then
+    agrees with the scene observed directly at 120×80 (measured: masks 99.9 % equal, flow 1.2 % of its mean length
+    off; asserted: 99 % and 5 %)."""
+    full = scorer.Observation.from_scene(SCENE, width=240, height=160, frames=np.arange(30))
+    folder = tmp_path / "observed"
+    folder.mkdir()
+    np.save(folder / "segmentation.npy", full.segmentation)
+    np.save(folder / "flow.npy", full.flow[:29])
+    np.save(folder / "occlusion.npy", full.occluded[:29])
+    obs = scorer.Observation.from_dir(folder)
+    direct = scorer.Observation.from_scene(SCENE)
+    assert (obs.width, obs.height) == (120, 80) and obs.frames.tolist() == direct.frames.tolist()
+    rows, cols = np.arange(80) * 2 + 1, np.arange(120) * 2 + 1  # nearest full-resolution pixel centres
+    frames = obs.frames
+    np.testing.assert_array_equal(obs.segmentation, full.segmentation[frames][:, rows][:, :, cols])
+    np.testing.assert_array_equal(obs.flow, full.flow[frames][:, rows][:, :, cols] * 0.5)
+    np.testing.assert_array_equal(obs.occluded, full.occluded[frames][:, rows][:, :, cols])
+    assert (obs.segmentation == direct.segmentation).mean() > 0.99
+    on = (obs.segmentation >= 0) & (direct.segmentation >= 0)
+    err = np.linalg.norm(obs.flow[on] - direct.flow[on], axis=-1).mean()
+    assert err < 0.05 * np.linalg.norm(direct.flow[on], axis=-1).mean()
+
+
 def test_iou_falls_monotonically_with_position_error(observed):
     scores = scorer.score([_moved(SCENE, dx) for dx in (0.0, 0.05, 0.1, 0.2, 0.4, 0.8)], observed)
     ious = [s.iou_full for s in scores]
