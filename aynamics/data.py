@@ -23,7 +23,7 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
 from aynamics import lm
 from aynamics import scene as scene_lib
-from aynamics.processor import IGNORE_INDEX, build_prompt, build_sft_example, collate, sample_frames, type_tokens
+from aynamics.processor import IGNORE_INDEX, build_sft_example, collate, sample_frames, type_tokens
 from aynamics.scene import Scene, from_items, parse, to_items
 from aynamics.visual_targets import token_targets
 
@@ -481,15 +481,7 @@ class SceneDataModule(L.LightningDataModule):
         out = []
         for i in range(min(n, len(ds))):
             record = ds[i]
-            frames = frames_of(record, self.prompt.modality)
-            prompt = build_prompt(
-                self.processor,
-                frames,
-                system_prompt=self.prompt.system_prompt,
-                user_prompt=self.prompt.user_prompt,
-                examples=self.prompt.examples,
-                as_video=self.prompt.as_video,
-            )
+            prompt = lm.prompt_inputs(self.processor, self.prompt, frames_of(record, self.prompt.modality))
             out.append({"index": record.get("index", i), "prompt": prompt, "scene_yaml": record["scene_yaml"]})
         return out
 

@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from aynamics import scene as scene_lib
-from aynamics.processor import IGNORE_INDEX, token_logprobs
+from aynamics.processor import IGNORE_INDEX, build_prompt, token_logprobs
 
 TARGETS = ("answer", "think_answer")  # stage.target: the YAML alone, or motion reasoning then the YAML
 MODALITIES = ("rgb", "flow")  # data.modality: the frames shown to the model
@@ -284,6 +284,29 @@ def save_adapter(model: torch.nn.Module, out: str | Path, spec: ModelSpec, promp
     model.save_pretrained(str(out))
     (out / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
     return out
+
+
+def prompt_inputs(processor, prompt: PromptSpec, frames: Sequence[Any]) -> dict[str, torch.Tensor]:
+    """The generation input for `frames` as training built it: the frames sampled evenly to the trained count,
+    the system and user prompt, the in-context examples, images or one video (the same at evaluation, PRO
+    sampling and `aynamics predict`)."""
+    return build_prompt(
+        processor,
+        list(frames),
+        system_prompt=prompt.system_prompt,
+        user_prompt=prompt.user_prompt,
+        examples=prompt.examples,
+        as_video=prompt.as_video,
+    )
+
+
+def prompt_mismatch(stored: dict[str, Any], prompt: PromptSpec) -> tuple[str, str] | None:
+    """Where `stored` (PROMPT_KEYS values something was made under) differs from `prompt`: ("k=old, ...",
+    "k=new, ...") to name both in an error, or None when they agree. Keys `stored` lacks are not compared."""
+    diff = [k for k in PROMPT_KEYS if k in stored and stored[k] != getattr(prompt, k)]
+    if not diff:
+        return None
+    return ", ".join(f"{k}={stored[k]!r}" for k in diff), ", ".join(f"{k}={getattr(prompt, k)!r}" for k in diff)
 
 
 def tokenizer_fingerprint(tokenizer) -> str:

@@ -62,22 +62,6 @@ def read_frames(path: str | Path) -> list[np.ndarray]:
     return out
 
 
-def prompt_inputs(processor, prompt, frames: list[np.ndarray]) -> dict:
-    """The generation input for `frames` as training built it (`aynamics.lm.PromptSpec` `prompt`): the frames
-    sampled evenly to the trained count, the system and user prompt, the in-context examples, images or one video.
-    """
-    from aynamics.processor import build_prompt
-
-    return build_prompt(
-        processor,
-        frames,
-        system_prompt=prompt.system_prompt,
-        user_prompt=prompt.user_prompt,
-        examples=prompt.examples,
-        as_video=prompt.as_video,
-    )
-
-
 def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048) -> dict:
     """Greedy response of the adapter's model for `frames`: {"response", "reasoning", "yaml", "valid", "problems"}."""
     from aynamics import lm
@@ -85,7 +69,7 @@ def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int =
 
     model, spec, prompt = lm.load_adapter(adapter)
     processor = lm.load_processor(spec, prompt)
-    inputs = prompt_inputs(processor, prompt, frames)
+    inputs = lm.prompt_inputs(processor, prompt, frames)
     response = lm.greedy_texts(model, processor, [inputs], max_new_tokens)[0]
     think = _THINK.search(response)
     result = {"response": response, "reasoning": think.group(1).strip() if think else None}

@@ -28,7 +28,6 @@ import torch
 
 from aynamics import lm
 from aynamics import reward as rw
-from aynamics.lm import PROMPT_KEYS
 from aynamics.unlabeled import UnlabeledVideo
 
 COLUMNS = ("key", "frames", "completions", "completion_ids", "rewards", "reasons", "case_rewards")
@@ -124,7 +123,7 @@ def build_preferences(
         "pairs_per_video": pairs,
         **(stats.to_metrics("reward/") if stats else {}),
         # what the stored frames and token ids mean: offline training checks them against its own
-        "prompt": {k: getattr(module.prompt, k) for k in PROMPT_KEYS},
+        "prompt": {k: getattr(module.prompt, k) for k in lm.PROMPT_KEYS},
         "tokenizer": lm.tokenizer_fingerprint(module.processor.tokenizer),
     }
     return rows, summary
@@ -139,17 +138,15 @@ def check_made_for(path: str | Path, prompt: Any, tokenizer) -> None:
     """
     summary_path = Path(path) / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    stored = summary.get("prompt") or {}
-    diff = [k for k in PROMPT_KEYS if k in stored and stored[k] != getattr(prompt, k)]
-    if diff:
-        was = ", ".join(f"{k}={stored[k]!r}" for k in diff)
-        now = ", ".join(f"{k}={getattr(prompt, k)!r}" for k in diff)
+    mismatch = lm.prompt_mismatch(summary.get("prompt") or {}, prompt)
+    if mismatch:
+        was, now = mismatch
         raise ValueError(f"preferences {str(path)!r} were sampled with {was}, but the data are set to {now}")
-    made = summary.get("tokenizer")
-    if made is not None and made != lm.tokenizer_fingerprint(tokenizer):
+    made, ours = summary.get("tokenizer"), lm.tokenizer_fingerprint(tokenizer)
+    if made is not None and made != ours:
         raise ValueError(
             f"preferences {str(path)!r} hold token ids of another tokenizer (vocabulary {made}, this model's "
-            f"{lm.tokenizer_fingerprint(tokenizer)}): sample them again with this model"
+            f"{ours}): sample them again with this model"
         )
 
 

@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader
 from aynamics import lm
 from aynamics import reward as rw
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
-from aynamics.processor import build_prompt, model_inputs, token_logprobs
+from aynamics.processor import model_inputs, token_logprobs
 from aynamics.unlabeled import UnlabeledVideo, collate_videos, open_videos
 
 LOSSES = ("soft", "ranking")
@@ -153,10 +153,9 @@ class ProModule(L.LightningModule):
         self.ensure_processor()
         if self.hparams.init_adapter is not None:
             _, trained = lm.read_adapter_meta(self.hparams.init_adapter)
-            diff = [k for k in lm.PROMPT_KEYS if getattr(trained, k) != getattr(self.prompt, k)]
-            if diff:
-                was = ", ".join(f"{k}={getattr(trained, k)!r}" for k in diff)
-                now = ", ".join(f"{k}={getattr(self.prompt, k)!r}" for k in diff)
+            mismatch = lm.prompt_mismatch({k: getattr(trained, k) for k in lm.PROMPT_KEYS}, self.prompt)
+            if mismatch:
+                was, now = mismatch
                 raise ValueError(f"stage.init_adapter was trained with {was}, but the data are set to {now}")
 
     def ensure_processor(self) -> None:
@@ -169,9 +168,7 @@ class ProModule(L.LightningModule):
     def prompts(self, clips: Sequence[Sequence[Any]]) -> list[dict[str, torch.Tensor]]:
         """Generation prompts of B clips (each a sequence of frames), as the SFT stage builds them."""
         self.ensure_processor()
-        p = self.prompt
-        kw = {"system_prompt": p.system_prompt, "user_prompt": p.user_prompt, "examples": p.examples}
-        return [build_prompt(self.processor, list(frames), as_video=p.as_video, **kw) for frames in clips]
+        return [lm.prompt_inputs(self.processor, self.prompt, frames) for frames in clips]
 
     def sample_and_score(
         self, videos: Sequence[UnlabeledVideo], num_samples: int, temperature: float

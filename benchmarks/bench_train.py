@@ -87,13 +87,13 @@ def _measure(args: tuple) -> dict:
         opt.step()
         opt.zero_grad(set_to_none=True)
         times.append(time.perf_counter() - t)
-    timed = times[1:]  # the first step warms up allocators and kernels
+    timed, peak = times[1:], _status_mb("VmHWM")  # the first step warms up allocators and kernels
     return {
         "samples_per_s": batch_size * len(timed) / sum(timed),
         "step_s": sum(timed) / len(timed),
         "tokens": int(batches[0]["input_ids"].numel()),
-        "peak_rss_mb": _status_mb("VmHWM"),
-        "train_rss_mb": _status_mb("VmHWM") - base,
+        "peak_rss_mb": peak,
+        "train_rss_mb": peak - base,
         "exact_peak": exact,
     }
 

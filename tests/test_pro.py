@@ -63,6 +63,13 @@ def test_select_pairs_hand_worked():
         select_pairs(r, 0)
 
 
+def _first_moved(scene, dx: float):
+    """The scene with its first object `dx` m further along x."""
+    o = scene.objects[0]
+    state = o.state.model_copy(update={"position": (o.state.position[0] + dx, *o.state.position[1:])})
+    return scene.model_copy(update={"objects": (o.model_copy(update={"state": state}), *scene.objects[1:])})
+
+
 def _fixed_candidates(module: ProModule, dataset_dir: Path):
     videos = GeneratedVideos(dataset_dir, "train", use_flow=False, limit=2)
     texts = ["- type: box\n  mass: 1.0", "- type: sphere\n  radius: 0.2", "camera: 45", "gravity: [0, 0, -9.81]"]
@@ -175,15 +182,7 @@ def test_online_pro_scores_logs_and_prefers_fixed_candidates(tmp_path, dataset_d
     from datasets import load_from_disk
 
     scene = parse(load_from_disk(str(dataset_dir))["train"][0]["scene_yaml"])
-    first = scene.objects[0]
-    moved = first.model_copy(
-        update={
-            "state": first.state.model_copy(
-                update={"position": [first.state.position[0] + 0.5, *first.state.position[1:]]}
-            )
-        }
-    )
-    texts = [dump(scene), dump(scene.model_copy(update={"objects": [moved, *scene.objects[1:]]}))]
+    texts = [dump(scene), dump(_first_moved(scene, 0.5))]
     video = GeneratedVideos(dataset_dir, "train", use_flow=False, limit=1)[0]
     r = rw.rewards_of(rw.score_completions([texts], [video.observation]))[0].tolist()
     assert r[0] > 0.9 and r[0] - r[1] > 0.2  # the true scene scores (nearly) 1, the moved one clearly less
@@ -263,10 +262,7 @@ def _handmade_preferences(dataset_dir: Path, out: Path) -> Path:
     for k in range(2):
         rec = split[k]
         scene = parse(rec["scene_yaml"])
-        o = scene.objects[0]
-        state = o.state.model_copy(update={"position": (o.state.position[0] + 0.5, *o.state.position[1:])})
-        moved = scene.model_copy(update={"objects": (o.model_copy(update={"state": state}), *scene.objects[1:])})
-        texts = [f"<answer>\n{rec['scene_yaml']}</answer>", f"<answer>\n{dump(moved)}</answer>"]
+        texts = [f"<answer>\n{rec['scene_yaml']}</answer>", f"<answer>\n{dump(_first_moved(scene, 0.5))}</answer>"]
         videos = GeneratedVideos(dataset_dir, "train", use_flow=False, limit=2)
         r = rw.simulator_rewards(texts, [videos[k].observation] * 2)
         assert r[0] > r[1]

@@ -80,7 +80,7 @@ def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> Non
 
     from aynamics.cli import main
     from aynamics.data import frames_of
-    from aynamics.predict import prompt_inputs, read_frames
+    from aynamics.predict import read_frames
 
     spec = hydra.utils.instantiate(cfg.model)
     dm = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
@@ -95,7 +95,7 @@ def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> Non
         iio.imwrite(folder / f"{k:03d}.png", f)
     iio.imwrite(adapter.parent / "video.mp4", np.stack(frames), plugin="pyav", codec="libx264", fps=10)
     saved_spec, prompt = lm.read_adapter_meta(adapter)
-    ours = prompt_inputs(lm.load_processor(saved_spec, prompt), prompt, read_frames(folder))
+    ours = lm.prompt_inputs(lm.load_processor(saved_spec, prompt), prompt, read_frames(folder))
     assert sorted(ours) == sorted(expected["prompt"])
     for key, value in expected["prompt"].items():
         assert torch.equal(ours[key], value), key
