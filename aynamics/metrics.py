@@ -3,10 +3,13 @@
 Everything here is a plain function of arrays or scenes, with no rendering or simulation inside, so the scorer,
 evaluation and rewards share one definition of each number.
 
-Matching. Predicted objects are paired with observed ones once per video: objects whose names appear on both
-sides are paired by name; the rest are paired by an optimal assignment (Hungarian, `scipy.optimize.
+Matching. Predicted objects are paired with observed ones once per video: objects whose chosen names appear on
+both sides are paired by name; the rest are paired by an optimal assignment (Hungarian, `scipy.optimize.
 linear_sum_assignment`) that maximises mask overlap (IoU over the whole sequence), or, for state errors, minimises
-the distance between initial positions. Pairs with zero overlap count as unmatched.
+the distance between initial positions. Pairs with zero overlap count as unmatched. Names of the form `{type}_{k}`
+(what `parse` gives an unnamed object, and what generated scenes carry) only number the objects in list order,
+which a video does not show: they are not paired by name, so a model that lists two boxes in the other order is
+not scored as if it had swapped them.
 
 Segmentation IoU. For frame k, every object visible in frame k on either side contributes its IoU with its
 partner (0 when unmatched or when its partner is not visible); the frame's score is the mean of those, and 1 when
@@ -26,7 +29,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from aynamics.scene import Scene, SceneError, parse
+from aynamics.scene import Scene, SceneError, is_default_name, parse
 
 POSITION_MAE_INVALID = 10.0  # m: state MAE given to a prediction that cannot be parsed (half the position range)
 VELOCITY_MAE_INVALID = 20.0  # m/s: likewise (the velocity range's bound)
@@ -40,10 +43,12 @@ def match_objects(
     obs_names: Sequence[str] | None,
     score: np.ndarray,
 ) -> list[tuple[int, int]]:
-    """Pair predicted objects i with observed objects j: equal names first, the rest by optimal assignment.
+    """Pair predicted objects i with observed objects j: equal chosen names first, the rest by optimal assignment.
 
     Args:
-        pred_names, obs_names: object names, or None when a side has none (e.g. masks from a folder).
+        pred_names, obs_names: object names, or None when a side has none (e.g. masks from a folder). Default
+            names (`scene.is_default_name`: `box_0`, `sphere_1`, ...) are list positions, not identities, and
+            are left to the assignment.
         score: (Np, No) how well i fits j, higher better (mask IoU, or minus a distance); pairs whose score is
             not > 0 after assignment are dropped when scores are overlaps (use `-dist - eps` for distances).
 
@@ -57,7 +62,7 @@ def match_objects(
     if pred_names is not None and obs_names is not None:
         where = {name: j for j, name in enumerate(obs_names)}
         for i, name in enumerate(pred_names):
-            j = where.get(name)
+            j = None if is_default_name(name) else where.get(name)
             if j is not None and j in free_o:
                 pairs.append((i, j))
                 free_p.remove(i)
@@ -182,9 +187,9 @@ def _as_scene(x: Scene | str) -> Scene:
 def state_mae(pred: Scene, obs: Scene) -> tuple[float, float]:
     """Mean absolute error of initial position (m) and linear velocity (m/s) over matched objects.
 
-    Objects are matched by name, the rest by nearest initial position (optimal assignment). The MAE is the mean
-    over matched objects and the three components; unmatched objects (a count mismatch) are left to
-    `composition_accuracy`. With no pair at all, the invalid penalties are returned.
+    Objects are matched by chosen name (`match_objects`), the rest by nearest initial position (optimal
+    assignment). The MAE is the mean over matched objects and the three components; unmatched objects (a count
+    mismatch) are left to `composition_accuracy`. With no pair at all, the invalid penalties are returned.
     """
     p_pos = np.array([o.state.position for o in pred.objects])
     o_pos = np.array([o.state.position for o in obs.objects])

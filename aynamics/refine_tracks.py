@@ -5,9 +5,10 @@ and CMA-ES gets no signal. The observed segmentation still says where each objec
 mask centroid at every sampled frame (`Tracks`). Back-projecting each centroid's ray onto the horizontal plane at
 the matched object's centre height (the candidate's own camera) gives a ground track in metres; a sliding-with-
 friction model fitted to it by robust least squares gives the object's initial horizontal position and velocity
-(`fit_kinematics`). Objects are paired with observed ids by name when both sides have names, else by an optimal
-assignment on ground-track distance (`match_tracks`). `track_start` writes the fits into a scene; the
-`track_objective` (projected centres against centroids, physics only) then polishes them with CMA-ES.
+(`fit_kinematics`). Objects are paired with observed ids by chosen name when both sides have names (not the
+default `box_0`-style ones), else by an optimal assignment on ground-track distance (`match_tracks`).
+`track_start` writes the fits into a scene; the `track_objective` (projected centres against centroids, physics
+only) then polishes them with CMA-ES.
 
     tracks = Tracks.from_segmentation(obs.segmentation, obs.frames, n_observed)
     start = track_start(prediction, tracks, obs.names, params=["position", "linear_velocity"], fps=obs.fps)
@@ -143,10 +144,10 @@ def match_tracks(
     fps: float,
     heights: np.ndarray | None = None,
 ) -> list[tuple[int, int]]:
-    """Pair the scene's objects i with observed objects j: by name when both sides have names, the rest by an
-    optimal assignment on the mean distance between each object's straight-line ground track (initial position
-    plus velocity × time) and j's centroids back-projected onto i's centre height (`heights` (F, N) per frame,
-    e.g. from `centre_heights`; default: the initial height)."""
+    """Pair the scene's objects i with observed objects j: by chosen name when both sides have names
+    (`metrics.match_objects`), the rest by an optimal assignment on the mean distance between each object's
+    straight-line ground track (initial position plus velocity × time) and j's centroids back-projected onto i's
+    centre height (`heights` (F, N) per frame, e.g. from `centre_heights`; default: the initial height)."""
     n_obs = tracks.centroids.shape[1]
     cam = camlib.matrices(scene.camera, tracks.width, tracks.height)
     t = tracks.frames / fps

@@ -713,6 +713,16 @@ def _emit(value: Any, indent: int, lines: list[str], key: str | None = None, dec
     lines.append(f"{pad}{key}: {text}")
 
 
+_DEFAULT_NAME = re.compile(r"(box|sphere|cylinder)_\d+")
+
+
+def is_default_name(name: str) -> bool:
+    """Whether `name` has the form `parse` gives an unnamed object (`{type}_{k}`): a label for the object's place
+    in the list, which says nothing about which object it is (`metrics.match_objects` pairs such objects by
+    overlap, not by name)."""
+    return _DEFAULT_NAME.fullmatch(name) is not None
+
+
 def default_names(structure: tuple[str, ...]) -> tuple[str, ...]:
     """The names `parse` gives objects written without one: `{type}_{k}`, k counting objects of that type."""
     seen: dict[str, int] = {}

@@ -125,3 +125,30 @@ def test_match_objects_names_first():
     # "a" pairs by name despite zero overlap; "b" and "c" do not overlap, so they stay unmatched
     assert metrics.match_objects(["a", "b"], ["a", "c"], score) == [(0, 0)]
     assert metrics.match_objects(None, None, score) == [(0, 1), (1, 0)]
+
+
+def test_default_names_are_not_identities():
+    """Two boxes listed in the other order: with default names (what parse gives unnamed objects, and what
+    generated scenes carry) they pair by overlap / position, so swapping the list costs nothing; with chosen names
+    the names still decide."""
+    obs = _seg([[0, 0, 1, 1]])
+    pred = _seg([[1, 1, 0, 0]])
+    default = ("box_0", "box_1")
+    assert metrics.segmentation_iou(pred, obs, pred_names=default, obs_names=default) == (1.0, 1.0)
+    assert metrics.segmentation_iou(pred, obs, pred_names=("a", "b"), obs_names=("a", "b")) == (0.0, 0.0)
+    # a chosen name pairs first, the default-named rest by overlap
+    score = np.array([[0.0, 0.9, 0.0], [0.0, 0.0, 0.7], [0.6, 0.0, 0.0]])
+    assert metrics.match_objects(["a", "box_0", "box_1"], ["a", "box_0", "box_1"], score) == [(0, 0), (1, 2)]
+    assert metrics.match_objects(["x", "box_0", "box_1"], ["a", "box_0", "box_1"], score) == [(0, 1), (1, 2), (2, 0)]
+    assert [
+        n
+        for n in ("box_0", "sphere_12", "cylinder_3", "box", "box_a", "Box_0", "crate_0")
+        if scenelib.is_default_name(n)
+    ] == ["box_0", "sphere_12", "cylinder_3"]
+
+    # state errors: unnamed boxes written in the other order are exact
+    two = "- {{type: box, size: [0.2, 0.2, 0.2], state: {{position: [{}, 0, 0.1]}}}}\n"
+    truth = _scene(two.format(0) + two.format(2))
+    swapped = _scene(two.format(2) + two.format(0))
+    assert truth.names == swapped.names == ("box_0", "box_1")
+    assert metrics.state_mae(swapped, truth) == (0.0, 0.0)

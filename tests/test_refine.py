@@ -287,7 +287,7 @@ def test_match_tracks_without_names():
     """Two spheres whose observed ids are in the other order are matched by ground-track distance."""
     from aynamics import camera as camlib
     from aynamics.refine import Tracks as RTracks
-    from aynamics.scene import parse
+    from aynamics.scene import dump, parse
 
     two = parse(SPHERE.replace("- type: camera", SPHERE_B + "- type: camera"))
     frames = np.arange(0, 30, 3)
@@ -299,7 +299,10 @@ def test_match_tracks_without_names():
     uv, _ = cam.project(centres[:, ::-1])  # observed id 0 is sphere_1
     tracks = RTracks(uv, np.ones((len(frames), 2), bool), frames, 120, 80)
     assert match_tracks(two, tracks, None, 30) == [(0, 1), (1, 0)]
-    assert match_tracks(two, tracks, ("sphere_0", "sphere_1"), 30) == [(0, 0), (1, 1)]  # names win
+    # default names number the list, they do not identify: the tracks still decide
+    assert match_tracks(two, tracks, ("sphere_0", "sphere_1"), 30) == [(0, 1), (1, 0)]
+    named = parse(dump(two).replace("name: sphere_0", "name: red").replace("name: sphere_1", "name: blue"))
+    assert match_tracks(named, tracks, ("red", "blue"), 30) == [(0, 0), (1, 1)]  # chosen names win
 
 
 SPHERE_B = """- type: sphere
