@@ -135,6 +135,17 @@ class AdapterExport(L.Callback):
         self.export(trainer, pl_module)
 
 
+def ends_training(trainer: L.Trainer) -> bool:
+    """Whether the validation now running is the last of the fit: max_steps reached, or the last batch of the
+    last epoch (max_epochs)."""
+    if trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps:
+        return True
+    max_epochs = trainer.max_epochs
+    if max_epochs is None or max_epochs < 0 or trainer.current_epoch + 1 < max_epochs:
+        return False
+    return bool(trainer.fit_loop.epoch_loop.batch_progress.is_last_batch)
+
+
 class SceneEvaluation(L.Callback):
     """Generate scenes for a fixed validation subset and log simulated-scene metrics (see the module docstring).
 
@@ -143,7 +154,9 @@ class SceneEvaluation(L.Callback):
         max_new_tokens: Response length limit (a scene is ~600 tiny-tokenizer tokens; reasoning doubles it).
         batch_size: Prompts generated at once.
         num_animations: Records whose observed | predicted rollouts are written as GIFs (0: none).
-        every_n_epochs: Evaluate every n-th validation epoch (the last fit epoch is always evaluated).
+        every_n_validations: Evaluate at every n-th validation run (Lightning validates every
+            `val_check_interval` steps or each epoch); the one that ends training (max_steps reached, or the
+            last batch of the last epoch) is always evaluated.
         baseline: Also score the constant "average scene" of the training split.
         out_dir: Folder of predictions and animations (default: `<trainer.default_root_dir>/eval`).
     """
@@ -154,18 +167,19 @@ class SceneEvaluation(L.Callback):
         max_new_tokens: int = 768,
         batch_size: int = 4,
         num_animations: int = 2,
-        every_n_epochs: int = 1,
+        every_n_validations: int = 1,
         baseline: bool = True,
         out_dir: str | None = None,
     ) -> None:
-        if num_samples < 1 or max_new_tokens < 1 or batch_size < 1 or num_animations < 0 or every_n_epochs < 1:
+        if num_samples < 1 or max_new_tokens < 1 or batch_size < 1 or num_animations < 0 or every_n_validations < 1:
             raise ValueError(
                 f"num_samples = {num_samples}, max_new_tokens = {max_new_tokens}, batch_size = {batch_size}, "
-                f"num_animations = {num_animations}, every_n_epochs = {every_n_epochs}: counts must be >= 1 "
+                f"num_animations = {num_animations}, every_n_validations = {every_n_validations}: counts must be >= 1 "
                 "(num_animations >= 0)"
             )
         self.num_samples, self.max_new_tokens, self.batch_size = num_samples, max_new_tokens, batch_size
-        self.num_animations, self.every_n_epochs, self.baseline = num_animations, every_n_epochs, baseline
+        self.num_animations, self.every_n, self.baseline = num_animations, every_n_validations, baseline
+        self.validations = 0  # validation runs seen (sanity checks excluded)
         self.out_dir = out_dir
         self._records: list[dict] | None = None
         self._baseline: dict[str, float] | None = None
@@ -200,8 +214,8 @@ class SceneEvaluation(L.Callback):
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if trainer.sanity_checking:
             return
-        last = trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
-        if (trainer.current_epoch + 1) % self.every_n_epochs and not last:
+        self.validations += 1
+        if self.validations % self.every_n and not ends_training(trainer):
             return
         if trainer.is_global_zero:
             self.evaluate(trainer, pl_module)

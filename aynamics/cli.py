@@ -18,8 +18,10 @@ Usage errors and invalid input exit with status 2 and a one-paragraph message on
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import json
+import os
 import sys
 
 from aynamics.scene import SceneError
@@ -125,6 +127,16 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def missing_file_message(e: FileNotFoundError) -> str:
+    """What a FileNotFoundError says to a user: our own message (which names the path and what was expected
+    there) when one was given, else `file not found: PATH`."""
+    if e.filename is None:  # raised with a message only
+        return str(e)
+    if e.strerror and e.strerror != os.strerror(errno.ENOENT):  # raised as (errno, message, path)
+        return e.strerror if str(e.filename) in e.strerror else f"{e.strerror}: {e.filename}"
+    return f"file not found: {e.filename}"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser(argv)
     try:
@@ -136,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(" ".join(str(e).split()) + "\n")
         return 2
     except FileNotFoundError as e:
-        sys.stderr.write(f"aynamics: file not found: {e.filename}\n")
+        sys.stderr.write(f"aynamics: {missing_file_message(e)}\n")
         return 2
     except BrokenPipeError:  # e.g. `aynamics ... | head`
         sys.stderr.close()

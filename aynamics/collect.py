@@ -5,7 +5,8 @@
     python -m aynamics.collect multirun/... --out table.csv
 
 Every run folder holds `metrics.json` (written by `train.py`) and `.hydra/overrides.yaml` (the overrides that
-make the run differ); a run without `metrics.json` (crashed, still running) is listed with status "missing".
+make the run differ); a run without `metrics.json` (crashed, still running) is listed with status "missing", one
+whose file cannot be read as train.py's record with status "unreadable metrics.json".
 """
 
 from __future__ import annotations
@@ -57,9 +58,13 @@ def collect(root: str | Path, metrics: tuple[str, ...] = DEFAULT_METRICS) -> lis
                     row[key.lstrip("+~")] = value
         metrics_file = folder / "metrics.json"
         if metrics_file.is_file():
-            record = json.loads(metrics_file.read_text())
-            row |= {"status": "done", "step": record.get("global_step")}
-            row |= {m: record["metrics"].get(m) for m in metrics}
+            try:
+                record = json.loads(metrics_file.read_text())
+                values = record.get("metrics", {})
+                row |= {"status": "done", "step": record.get("global_step")}
+                row |= {m: values.get(m) for m in metrics}
+            except (ValueError, AttributeError):  # not JSON, or not train.py's {"global_step", "metrics": {...}}
+                row |= {"status": "unreadable metrics.json", "step": None} | {m: None for m in metrics}
         else:
             row |= {"status": "missing", "step": None} | {m: None for m in metrics}
         rows.append(row)
@@ -115,7 +120,10 @@ def run_collect(args) -> int:
         rows = collect(args.folder)
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(f"collect: {e}") from None
-    out = write_csv(rows, args.out or Path(args.folder) / "summary.csv")
+    try:
+        out = write_csv(rows, args.out or Path(args.folder) / "summary.csv")
+    except OSError as e:
+        raise UsageError(f"collect: cannot write {args.out or Path(args.folder) / 'summary.csv'}: {e}") from None
     sys.stdout.write(to_markdown(rows) + f"\n\n(written to {out})\n")
     return 0
 

@@ -143,6 +143,36 @@ class GenerateConfig:
 # --------------------------------------------------------------------------------------------
 # Config from a file and Hydra-style overrides (plain dataclasses; the package never imports Hydra)
 # --------------------------------------------------------------------------------------------
+def _is_number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _typed(name: str, old, value):
+    """`value` for a config field whose current value is `old`, checked to be of the same kind (a number, an
+    integer, a flag, text, or a list of as many numbers), as a tuple for lists.
+
+    Raises:
+        ValueError: naming the field, the value and what it must be.
+    """
+    if isinstance(old, tuple):
+        if not (isinstance(value, list | tuple) and len(value) == len(old) and all(map(_is_number, value))):
+            raise ValueError(f"{name} = {value!r}: must be a list of {len(old)} numbers, e.g. {list(old)}")
+        return tuple(value)
+    if isinstance(old, bool):
+        ok, kind = isinstance(value, bool), "true or false"
+    elif isinstance(old, int):
+        ok, kind = isinstance(value, int) and not isinstance(value, bool), "an integer"
+    elif isinstance(old, float):
+        ok, kind = _is_number(value), "a number"
+    elif isinstance(old, str):
+        ok, kind = isinstance(value, str), "text"
+    else:  # optional fields (None by default): a path or None
+        ok, kind = value is None or isinstance(value, str), "a path or null"
+    if not ok:
+        raise ValueError(f"{name} = {value!r}: must be {kind}")
+    return float(value) if isinstance(old, float) else value
+
+
 def config_from_dict(data: dict, base: GenerateConfig | None = None, where: str = "config") -> GenerateConfig:
     """A config from a nested mapping ({width: 96, sampler: {max_objects: 2}}), on top of `base`.
 
@@ -162,11 +192,11 @@ def config_from_dict(data: dict, base: GenerateConfig | None = None, where: str 
             for k, v in value.items():
                 if k not in sub:
                     raise ValueError(f"{where}.sampler.{k}: unknown key; allowed: {', '.join(sorted(sub))}")
-                sampler_updates[k] = tuple(v) if isinstance(v, list) else v
+                sampler_updates[k] = _typed(f"{where}.sampler.{k}", getattr(base.sampler, k), v)
         elif key not in top:
             raise ValueError(f"{where}.{key}: unknown key; allowed: {', '.join(sorted(top))}")
         else:
-            updates[key] = tuple(value) if isinstance(value, list) else value
+            updates[key] = _typed(f"{where}.{key}", getattr(base, key), value)
     try:
         sampler = dataclasses.replace(base.sampler, **sampler_updates)
         return dataclasses.replace(base, sampler=sampler, **updates)
@@ -189,8 +219,10 @@ def apply_overrides(config: GenerateConfig, overrides: list[str]) -> GenerateCon
             raise ValueError(f"override {text!r}: value {raw!r} is not valid YAML") from None
         parts = key.split(".")
         node = data
-        for p in parts[:-1]:
+        for k, p in enumerate(parts[:-1]):
             node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"override {text!r}: {'.'.join(parts[: k + 1])} is a value, not a group of keys")
         node[parts[-1]] = value
     return config_from_dict(data, config, where="override")
 

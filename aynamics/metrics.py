@@ -6,7 +6,8 @@ evaluation and rewards share one definition of each number.
 Matching. Predicted objects are paired with observed ones once per video: objects whose chosen names appear on
 both sides are paired by name; the rest are paired by an optimal assignment (Hungarian, `scipy.optimize.
 linear_sum_assignment`) that maximises mask overlap (IoU over the whole sequence), or, for state errors, minimises
-the distance between initial positions. Pairs with zero overlap count as unmatched. Names of the form `{type}_{k}`
+the distance between initial positions. Pairs the assignment finds with zero overlap count as unmatched (a
+pair by chosen name is kept: one object, placed wrong, counted once). Names of the form `{type}_{k}`
 (what `parse` gives an unnamed object, and what generated scenes carry) only number the objects in list order,
 which a video does not show: they are not paired by name, so a model that lists two boxes in the other order is
 not scored as if it had swapped them.
@@ -18,7 +19,8 @@ no object is visible on either side. `iou_first` is frame 0, `iou_full` the mean
 Flow EPE. The end-point error ‖f_pred − f_obs‖ in pixels, averaged over the pixels that show an object in the
 observation or in the prediction (static floor and sky have zero flow on both sides, so they would only dilute
 the average), leaving out pixels whose observed flow is occluded. Frames without such pixels are skipped;
-`epe_first` is frame 0 (nan when it has no such pixel), `epe_full` the mean over the remaining frames (0 when none).
+`epe_first` is frame 0, `epe_full` the mean over the remaining frames; either is 0 when it has no such pixel
+(nothing shown on either side: nothing to get wrong), as in the scorer and the rewards.
 """
 
 from __future__ import annotations
@@ -174,7 +176,8 @@ def flow_epe(pred_flow: np.ndarray, obs_flow: np.ndarray, mask: np.ndarray) -> t
     """
     per_frame = flow_epe_frames(pred_flow, obs_flow, mask)
     finite = per_frame[np.isfinite(per_frame)]
-    return float(per_frame[0]), float(finite.mean()) if len(finite) else 0.0
+    first = float(per_frame[0]) if np.isfinite(per_frame[0]) else 0.0
+    return first, float(finite.mean()) if len(finite) else 0.0
 
 
 # --------------------------------------------------------------------------------------------

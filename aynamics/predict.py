@@ -13,7 +13,9 @@ trained count. Flow-trained adapters expect flow images (Middlebury colours), e.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -35,7 +37,7 @@ def read_frames(path: str | Path) -> list[np.ndarray]:
 
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(path)
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not files:
@@ -91,7 +93,7 @@ def add_predict_command(sub) -> None:
 
 
 def run_predict(args) -> int:
-    from aynamics.cli import UsageError
+    from aynamics.cli import UsageError, missing_file_message
 
     if args.max_new_tokens < 1:
         raise UsageError(f"predict: --max-new-tokens = {args.max_new_tokens}: must be >= 1")
@@ -101,7 +103,7 @@ def run_predict(args) -> int:
         frames = read_frames(args.input)
         result = predict(args.adapter, frames, args.max_new_tokens)
     except FileNotFoundError as e:
-        raise UsageError(f"predict: file not found: {e.filename or e}") from None
+        raise UsageError(f"predict: {missing_file_message(e)}") from None
     except ValueError as e:
         raise UsageError(f"predict: {e}") from None
     if args.json:
@@ -135,7 +137,9 @@ def run_export(args) -> int:
 
     try:
         out = lm.adapter_from_checkpoint(args.checkpoint, args.out)
-    except ValueError as e:
+    except FileNotFoundError:
+        raise  # the CLI names the missing checkpoint
+    except (OSError, ValueError) as e:
         raise UsageError(f"export-adapter: {e}") from None
     sys.stdout.write(f"{out}\n")
     return 0

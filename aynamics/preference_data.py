@@ -150,16 +150,37 @@ def check_made_for(path: str | Path, prompt: Any, tokenizer) -> None:
         )
 
 
+def check_out(out: str | Path) -> Path:
+    """`out` resolved, if it may be (re)written: absent, or a preference set written before (it has
+    `summary.json`). Anything else is refused, so a mistyped `--out` never deletes a data set or a home folder.
+
+    Raises:
+        ValueError: `out` exists and is not a preference data set, naming it.
+    """
+    out = Path(out).resolve()
+    if out.exists() and not (out / "summary.json").is_file():
+        raise ValueError(
+            f"--out {str(out)!r} exists and is not a preference data set (no summary.json): refusing to replace it; "
+            "give a new folder"
+        )
+    return out
+
+
 def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
-    """Save the rows as a data set at `out` (atomically: written beside, then renamed) with `summary.json`."""
+    """Save the rows as a data set at `out` (atomically: written beside, then renamed) with `summary.json`.
+    A folder already at `out` is replaced only if it is a preference set (`check_out`)."""
     from datasets import Dataset
 
-    out = Path(out)
+    out = Path(out).resolve()
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     columns = {c: [row[c] for row in rows] for c in COLUMNS}  # from_dict keeps the columns of 0 rows too
     Dataset.from_dict(columns, features=features()).save_to_disk(str(tmp))
     (tmp / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    try:
+        check_out(out)  # checked again: the folder may have appeared while sampling
+    except ValueError as e:
+        raise ValueError(f"{e}; the preferences are kept in {str(tmp)!r}") from None
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)
     return out
@@ -227,6 +248,7 @@ def run_preferences(args) -> int:
     if args.limit is not None and args.limit < 1:
         raise UsageError(f"preferences: --limit {args.limit}: must be >= 1")
     try:
+        check_out(args.out)  # before hours of sampling, not after
         spec = lm.ModelSpec(kind="tiny") if args.model == "tiny" else lm.ModelSpec(kind="pretrained", path=args.model)
         prompt = lm.read_adapter_meta(args.adapter)[1] if args.adapter else lm.PromptSpec(modality=args.inputs)
         videos = open_videos(
@@ -254,6 +276,9 @@ def run_preferences(args) -> int:
         )
     except ValueError as e:
         raise UsageError(f"preferences: {e}") from None
-    write_preferences(rows, summary, args.out)
+    try:
+        write_preferences(rows, summary, args.out)
+    except (OSError, ValueError) as e:
+        raise UsageError(f"preferences: cannot write --out {args.out!r}: {e}") from None
     _print_json(summary)
     return 0

@@ -73,6 +73,9 @@ KINEMATIC = ("position", "linear_velocity")  # the groups the track stage fits
 EARLY_FRAMES = 4  # sampled frames (0.4 s at the default stride) of the early-only track fit
 POLISH_BELOW = 0.6  # polish the best track fit on the track objective only while its IoU is below this
 TRACK_TIE = 0.05  # weight of the track objective (image heights) breaking near-ties of IoU between track fits
+# Simulations the track stage spends before its CMA-ES polish, at most: 3 rollouts for centre heights, and up to 7
+# fits each traced once, scored once and tracked once (+ 1 to score the polish). It runs only with that many left.
+TRACK_STAGE_SIMS = 3 + 6 + 7 + 7 + 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -261,7 +264,8 @@ def refine(
         initial: the prediction, or several (e.g. N samples): the best-scoring one is the warm start.
         observed: the observation (segmentation, optional flow) to match.
         params: parameter groups to search (see `param_space`).
-        budget: simulations in all (each scored or track candidate is one).
+        budget: simulations in all (each scored or track candidate is one); the track stage runs only when
+            `TRACK_STAGE_SIMS` (24) are left for it, so a small budget goes to the score stages alone.
         seconds: wall-time budget; the search stops at the first generation past it.
         seed: CMA-ES seed (results are deterministic for a seed, up to the time budget).
         nthread: simulation threads (default: all cores, at most 8).
@@ -300,7 +304,7 @@ def refine(
     frozen = grounded_dims(start, observed.config) if fix_grounded else set()
     left.used += int(fix_grounded)
     kinematic = _groups(params, KINEMATIC)
-    if kinematic and before.iou_full < track_below and left.left() > 0:
+    if kinematic and before.iou_full < track_below and left.left() >= TRACK_STAGE_SIMS:
         scene, value, r = _track_stage(
             best, best_v, observed, params, frozen, left, int(track_share * budget), seed, flow_weight, nthread, trace
         )

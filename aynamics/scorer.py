@@ -174,9 +174,13 @@ class Observation:
             try:
                 meta = json.loads((root / "meta.json").read_text())
                 names = tuple(meta["names"]) if meta.get("names") is not None else None
-                fps = int(meta.get("fps", sim.FPS))
+                fps = meta.get("fps", sim.FPS)
             except (ValueError, TypeError, AttributeError) as e:
                 raise ValueError(f"{root / 'meta.json'}: not a JSON object with names/fps ({e})") from None
+            if not (isinstance(fps, int) and not isinstance(fps, bool) and 1 <= fps <= 1000):
+                raise ValueError(
+                    f"{root / 'meta.json'}: fps = {fps!r}: must be a whole number of frames per second >= 1"
+                )
         return cls(seg[sub].astype(np.int16), frames, width, height, flow, occluded, names, fps)
 
 
@@ -238,8 +242,12 @@ def _load_segmentation(root: Path) -> np.ndarray:
     if len({m.shape for m in masks}) != 1:
         raise ValueError(f"{folder}: masks differ in size: {sorted({m.shape for m in masks})}")
     stack = np.stack(masks)
+    if stack.ndim == 4 and stack.shape[-1] in (1, 2):  # grey (+ alpha): the grey channel
+        stack = stack[..., 0]
     if stack.ndim == 3:  # grey: value v > 0 is object v - 1
         return stack.astype(np.int32) - 1
+    if stack.ndim != 4 or stack.shape[-1] not in (3, 4):
+        raise ValueError(f"{folder}: masks of shape {masks[0].shape}: need grey, grey + alpha, RGB or RGBA images")
     rgb = stack[..., :3].astype(np.int64)
     code = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
     colours, ids = np.unique(code, return_inverse=True)

@@ -146,11 +146,15 @@ def test_collect_multirun_folder(tmp_path):
         (run / "metrics.json").write_text(json.dumps(record))
     (tmp_path / "2" / ".hydra").mkdir(parents=True)
     (tmp_path / "2" / ".hydra" / "overrides.yaml").write_text("- data.modality=rgb\n")
+    for k, text in [(3, "[1, 2]"), (4, "{not json"), (5, '{"global_step": 3}')]:  # other metrics.json files
+        (tmp_path / str(k)).mkdir()
+        (tmp_path / str(k) / "metrics.json").write_text(text)
     rows = collect(tmp_path)
-    assert [r["run"] for r in rows] == ["0", "1", "2"]
-    assert [r["data.modality"] for r in rows] == ["rgb", "flow", "rgb"]
-    assert [r["val/iou_full"] for r in rows] == [0.5, 0.25, None]
-    assert [r["status"] for r in rows] == ["done", "done", "missing"]
+    assert [r["run"] for r in rows] == ["0", "1", "2", "3", "4", "5"]
+    assert [r.get("data.modality") for r in rows] == ["rgb", "flow", "rgb", None, None, None]
+    assert [r["val/iou_full"] for r in rows] == [0.5, 0.25, None, None, None, None]
+    assert [r["status"] for r in rows] == ["done", "done", "missing"] + ["unreadable metrics.json"] * 2 + ["done"]
+    assert rows[5]["step"] == 3
     assert "| 1 | flow | answer | done | 20 |" in to_markdown(rows)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         collect(tmp_path / "nope")
@@ -164,3 +168,40 @@ def test_predict_cli_errors_are_clear(tmp_path, capsys):
     (tmp_path / "frames").mkdir()
     assert main(["predict", "--adapter", str(tmp_path), str(tmp_path / "frames")]) == 2
     assert "holds no frames" in capsys.readouterr().err
+
+
+def _trainer(step, epoch, *, max_steps=-1, max_epochs=None, last_batch=False, sanity=False):
+    from types import SimpleNamespace
+
+    progress = SimpleNamespace(is_last_batch=last_batch)
+    return SimpleNamespace(
+        global_step=step,
+        current_epoch=epoch,
+        max_steps=max_steps,
+        max_epochs=max_epochs,
+        sanity_checking=sanity,
+        is_global_zero=True,
+        fit_loop=SimpleNamespace(epoch_loop=SimpleNamespace(batch_progress=progress)),
+    )
+
+
+def test_evaluation_every_n_validations_and_always_at_the_end(monkeypatch):
+    """Validation runs are counted (not epochs: a step-based run validates every val_check_interval steps inside
+    one epoch); the sanity check does not count; the run that ends training is evaluated off the cadence, whether
+    training ends on max_steps or on the last batch of max_epochs."""
+    from aynamics.callbacks import SceneEvaluation, ends_training
+
+    cb = SceneEvaluation(every_n_validations=3)
+    done = []
+    monkeypatch.setattr(cb, "evaluate", lambda trainer, module: done.append(trainer.global_step))
+    cb.on_validation_epoch_end(_trainer(0, 0, max_steps=70, sanity=True), None)
+    for step in (10, 20, 30, 40, 50, 60, 70):  # val_check_interval = 10 within epoch 0, max_steps = 70
+        cb.on_validation_epoch_end(_trainer(step, 0, max_steps=70), None)
+    assert done == [30, 60, 70]
+
+    assert not ends_training(_trainer(5, 1, max_epochs=2))  # mid-epoch validation in the last epoch
+    assert ends_training(_trainer(8, 1, max_epochs=2, last_batch=True))
+    assert not ends_training(_trainer(4, 0, max_epochs=2, last_batch=True))  # end of a non-last epoch
+    assert not ends_training(_trainer(4, 0, max_epochs=-1, last_batch=True))  # max_epochs -1: no epoch limit
+    with pytest.raises(ValueError, match="every_n_validations = 0"):
+        SceneEvaluation(every_n_validations=0)

@@ -134,6 +134,21 @@ def test_config_files_and_overrides(tmp_path):
         gen.apply_overrides(cfg, ["sampler.box_size=[0.1, 9.0]"])
     with pytest.raises(ValueError, match="must be key=value"):
         gen.apply_overrides(cfg, ["width"])
+    # values of the wrong kind are named with their key, not left to a TypeError inside the sampler
+    for override, message in [
+        ("sampler.speed=2", r"override.sampler.speed = 2: must be a list of 2 numbers, e.g. \[1, 2\]"),
+        ("sampler.speed=[1, 2, 3]", r"override.sampler.speed = \[1, 2, 3\]: must be a list of 2 numbers"),
+        ("sampler.mass=[1, heavy]", r"override.sampler.mass = \[1, 'heavy'\]: must be a list of 2 numbers"),
+        ("width=abc", "override.width = 'abc': must be an integer"),
+        ("width=96.5", "override.width = 96.5: must be an integer"),
+        ("sampler.aspect=wide", "override.sampler.aspect = 'wide': must be a number"),
+        ("backdrop=3", "override.backdrop = 3: must be text"),
+        ("textures_dir=[1]", r"override.textures_dir = \[1\]: must be a path or null"),
+        ("width.x=1", "override 'width.x=1': width is a value, not a group of keys"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            gen.apply_overrides(cfg, ["width=96", override] if override.startswith("width.") else [override])
+    assert gen.apply_overrides(cfg, ["sampler.max_distance=8"]).sampler.max_distance == 8.0  # an integer is a number
     with pytest.raises(FileNotFoundError):
         gen.load_config(tmp_path / "missing.yaml")
     path = tmp_path / "c.yaml"

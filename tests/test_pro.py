@@ -281,6 +281,26 @@ def _handmade_preferences(dataset_dir: Path, out: Path) -> Path:
     return write_preferences(rows, {"pairs": 2}, out)
 
 
+def test_preferences_never_replace_another_folder(tmp_path, dataset_dir, capsys):
+    """--out may be new or a preference set written before; anything else (the data set itself, a folder of
+    the user's) is refused before sampling, and, if it appeared while sampling, the preferences are kept beside."""
+    before = sorted(p.name for p in dataset_dir.iterdir())
+    args = ["preferences", "--data", str(dataset_dir), "--num-samples", "2", "--max-new-tokens", "4", "--limit", "1"]
+    assert cli_main(args + ["--out", str(dataset_dir)]) == 2
+    assert "is not a preference data set (no summary.json): refusing to replace it" in capsys.readouterr().err
+    assert sorted(p.name for p in dataset_dir.iterdir()) == before  # untouched
+
+    first = _handmade_preferences(dataset_dir, tmp_path / "prefs")
+    assert _handmade_preferences(dataset_dir, tmp_path / "prefs") == first  # a preference set is replaced
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    with pytest.raises(ValueError, match="preferences are kept in") as err:
+        _handmade_preferences(dataset_dir, mine)
+    assert (mine / "notes.txt").read_text() == "keep"
+    assert str(tmp_path / "mine.tmp") in str(err.value) and (tmp_path / "mine.tmp" / "summary.json").is_file()
+
+
 def test_preferences_command_and_offline_training(tmp_path, dataset_dir, capsys):
     """`aynamics preferences` samples, scores and stores (the tiny model's samples tie at 0: no pairs); hand-made
     pairs of real scenes scored by the real reward train the offline stage."""
@@ -293,7 +313,7 @@ def test_preferences_command_and_offline_training(tmp_path, dataset_dir, capsys)
     assert summary["videos"] == 2 and summary["pairs"] + summary["videos_without_pairs"] >= 2
     assert (tmp_path / "prefs" / "summary.json").is_file()
     assert cli_main(["preferences", "--data", str(tmp_path / "nope"), "--out", str(tmp_path / "x")]) == 2
-    assert "file not found" in capsys.readouterr().err
+    assert f"video folder '{tmp_path / 'nope'}' does not exist" in capsys.readouterr().err
 
     _handmade_preferences(dataset_dir, tmp_path / "handmade")
     assert len(load_preferences(tmp_path / "handmade")) == 2

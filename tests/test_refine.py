@@ -149,6 +149,23 @@ def test_refine_with_scorer(truth):
     assert load_text(record["refined_yaml"]) == result.scene
 
 
+def test_small_budgets_are_kept_with_the_track_stage(truth):
+    """The track stage (a fixed ~24 simulations before its polish) runs only when they are left: budgets of 5, 10
+    and 25 go to whole CMA-ES generations alone, 30 to the track fit (which finds this start: IoU 0.09 -> 0.99);
+    no budget is overspent (before, --budget 5 ran ~25 simulations)."""
+    from aynamics.refine import TRACK_STAGE_SIMS
+    from aynamics.scorer import Observation
+
+    obs = Observation.from_scene(truth)
+    pred = _shift(truth, (0.8, -0.5, 0.0), (-1.0, 0.6, 0.0))
+    assert TRACK_STAGE_SIMS == 24
+    for budget in (5, 10, 25, 30):
+        result = refine([pred], obs, params=["position", "linear_velocity"], budget=budget, seconds=60, seed=0)
+        assert result.simulations <= budget
+        assert ("track-fit" in {t[3] for t in result.trace}) == (budget == 30)
+    assert result.before.iou_full < 0.1 and result.after.iou_full > 0.95
+
+
 def test_refine_stages_coarse_to_fine(truth):
     """With friction searched too, positions and velocities go first ("score-kinematic", capped at half the
     simulations left after the start: int(0.5 × 118) = 59 of 120), then all groups ("score"); the trace's best

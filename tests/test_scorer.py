@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import imageio.v3 as iio
 import numpy as np
@@ -149,7 +150,12 @@ def test_observation_from_dir_npy_and_png(tmp_path, observed):
     png.mkdir(parents=True)
     for k, m in enumerate(full.segmentation):
         iio.imwrite(png / f"{k:03d}.png", (m + 1).astype(np.uint8))
-    for root in (npy, tmp_path / "png"):
+    la = tmp_path / "la" / "segmentation"  # grey + alpha PNGs, as some editors save masks
+    la.mkdir(parents=True)
+    for k, m in enumerate(full.segmentation):
+        grey = (m + 1).astype(np.uint8)
+        iio.imwrite(la / f"{k:03d}.png", np.stack([grey, np.full_like(grey, 255)], -1))
+    for root in (npy, tmp_path / "png", tmp_path / "la"):
         obs = scorer.Observation.from_dir(root, width=W, height=H)
         np.testing.assert_array_equal(obs.segmentation, observed.segmentation)
         assert obs.flow is None
@@ -169,6 +175,11 @@ def test_observation_from_dir_errors(tmp_path):
     np.save(tmp_path / "flow.npy", np.zeros((29, 8, 4, 2), np.float32))
     with pytest.raises(ValueError, match="flow.npy"):
         scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    (tmp_path / "flow.npy").unlink()
+    for fps in (0, -30, 29.97, "30", True):  # a zero frame rate divided the duration by zero
+        (tmp_path / "meta.json").write_text(json.dumps({"fps": fps}))
+        with pytest.raises(ValueError, match=rf"meta.json: fps = {re.escape(repr(fps))}: must be a whole number"):
+            scorer.Observation.from_dir(tmp_path, width=8, height=8)
 
 
 def test_sparse_scores_equal_dense_metrics(observed):
