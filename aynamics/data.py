@@ -211,7 +211,8 @@ class ResumableSampler(Sampler[int]):
     """A shuffled order per epoch from (seed, epoch) alone, sharded over ranks, that can start mid-epoch.
 
     Lightning calls `set_epoch`; `skip` drops the first indices of `start_epoch` (the examples a resumed run
-    already trained on), so a resumed run sees exactly the batches an uninterrupted run would.
+    already trained on), so a resumed run sees exactly the batches an uninterrupted run would. `len` is always a
+    whole epoch's (Lightning's restored batch count covers the skipped part).
 
     With `lengths` (e.g. objects per scene, which sets the target's length), consecutive runs of `batch_size`
     indices hold examples of similar length: each window of `GROUP_BATCHES` batches of the shuffled order is
@@ -270,8 +271,10 @@ class ResumableSampler(Sampler[int]):
         return iter(order[self.skip :] if self.epoch == self.start_epoch else order)
 
     def __len__(self) -> int:
-        full = math.ceil(self.n / self.world)
-        return full - self.skip if self.epoch == self.start_epoch else full
+        # The whole epoch's length, also for the resumed one that yields only what is left: Lightning reads the
+        # length once and counts the restored batches of that epoch as done (a shorter length cut the resumed
+        # epoch, and every later one, short by the skipped batches).
+        return math.ceil(self.n / self.world)
 
 
 class ResumableLoader(DataLoader):
@@ -439,11 +442,13 @@ class SceneDataModule(L.LightningDataModule):
         if trainer is not None:
             rank, world = trainer.global_rank, trainer.world_size
             # After a resume `global_step` is restored before the loaders are built: skip what was trained on.
+            # Lightning steps the optimizer on each epoch's last batch too, so an epoch is ceil(batches / accum) steps.
             per_rank = math.ceil(len(ds) / world)
             batches = math.ceil(per_rank / self.batch_size)
-            done = trainer.global_step * trainer.accumulate_grad_batches
-            start_epoch, skip = divmod(done, batches) if batches else (0, 0)
-            skip *= self.batch_size
+            accum = trainer.accumulate_grad_batches
+            steps_per_epoch = math.ceil(batches / accum)
+            start_epoch, steps = divmod(trainer.global_step, steps_per_epoch) if batches else (0, 0)
+            skip = steps * accum * self.batch_size
         lengths = list(ds.split["num_objects"]) if self.group_by_length else None  # objects set the target length
         sampler = ResumableSampler(
             len(ds),

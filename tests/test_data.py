@@ -204,6 +204,28 @@ def test_train_loader_shards_over_the_trainers_ranks(dataset_dir):
     assert order(0, step=1) == r0[2:] and order(1, step=1) == r1[2:]
 
 
+def test_resume_position_with_gradient_accumulation(dataset_dir):
+    """5 records at batch 1 with 2 batches per optimizer step: Lightning steps on batches 2, 4 and the epoch's last
+    (5), so an epoch is 3 steps. After step 3 the resumed run starts epoch 1 from its first example, after step 4
+    two examples into it (counting 2 batches per step, it skipped 1 example of epoch 1 after step 3)."""
+    from types import SimpleNamespace
+
+    dm = SceneDataModule(str(dataset_dir), str(TINY_ASSET_DIR), num_frames=2, batch_size=1)
+    dm.setup("fit")
+    n = len(dm.dataset("train"))
+
+    def order(step: int) -> list[int]:
+        dm.trainer = SimpleNamespace(global_rank=0, world_size=1, global_step=step, accumulate_grad_batches=2)
+        sampler = dm.train_dataloader().sampler
+        return sampler.start_epoch, list(sampler)
+
+    epoch1 = list(ResumableSampler(n, seed=dm.seed, start_epoch=1))
+    assert n == 5
+    assert order(2) == (0, list(ResumableSampler(n, seed=dm.seed))[4:])
+    assert order(3) == (1, epoch1)
+    assert order(4) == (1, epoch1[2:])
+
+
 def test_length_grouped_order_pads_less_and_still_resumes():
     lengths = [1, 4, 2, 3] * 16  # 64 examples, object counts 1-4
     kw = dict(seed=5, lengths=lengths, batch_size=4)

@@ -213,17 +213,20 @@ def test_adapter_save_and_reload_give_identical_outputs(tmp_path, dataset_dir):
 
 @pytest.mark.parametrize("vision_aux", [False, True])
 def test_resume_continues_exactly(tmp_path, dataset_dir, vision_aux):
-    """4 steps straight vs 2 steps + resume from the step-2 checkpoint: the same adapter weights, bit for bit.
+    """7 steps straight vs 1 step + resume from the step-1 checkpoint: the same adapter weights at every step, bit
+    for bit, and the same epochs.
 
-    LoRA dropout is on (0.1), so the RNG state must be restored too; 5 training records at batch size 2 make
-    3 batches per epoch, so the resumed run starts mid-epoch (step 2 of 3) and crosses an epoch boundary.
-    With the dense visual loss, the fresh runs warm the vision tower up first and the resumed one must not
-    (its checkpoint holds the warmed-up tower and the head).
+    LoRA dropout is on (0.1), so the RNG state must be restored too; the training records at batch size 1 make 6
+    batches per epoch, so the resumed run starts early in epoch 0 and crosses into epoch 1 (a resumed epoch that
+    Lightning ended early, because the loader's length left out the batches already done, broke this from step 5).
+    With the dense visual loss, the fresh runs warm the vision tower up first and the resumed one must not (its
+    checkpoint holds the warmed-up tower and the head).
     """
     common = [
         f"data.dir={dataset_dir}",
+        "data.batch_size=1",
         "callbacks.evaluation=null",
-        "callbacks.checkpoint.every_n_train_steps=2",
+        "callbacks.checkpoint.every_n_train_steps=1",
         "trainer.val_check_interval=null",
         "trainer.check_val_every_n_epoch=100",
         "trainer.enable_progress_bar=false",
@@ -232,22 +235,28 @@ def test_resume_continues_exactly(tmp_path, dataset_dir, vision_aux):
     if vision_aux:
         common += ["data.visual_targets=true", "stage.module.vision_aux_weight=0.5"]
         common += ["stage.module.vision_warmup_steps=3"]
-    train(_cfg(tmp_path / "a", *common, "trainer.max_steps=4"))
-    train(_cfg(tmp_path / "b", *common, "trainer.max_steps=2"))
-    ckpt = tmp_path / "b" / "checkpoints" / "step000002.ckpt"
-    train(_cfg(tmp_path / "c", *common, "trainer.max_steps=4", f"ckpt_path={ckpt}"))
-    a = torch.load(tmp_path / "a" / "checkpoints" / "last.ckpt", weights_only=False)
-    c = torch.load(tmp_path / "c" / "checkpoints" / "last.ckpt", weights_only=False)
-    assert a["global_step"] == c["global_step"] == 4
-    assert a["state_dict"].keys() == c["state_dict"].keys() and len(a["state_dict"]) > 0
-    for k in a["state_dict"]:
-        assert torch.equal(a["state_dict"][k], c["state_dict"][k]), k
+    train(_cfg(tmp_path / "a", *common, "trainer.max_steps=7"))
+    train(_cfg(tmp_path / "b", *common, "trainer.max_steps=1"))
+    ckpt = tmp_path / "b" / "checkpoints" / "step000001.ckpt"
+    train(_cfg(tmp_path / "c", *common, "trainer.max_steps=7", f"ckpt_path={ckpt}"))
+    epochs = []
+    for step in range(2, 8):
+        a = torch.load(tmp_path / "a" / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
+        c = torch.load(tmp_path / "c" / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
+        assert a["global_step"] == c["global_step"] == step and a["epoch"] == c["epoch"], step
+        assert a["state_dict"].keys() == c["state_dict"].keys() and len(a["state_dict"]) > 0
+        for k in a["state_dict"]:
+            assert torch.equal(a["state_dict"][k], c["state_dict"][k]), (step, k)
+        epochs.append(a["epoch"])
+    assert epochs[0] == 0 and epochs[-1] == 1  # the comparison crossed an epoch boundary
     # the checkpoint holds only trainable weights (the adapter), not the frozen base
     assert all("lora_" in k or "modules_to_save" in k or "visual" in k for k in a["state_dict"])
     assert ("visual_head.weight" in a["state_dict"]) == vision_aux
-    # c resumed (a fresh run would also give a's weights): it wrote no step-2 checkpoint of its own
-    assert sorted(p.name for p in (tmp_path / "c" / "checkpoints").glob("step*")) == ["step000004.ckpt"]
-    # and the Lightning loop trained: LoRA B starts at zero, and steps 3-4 moved it further
+    # c resumed (a fresh run would also give a's weights): it wrote no step-1 checkpoint of its own
+    assert sorted(p.name for p in (tmp_path / "c" / "checkpoints").glob("step*")) == [
+        f"step{k:06d}.ckpt" for k in range(2, 8)
+    ]
+    # and the Lightning loop trained: LoRA B starts at zero, and steps 2-7 moved it further
     b = torch.load(ckpt, weights_only=False)
     lora_b = [k for k in a["state_dict"] if "lora_B" in k]
     assert lora_b and all(b["state_dict"][k].abs().max() > 0 for k in lora_b)
@@ -256,8 +265,8 @@ def test_resume_continues_exactly(tmp_path, dataset_dir, vision_aux):
 
 
 def _exported_checkpoint_is_the_adapter_of_its_step(ckpt: Path, adapter: Path, out: Path) -> None:
-    """`aynamics export-adapter` of run b's step-2 checkpoint writes the folder run b exported when it ended at
-    step 2: the same peft tensors and specs, loadable with `PeftModel.from_pretrained`. A file that is no
+    """`aynamics export-adapter` of run b's checkpoint writes the folder run b exported when it ended at that
+    step: the same peft tensors and specs, loadable with `PeftModel.from_pretrained`. A file that is no
     training checkpoint is named."""
     from safetensors.torch import load_file
 
