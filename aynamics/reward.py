@@ -251,6 +251,20 @@ def _eos_ids(model: torch.nn.Module) -> list[int]:
 
 
 @torch.no_grad()
+def decoding(temperature: float, top_p: float = 1.0) -> dict:
+    """`generate` settings for exactly greedy decoding (temperature 0) or exactly temperature + nucleus sampling.
+
+    Everything that shapes the distribution is given: `generate` fills what is not passed from the checkpoint's
+    `generation_config.json`, and Qwen2.5-VL Instruct's (top_k 1, repetition_penalty 1.05, do_sample true) would
+    make N samples one repeated response (no preference pairs for PRO) and put a repetition penalty into greedy
+    evaluation; transformers' own default adds top_k 50.
+    """
+    neutral = {"repetition_penalty": 1.0, "no_repeat_ngram_size": 0}
+    if temperature > 0:
+        return neutral | {"do_sample": True, "temperature": temperature, "top_p": top_p, "top_k": 0}
+    return neutral | {"do_sample": False}
+
+
 def sample_completions(
     model: torch.nn.Module,
     processor,
@@ -293,7 +307,6 @@ def sample_completions(
     was_training = model.training
     model.eval()
     try:
-        sampling = {"do_sample": True, "temperature": temperature, "top_p": top_p} if temperature > 0 else {}
         out = model.generate(
             **inputs,
             max_new_tokens=max_new_tokens,
@@ -301,7 +314,7 @@ def sample_completions(
             num_return_sequences=num_samples,
             use_cache=True,
             suppress_tokens=vision_token_ids(model),  # never sampled: they would count as image slots
-            **sampling,
+            **decoding(temperature, top_p),
         )
     finally:
         model.train(was_training)

@@ -315,3 +315,30 @@ def test_candidate_batch_keeps_images_aligned(tiny):
     with pytest.raises(ValueError, match="empty"):
         rw.candidate_batch(prompts[:1], [[[]]], 0)
     assert math.isfinite(lp.sum().item())
+
+
+def test_decoding_ignores_the_checkpoints_sampling_settings(tiny):
+    """A checkpoint whose generation_config.json carries Qwen2.5-VL Instruct's settings (top_k 1, repetition
+    penalty 1.05, sampling on) decodes as one with none: the same greedy tokens, and samples that differ (with
+    top_k 1 every sample would be the one most likely response)."""
+    import copy
+
+    model, proc = tiny
+    prompts = _prompts(proc)[:1]
+    clean = copy.deepcopy(model.generation_config)
+    greedy, _ = rw.sample_completions(model, proc, prompts, num_samples=1, temperature=0.0, max_new_tokens=12)
+    torch.manual_seed(0)
+    sampled, _ = rw.sample_completions(model, proc, prompts, num_samples=4, temperature=1.0, max_new_tokens=12)
+    try:
+        gen = model.generation_config
+        gen.do_sample, gen.top_k, gen.top_p, gen.temperature, gen.repetition_penalty = True, 1, 0.001, 0.1, 1.05
+        assert (
+            rw.sample_completions(model, proc, prompts, num_samples=1, temperature=0.0, max_new_tokens=12)[0] == greedy
+        )
+        torch.manual_seed(0)
+        again, _ = rw.sample_completions(model, proc, prompts, num_samples=4, temperature=1.0, max_new_tokens=12)
+    finally:
+        model.generation_config = clean
+    assert again == sampled and len({tuple(c) for c in again[0]}) > 1
+    assert rw.decoding(0.0) == {"repetition_penalty": 1.0, "no_repeat_ngram_size": 0, "do_sample": False}
+    assert rw.decoding(0.7, 0.9)["top_k"] == 0  # no top-k cut: temperature and nucleus only
