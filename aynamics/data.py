@@ -288,6 +288,41 @@ class ResumableLoader(DataLoader):
             raise ValueError(f"resumed data set has {self.sampler.n} training examples, the checkpoint's had {state}")
 
 
+def resumable_loader(
+    ds, trainer, *, batch_size: int, seed: int, lengths=None, collate_fn=None, num_workers: int = 0
+) -> ResumableLoader:
+    """The training loader of `ds` for this process: its shard of every epoch's order (`ResumableSampler`), and
+    after a resume (`trainer.global_step` is restored before loaders are built) past what was trained on.
+    `trainer` None: one process from the start."""
+    rank, world, start_epoch, skip = 0, 1, 0, 0
+    if trainer is not None:
+        rank, world = trainer.global_rank, trainer.world_size
+        # Lightning steps the optimizer on each epoch's last batch too, so an epoch is ceil(batches / accum) steps.
+        batches = math.ceil(math.ceil(len(ds) / world) / batch_size)
+        accum = trainer.accumulate_grad_batches
+        start_epoch, steps = divmod(trainer.global_step, math.ceil(batches / accum)) if batches else (0, 0)
+        skip = steps * accum * batch_size
+    sampler = ResumableSampler(
+        len(ds),
+        seed=seed,
+        rank=rank,
+        world=world,
+        start_epoch=start_epoch,
+        skip=skip,
+        lengths=lengths,
+        batch_size=batch_size,
+    )
+    return ResumableLoader(
+        ds,
+        batch_size=batch_size,
+        sampler=sampler,
+        collate_fn=collate_fn,
+        num_workers=num_workers,
+        generator=torch.Generator().manual_seed(seed),  # worker seeds: not from the global RNG
+        persistent_workers=num_workers > 0,
+    )
+
+
 class SceneDataModule(L.LightningDataModule):
     """Train / validation / test batches of a generated data set.
 
@@ -437,37 +472,15 @@ class SceneDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         ds = self.dataset("train", self.limit_train)
-        trainer = self.trainer
-        rank, world, start_epoch, skip = 0, 1, 0, 0
-        if trainer is not None:
-            rank, world = trainer.global_rank, trainer.world_size
-            # After a resume `global_step` is restored before the loaders are built: skip what was trained on.
-            # Lightning steps the optimizer on each epoch's last batch too, so an epoch is ceil(batches / accum) steps.
-            per_rank = math.ceil(len(ds) / world)
-            batches = math.ceil(per_rank / self.batch_size)
-            accum = trainer.accumulate_grad_batches
-            steps_per_epoch = math.ceil(batches / accum)
-            start_epoch, steps = divmod(trainer.global_step, steps_per_epoch) if batches else (0, 0)
-            skip = steps * accum * self.batch_size
         lengths = list(ds.split["num_objects"]) if self.group_by_length else None  # objects set the target length
-        sampler = ResumableSampler(
-            len(ds),
-            seed=self.seed,
-            rank=rank,
-            world=world,
-            start_epoch=start_epoch,
-            skip=skip,
-            lengths=lengths,
-            batch_size=self.batch_size,
-        )
-        return ResumableLoader(
+        return resumable_loader(
             ds,
+            self.trainer,
             batch_size=self.batch_size,
-            sampler=sampler,
+            seed=self.seed,
+            lengths=lengths,
             collate_fn=self._collate,
             num_workers=self.num_workers,
-            generator=torch.Generator().manual_seed(self.seed),  # worker seeds: not from the global RNG
-            persistent_workers=self.num_workers > 0,
         )
 
     def _eval_loader(self, split: str) -> DataLoader:

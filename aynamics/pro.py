@@ -354,13 +354,15 @@ class ProDataModule(L.LightningDataModule):
         return batch
 
     def train_dataloader(self) -> DataLoader:
+        """Each process its own shard of the videos (or preference rows), resumable mid-epoch, as in SFT."""
+        from aynamics.data import resumable_loader
+
         hp = self.hparams
-        gen = torch.Generator().manual_seed(hp.seed)
-        return DataLoader(
+        return resumable_loader(
             self.train_set,
+            self.trainer,
             batch_size=hp.batch_size,
-            shuffle=True,
-            generator=gen,
+            seed=hp.seed,
             collate_fn=list,
             num_workers=hp.num_workers,
         )

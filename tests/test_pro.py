@@ -359,3 +359,25 @@ def test_ddp_two_processes_offline_on_cpu(tmp_path, dataset_dir):
     record = json.loads((out / "metrics.json").read_text())
     assert record["global_step"] == 2 and record["metrics"]["train/loss"] > 0
     assert (out / "adapter" / "adapter_model.safetensors").is_file()
+
+
+def test_pro_loader_shards_over_the_trainers_ranks(dataset_dir):
+    """Under a 2-process trainer each rank samples its own videos (the same loader for every rank did N times the
+    work of one), and a resumed run continues past its first batch."""
+    from types import SimpleNamespace
+
+    from aynamics.pro import ProDataModule
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    dm = ProDataModule(str(dataset_dir), str(TINY_ASSET_DIR), batch_size=1, num_frames=2)
+    dm.setup("fit")
+
+    def keys(rank: int, step: int = 0) -> list:
+        dm.trainer = SimpleNamespace(global_rank=rank, world_size=2, global_step=step, accumulate_grad_batches=1)
+        return [batch[0].key for batch in dm.train_dataloader()]
+
+    r0, r1 = keys(0), keys(1)
+    n = len(dm.train_set)
+    assert len(r0) == len(r1) == -(-n // 2) and set(r0) | set(r1) == {v.key for v in dm.train_set}
+    assert len(set(r0) & set(r1)) <= 1  # at most the one padding video, as DDP pads
+    assert keys(0, step=1) == r0[1:] and keys(1, step=1) == r1[1:]
