@@ -40,6 +40,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
     spec = hydra.utils.instantiate(cfg.model)
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
+    datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
     module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
@@ -57,7 +58,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             rows = {"model": evaluation.last}
             if evaluation.last_baseline:
                 rows["average scene"] = evaluation.last_baseline
-            print(f"\nValidation ({evaluation.num_samples} held-out scenes, step {trainer.global_step}):")
+            print(f"\nValidation ({evaluation.evaluated} held-out scenes, step {trainer.global_step}):")
             print(format_table(rows))
     return metrics
 

@@ -184,6 +184,7 @@ class SceneEvaluation(L.Callback):
         self._records: list[dict] | None = None
         self._baseline: dict[str, float] | None = None
         self.last: dict[str, float] = {}  # the latest summary (model), for scripts and tests
+        self.evaluated = 0  # records in the latest evaluation (num_samples, or fewer if the split is smaller)
         self.last_baseline: dict[str, float] = {}
 
     def _prepare(self, trainer: L.Trainer) -> None:
@@ -232,7 +233,7 @@ class SceneEvaluation(L.Callback):
                 texts += lm.greedy_texts(pl_module.model, processor, chunk, self.max_new_tokens)
         per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
         summary = summarize(per)
-        self.last = summary
+        self.last, self.evaluated = summary, len(records)
         self.last_baseline = dict(self._baseline or {})
         log = {f"val/{k}": v for k, v in summary.items()}
         log |= {f"val/baseline/{k}": v for k, v in self.last_baseline.items()}

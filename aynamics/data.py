@@ -396,6 +396,13 @@ class SceneDataModule(L.LightningDataModule):
                 f"batch_size = {batch_size}, num_examples = {num_examples}, num_workers = {num_workers}: "
                 "need batch_size >= 1, num_examples >= 0, num_workers >= 0"
             )
+        for key, value in (
+            ("eval_batch_size", eval_batch_size),
+            ("limit_train", limit_train),
+            ("limit_val", limit_val),
+        ):
+            if value is not None and value < 1:
+                raise ValueError(f"data.{key} = {value}: must be >= 1, or null for the default (all / batch_size)")
         self.dir, self.processor_path = str(dir), str(processor_path)
         self.batch_size, self.eval_batch_size = batch_size, eval_batch_size or batch_size
         self.num_workers, self.seed = num_workers, seed
@@ -421,6 +428,12 @@ class SceneDataModule(L.LightningDataModule):
         self.splits = load_splits(self.dir)
         if len(self.splits["train"]) == 0:
             raise ValueError(f"data.dir = {self.dir!r}: the train split is empty")
+        stored = len(self.splits["train"][0]["frame_indices"])
+        if self.prompt.num_frames > stored:
+            raise ValueError(
+                f"data.num_frames = {self.prompt.num_frames}: the scenes in data.dir = {self.dir!r} store {stored} "
+                f"frames each; choose at most {stored}"
+            )
         if self.num_examples:
             stored = self.splits["train"].select(range(min(self.num_examples, len(self.splits["train"]))))["scene_yaml"]
             examples = tuple(lm.scene_text(y, self.decimals, self.object_names, self.objects_last) for y in stored)

@@ -44,7 +44,8 @@ MODALITY_NOTE = {
 }
 
 
-PROMPT_KEYS = ("target", "modality", "as_video", "num_frames")  # what a trained adapter / stored data must agree on
+# What a trained adapter / stored data must agree on (the in-context examples are checked apart: long texts).
+PROMPT_KEYS = ("target", "modality", "as_video", "num_frames", "min_pixels", "max_pixels")
 
 
 @dataclass(frozen=True)

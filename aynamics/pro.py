@@ -157,6 +157,12 @@ class ProModule(L.LightningModule):
             if mismatch:
                 was, now = mismatch
                 raise ValueError(f"stage.init_adapter was trained with {was}, but the data are set to {now}")
+            if trained.examples != self.prompt.examples:
+                raise ValueError(
+                    f"stage.init_adapter was trained with {len(trained.examples)} in-context examples in its prompt, "
+                    f"but PRO's prompts hold {len(self.prompt.examples)}: train the SFT adapter with "
+                    "data.num_examples=0"
+                )
 
     def ensure_processor(self) -> None:
         """Standalone use: the default prompt and the spec's processor when none was given."""
@@ -265,7 +271,8 @@ class ProModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Keep only the trainable weights (the adapter) in the checkpoint."""
         trainable = {f"model.{n}" for n, p in self.model.named_parameters() if p.requires_grad}
-        checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
+        if "state_dict" in checkpoint:  # DeepSpeed saves the weights itself
+            checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
 
 
 def _margin(seq: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:

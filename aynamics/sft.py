@@ -38,6 +38,21 @@ def lr_factor(step: int, *, warmup_steps: int, total_steps: int, schedule: str, 
     return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
+def training_steps(trainer: L.Trainer) -> int:
+    """The optimizer steps the fit will take (the learning-rate schedule's length).
+
+    Raises:
+        ValueError: neither trainer.max_steps nor trainer.max_epochs limits training (both -1).
+    """
+    total = trainer.estimated_stepping_batches
+    if not math.isfinite(total):
+        raise ValueError(
+            f"trainer.max_steps = {trainer.max_steps}, trainer.max_epochs = {trainer.max_epochs}: training has no end, "
+            "so the learning-rate schedule has no length; set trainer.max_steps (or trainer.max_epochs) to a count >= 1"
+        )
+    return int(total)
+
+
 class SFTModule(L.LightningModule):
     """Supervised fine-tuning on (frames, response) pairs.
 
@@ -266,7 +281,7 @@ class SFTModule(L.LightningModule):
             tower = [p for p in params if id(p) in vision]
             groups = [g for g in ({"params": rest}, {"params": tower, "lr": hp.lr * scale}) if g["params"]]
         opt = torch.optim.AdamW(groups, lr=hp.lr, weight_decay=hp.weight_decay, betas=tuple(hp.betas))
-        total = int(self.trainer.estimated_stepping_batches) if self._trainer is not None else 1
+        total = training_steps(self.trainer) if self._trainer is not None else 1
         sched = torch.optim.lr_scheduler.LambdaLR(
             opt,
             lambda step: lr_factor(
@@ -283,7 +298,8 @@ class SFTModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Keep only the trainable weights (the adapter) and record the RNG states for an exact resume."""
         trainable = {k for k, p in self.named_parameters() if p.requires_grad}
-        checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
+        if "state_dict" in checkpoint:  # DeepSpeed saves the weights itself (exclude_frozen_parameters in its config)
+            checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
         kind, keys, pos, has_gauss, gauss = np.random.get_state()
         # plain types and tensors only: Lightning loads checkpoints with torch.load(weights_only=True)
         checkpoint["rng"] = {
@@ -291,10 +307,13 @@ class SFTModule(L.LightningModule):
             "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, gauss],
             "python": random.getstate(),
         }
+        if torch.cuda.is_available():  # LoRA dropout on a GPU draws from the CUDA generators
+            checkpoint["rng"]["cuda"] = torch.cuda.get_rng_state_all()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        missing = {k for k, p in self.named_parameters() if p.requires_grad} - set(checkpoint["state_dict"])
-        if missing:
+        stored = checkpoint.get("state_dict")  # None under DeepSpeed, which loads its own files
+        missing = {k for k, p in self.named_parameters() if p.requires_grad} - set(stored or ())
+        if stored is not None and missing:
             raise ValueError(
                 f"checkpoint lacks {len(missing)} trainable weights of this model (e.g. {sorted(missing)[0]!r}): "
                 "it was written for a different model.* / LoRA setting"
@@ -322,4 +341,6 @@ class SFTModule(L.LightningModule):
             kind, keys, pos, has_gauss, gauss = self._rng_to_restore["numpy"]
             np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
             random.setstate(self._rng_to_restore["python"])
+            if "cuda" in self._rng_to_restore and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(self._rng_to_restore["cuda"])
             self._rng_to_restore = None

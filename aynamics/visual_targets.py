@@ -276,10 +276,12 @@ def warm_up(
                 channels = torch.randperm(len(augment.image_mean), generator=gen).tolist()
                 pixels[i], targets[i] = augment(pixels[i], ex[grid], targets[i], mirror=mirror, channels=channels)
         grid_thw = torch.cat([ex[grid] for ex in examples])
-        out = visual(torch.cat(pixels), grid_thw=grid_thw)
+        device = next(head.parameters()).device  # the examples live on the CPU; the model may be on a GPU
+        out = visual(torch.cat(pixels).to(device), grid_thw=grid_thw.to(device))
         tokens = getattr(out, "pooler_output", out)
         merge = getattr(visual, "spatial_merge_size", 2)
-        loss, stats = aux_loss(head(tokens), torch.cat(targets), frame_tokens(grid_thw, merge), share_weight)
+        targets = torch.cat(targets).to(device)
+        loss, stats = aux_loss(head(tokens), targets, frame_tokens(grid_thw, merge), share_weight)
         for g in opt.param_groups:
             g["lr"] = lr * min(1.0, (step + 1) / max(1, warmup_steps))
         opt.zero_grad(set_to_none=True)

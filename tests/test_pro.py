@@ -246,6 +246,16 @@ def test_train_stage_pro_online_end_to_end(tmp_path, dataset_dir):
                 "data.modality=flow",
             )
         )
+    # the frames' pixel limits are part of the prompt too (other limits: other visual tokens than in training)
+    with pytest.raises(ValueError, match="trained with max_pixels=None, but the data are set to max_pixels=5000"):
+        train(
+            _cfg(
+                tmp_path / "bad2",
+                f"data.dir={dataset_dir}",
+                f"stage.init_adapter={out / 'adapter'}",
+                "data.max_pixels=5000",
+            )
+        )
 
 
 def summary_keys(summary: dict, **prompt) -> dict:

@@ -340,15 +340,24 @@ def test_lora_and_pixel_overrides_reach_peft_and_the_processor(tmp_path, dataset
     layers = [m for m in model.modules() if hasattr(m, "lora_A") and "default" in m.lora_A]
     assert layers and all(m.scaling["default"] == 3.0 and m.lora_dropout["default"].p == 0.2 for m in layers)
 
-    def grid(*overrides):
+    def grid(*overrides, processor_path=lm.ModelSpec().processor_path):
         c = _cfg(tmp_path, f"data.dir={dataset_dir}", *overrides)
-        dm = hydra.utils.instantiate(c.data, processor_path=lm.ModelSpec().processor_path, target="answer")
+        dm = hydra.utils.instantiate(c.data, processor_path=processor_path, target="answer")
         dm.setup("fit")
         return dm.dataset("train")[0]["image_grid_thw"][0].tolist()
 
     assert grid() == [1, 4, 4]
     assert grid("data.min_pixels=12544", "data.max_pixels=20000") == [1, 8, 10]
     assert grid("data.min_pixels=784", "data.max_pixels=3000") == [1, 2, 4]
+    # by default (null) the limits are the model's own processor's: a checkpoint folder whose
+    # preprocessor_config.json says 12544-20000 pixels (as Qwen's says 3136-12845056) gets those, not the tiny's
+    import shutil
+
+    folder = shutil.copytree(lm.ModelSpec().processor_path, tmp_path / "checkpoint")
+    config = json.loads((folder / "preprocessor_config.json").read_text())
+    config["size"] = {"shortest_edge": 12544, "longest_edge": 20000}
+    (folder / "preprocessor_config.json").write_text(json.dumps(config))
+    assert grid(processor_path=str(folder)) == [1, 8, 10]
 
 
 def test_type_weights_reach_the_training_loss_only(dataset_dir):
@@ -479,3 +488,38 @@ def test_vision_lr_scale_sets_the_tower_group(dataset_dir):
         module.on_load_checkpoint(ckpt)
     ckpt["hyper_parameters"]["vision_lr_scale"] = 0.0
     module.on_load_checkpoint(ckpt)
+
+
+def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
+    """Values that Lightning or the loaders would take without a word (no training batch at all, frames that are
+    not stored, an infinite schedule) or fail on deep inside stop first with the key and the value."""
+    cases = [
+        (
+            ["trainer.max_steps=-1", "trainer.max_epochs=-1"],
+            "trainer.max_steps = -1, trainer.max_epochs = -1: training",
+        ),
+        (["data.limit_train=0"], r"data.limit_train = 0: must be >= 1"),
+        (["data.limit_val=-1"], r"data.limit_val = -1: must be >= 1"),
+        (["data.eval_batch_size=0"], r"data.eval_batch_size = 0: must be >= 1"),
+        (["data.num_frames=20"], r"data.num_frames = 20: the scenes in data.dir = .* store 10 frames each"),
+    ]
+    from hydra.errors import InstantiationException  # hydra's wrapper of an error in a config's constructor
+
+    for overrides, message in cases:
+        with pytest.raises((ValueError, InstantiationException), match=message):
+            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", *overrides))
+    with pytest.raises(FileNotFoundError, match="holds no data set"):
+        train(_cfg(tmp_path / "x", f"data.dir={tmp_path / 'nope'}"))
+
+
+def test_checkpoint_hooks_accept_deepspeed_checkpoints():
+    """DeepSpeed keeps the weights out of Lightning's checkpoint dict (it writes its own files, without the frozen
+    base: exclude_frozen_parameters in conf/trainer/deepspeed.yaml): saving and loading such a dict works, RNG
+    states included; a plain checkpoint that lacks trainable weights is still refused."""
+    module = SFTModule(lm.ModelSpec(kind="tiny"))
+    checkpoint = {"hyper_parameters": {"vision_lr_scale": 1.0}}
+    module.on_save_checkpoint(checkpoint)
+    assert "state_dict" not in checkpoint and set(checkpoint["rng"]) >= {"torch", "numpy", "python"}
+    module.on_load_checkpoint(checkpoint)
+    with pytest.raises(ValueError, match="checkpoint lacks .* trainable weights"):
+        module.on_load_checkpoint({**checkpoint, "state_dict": {}})
