@@ -78,6 +78,10 @@ class PromptSpec:
             raise ValueError(f"modality = {self.modality!r}: must be one of {MODALITIES}")
         if self.num_frames < 1:
             raise ValueError(f"num_frames = {self.num_frames}: must be >= 1")
+        for key in ("min_pixels", "max_pixels"):
+            value = getattr(self, key)
+            if value is not None and value < 28 * 28:
+                raise ValueError(f"{key} = {value}: must be >= {28 * 28} (one 2x2 block of 14-pixel patches) or null")
         object.__setattr__(self, "examples", tuple(self.examples))
 
     @property

@@ -502,6 +502,7 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["data.limit_val=-1"], r"data.limit_val = -1: must be >= 1"),
         (["data.eval_batch_size=0"], r"data.eval_batch_size = 0: must be >= 1"),
         (["data.num_frames=20"], r"data.num_frames = 20: the scenes in data.dir = .* store 10 frames each"),
+        (["data.min_pixels=0"], r"min_pixels = 0: must be >= 784"),
     ]
     from hydra.errors import InstantiationException  # hydra's wrapper of an error in a config's constructor
 
