@@ -103,7 +103,8 @@ def cast_group(
     reasons = []
     for k, scene in enumerate(scenes):
         q = qpos[k][:, cols_p]
-        valid, reason = sim.check_states(scene, q[..., :3], qvel[k][:, cols_v], int(warnings[k]), t)
+        overlap = sim.overlap_of(raw, k, scene.names)
+        valid, reason = sim.check_states(scene, q[..., :3], qvel[k][:, cols_v], int(warnings[k]), t, overlap)
         reasons.append(None if valid else reason)
 
     cams = [camlib.matrices(s.camera, w, h) for s in scenes]

@@ -50,7 +50,12 @@ REST_ANGULAR = 0.2  # rad/s
 MAX_SPEED = 200.0  # m/s: beyond this a rollout has blown up
 MAX_SPIN = 1000.0  # rad/s
 MAX_DISTANCE = 1000.0  # m from the origin
-RESTITUTION_STIFFNESS = 1e4  # k of the direct contact form used for `physics.restitution`
+# m: objects interpenetrating deeper at t = 0 (each other or the floor) are refused. The contact pushes them apart
+# at about 8 × depth m/s (measured: 1 cm 0.08, 3 cm 0.24, 5 cm 0.8, 20 cm 3.7 m/s), a launch that is not in the
+# scene; shallower starts (a box at its nominal height on a tilted floor: 3.5 cm at 10°) are left to settle.
+MAX_START_OVERLAP = 0.05
+RESTITUTION_STIFFNESS = 1e4  # k of the direct contact form used for `physics.restitution` at RESTITUTION_TIMESTEP
+RESTITUTION_TIMESTEP = 1.0 / 240  # s: the physics step at which that k was measured (REFERENCE.md)
 
 _GEOM = {
     "box": mujoco.mjtGeom.mjGEOM_BOX,
@@ -102,17 +107,25 @@ def inertia(obj: Object) -> np.ndarray:
     return np.array([side, side, 0.5 * m * r * r])
 
 
-def restitution_solref(e: float, k: float = RESTITUTION_STIFFNESS) -> tuple[float, float]:
-    """Direct-form solref (-k, -b) of a damped spring whose rebound coefficient is e.
+def restitution_solref(
+    e: float, timestep: float = RESTITUTION_TIMESTEP, k: float = RESTITUTION_STIFFNESS
+) -> tuple[float, float]:
+    """Direct-form solref (-k, -b) of a damped spring whose rebound coefficient is e at this physics `timestep`.
 
     For x'' + b x' + k x = 0 released into contact, e = exp(-ζπ / sqrt(1 - ζ²)) with ζ = b / (2 sqrt k), so
-    ζ = -ln e / sqrt(π² + ln² e). e = 0 is critical damping (ζ = 1).
+    ζ = -ln e / sqrt(π² + ln² e). e = 0 is critical damping (ζ = 1). `k` is the stiffness measured to behave at
+    `RESTITUTION_TIMESTEP` (1/240 s). At a coarser step it is scaled by (RESTITUTION_TIMESTEP / timestep)², so
+    the spring's ω·dt and b·dt stay where they were measured: MuJoCo integrates the contact explicitly, and the
+    same k and b gained energy (e = 0 rebounded higher than the drop at time_scale 2, dt = 1/120 s). At a finer
+    step k is kept: stiffer contacts gain energy too (REFERENCE.md: k = 1e5). Measured rebound of a dropped
+    sphere (e = 0 / 0.5 / 0.8): 0.00 / 0.49 / 0.78 at 1/240 and 1/120 s, 0.08 / 0.55 / 0.81 at 1/480 s.
     """
     if e <= 0:
         zeta = 1.0
     else:
         le = math.log(e)
         zeta = -le / math.sqrt(math.pi**2 + le * le)
+    k = k * min(1.0, (RESTITUTION_TIMESTEP / timestep) ** 2)
     return -k, -2 * zeta * math.sqrt(k)
 
 
@@ -219,7 +232,7 @@ PARAM_FIELDS = (
 )
 
 
-def scene_params(scene: Scene, tpl: Template) -> dict[str, np.ndarray]:
+def scene_params(scene: Scene, tpl: Template, timestep: float = RESTITUTION_TIMESTEP) -> dict[str, np.ndarray]:
     """The template's parameter fields (full arrays, as in the model) filled with the scene's numbers."""
     m = tpl.model
     p = {
@@ -235,7 +248,7 @@ def scene_params(scene: Scene, tpl: Template) -> dict[str, np.ndarray]:
         mu, c_rr = obj.physics.friction
         p["geom_friction"][g] = [mu, 0.0, c_rr * rolling_radius(obj)]
         if obj.physics.restitution is not None:
-            p["geom_solref"][g] = restitution_solref(obj.physics.restitution)
+            p["geom_solref"][g] = restitution_solref(obj.physics.restitution, timestep)
         p["body_mass"][b] = obj.physics.mass
         moments = inertia(obj)
         p["body_inertia"][b] = moments
@@ -278,8 +291,9 @@ def compile_scene(scene: Scene, config: SimConfig | None = None) -> tuple[mujoco
     """A standalone MjModel of the scene (for rendering and single simulations), and its template."""
     tpl = template(scene.structure)
     model = _copy_model(tpl.model)
-    write_params(model, scene_params(scene, tpl))
-    model.opt.timestep = (config or SimConfig()).timestep * time_scale(scene)  # magnus / friction_slope: no hook here
+    dt = (config or SimConfig()).timestep * time_scale(scene)
+    write_params(model, scene_params(scene, tpl, dt))
+    model.opt.timestep = dt  # magnus / friction_slope: no hook here
     mujoco.mj_setConst(model, mujoco.MjData(model))
     return model, tpl
 
@@ -457,11 +471,12 @@ def prepare_batch(
     tpl = template(structure)
     n = len(scenes)
     b = _cached_batch(tpl, n, max(1, min(nthread or default_threads(), n)))
-    params = [scene_params(s, tpl) for s in scenes]
+    dt = SimConfig().timestep if timestep is None else timestep
+    steps = [dt * time_scale(s) for s in scenes]
+    params = [scene_params(s, tpl, step) for s, step in zip(scenes, steps, strict=True)]
     for name in PARAM_FIELDS:
         b.expand(name)[...] = np.stack([p[name] for p in params]).reshape(b.expand(name).shape)
-    dt = SimConfig().timestep if timestep is None else timestep
-    b.expand("opt.timestep")[...] = dt * np.array([time_scale(s) for s in scenes])
+    b.expand("opt.timestep")[...] = np.array(steps)
     b.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
     b.set_const()
     qpos, qvel = b.bind("qpos"), b.bind("qvel")
@@ -543,6 +558,8 @@ class RawRollout:
         warnings: (n,) MuJoCo warning counts (instability).
         batch: the (cached) Batch it ran on, holding the scenes' parameters: valid for ray casts until the next
             call with the same structure and size.
+        overlap: per scene, the deepest interpenetration at t = 0 as (depth m, object i, object j or N for the
+            floor), or None when nothing interpenetrates by more than `MAX_START_OVERLAP`.
     """
 
     template: Template
@@ -551,6 +568,26 @@ class RawRollout:
     sensor: np.ndarray
     warnings: np.ndarray
     batch: mjbatch.Batch | None = None
+    overlap: tuple | None = None
+
+
+def start_overlaps(b: mjbatch.Batch, tpl: Template, n_sim: int) -> tuple:
+    """Per simulation of a batch at its initial state: (depth, i, j) of the deepest contact deeper than
+    `MAX_START_OVERLAP` (objects i, j; j = N for the floor), else None. ~0.07 ms a scene (one mj_forward)."""
+    obj_of = {int(g): i for i, g in enumerate(tpl.geom_ids)} | {int(tpl.floor_geom): len(tpl.geom_ids)}
+    out = []
+    model = data = None
+    for k in range(n_sim):
+        model, data = b.get_model(k, model), b.get_data(k, data)
+        mujoco.mj_forward(model, data)
+        dist = data.contact.dist[: data.ncon]
+        if len(dist) and dist.min() < -MAX_START_OVERLAP:
+            c = int(np.argmin(dist))
+            i, j = sorted((obj_of[int(data.contact.geom1[c])], obj_of[int(data.contact.geom2[c])]))
+            out.append((float(-dist[c]), i, j))
+        else:
+            out.append(None)
+    return tuple(out)
 
 
 def rollout_raw(
@@ -563,6 +600,7 @@ def rollout_raw(
     """Simulate same-structure scenes in one Batch; states per frame, contact sensors per physics step
     (`sensors=False` skips recording them: `sensor` is then an empty (n, S, 0) array)."""
     b, tpl = prepare_batch(scenes, structure, nthread, config.timestep)
+    overlap = start_overlaps(b, tpl, len(scenes))
     qpos0 = np.array(b.bind("qpos"))
     qvel0 = np.array(b.bind("qvel"))
     sub = config.substeps
@@ -576,7 +614,7 @@ def rollout_raw(
     qvel = np.concatenate([qvel0[:, None], rec["qvel"][:, sub - 1 :: sub]], axis=1)
     warnings = np.array(b.warning).sum(axis=(1, 2))
     sensor = rec["sensordata"] if sensors else np.zeros((len(scenes), config.frames * sub, 0))
-    return RawRollout(tpl, qpos, qvel, sensor, warnings, b)
+    return RawRollout(tpl, qpos, qvel, sensor, warnings, b, overlap)
 
 
 def _simulate_group(
@@ -630,7 +668,7 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
         radii = np.array([bounding_radius(o) for o in scene.objects])
         with np.errstate(invalid="ignore"):
             in_view = camlib.sphere_in_view(cam, position[k], radii)
-        valid, reason = check_states(scene, position[k], v[k], int(raw.warnings[k]), t)
+        valid, reason = check_states(scene, position[k], v[k], int(raw.warnings[k]), t, overlap_of(raw, k, names))
         rest = tuple(
             None if not valid or last == frames else (0.0 if last < 0 else float(t[last + 1]))
             for last in last_moving[k]
@@ -654,13 +692,31 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
     return out
 
 
+def overlap_of(raw: RawRollout, k: int, names: tuple[str, ...]) -> str | None:
+    """The start overlap of simulation k of `raw` in words ("A and B by 0.31 m"), or None."""
+    found = raw.overlap[k] if raw.overlap is not None else None
+    if found is None:
+        return None
+    depth, i, j = found
+    return f"{names[i]} and {'the floor' if j == len(names) else names[j]} by {depth:.3g} m"
+
+
 def check_states(
-    scene: Scene, position: np.ndarray, v: np.ndarray, nwarning: int, t: np.ndarray
+    scene: Scene,
+    position: np.ndarray,
+    v: np.ndarray,
+    nwarning: int,
+    t: np.ndarray,
+    overlap: str | None = None,
 ) -> tuple[bool, str | None]:
-    """(valid, reason) of simulated states: non-finite values, blow-up speeds, MuJoCo warnings, tunnelling.
+    """(valid, reason) of simulated states: objects that start inside each other or the floor (`overlap`, from
+    `overlap_of`: the contact pushes them apart at any speed, a launch not in the scene), non-finite values,
+    blow-up speeds, MuJoCo warnings, tunnelling.
 
     position (T, N, 3) and v (T, N, 6) per frame and object, nwarning the MuJoCo warning count, t (T,) seconds.
     """
+    if overlap is not None:
+        return False, f"overlapping start: {overlap} at t=0 (more than {MAX_START_OVERLAP} m)"
     names = scene.names
     finite = np.isfinite(position).all(-1) & np.isfinite(v).all(-1)  # (T, N)
     if not finite.all():

@@ -125,7 +125,7 @@ def test_invalid_candidates_score_zero_with_reason_and_do_not_spoil_others(obser
     for s in (batch[0], batch[2], batch[3]):
         assert s.iou_first == s.iou_full == 0.0 and s.epe_full == scorer.EPE_INVALID and s.reason
     assert "objects[0].state" in batch[0].reason
-    assert "tunnelled" in batch[3].reason
+    assert "overlapping start: sphere_0 and the floor" in batch[3].reason  # it starts under the floor
     assert batch[1] == alone  # same numbers as when scored alone
     assert batch[4].iou_full == 1.0
     assert json.loads(json.dumps([s.to_json() for s in batch]))[2]["valid"] is False
