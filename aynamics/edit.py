@@ -19,7 +19,7 @@ and "set the damping to 0.5 /s" sets the rate (a plain number sets the log10 val
     result.scene, result.changes   # the validated edited scene; every leaf that changed
 
 `aynamics edit SCENE.yaml "INSTRUCTION" [--out EDITED.yaml] [--render DIR] [--llm MODEL]` runs it; the optional
-language-model editor lives in `aynamics.edit_llm`, rendering of the what-if in `aynamics.edit_render`.
+language-model editor lives in `aynamics.edit_llm`, rendering of the what-if in `aynamics.whatif`.
 Instructions it cannot read raise `EditError` listing what it understands; an edit that makes the scene invalid
 is refused with the validation error, and nothing is written.
 """
@@ -290,6 +290,11 @@ def _edit_field(item: dict, q: Quantity, comp: int | None, fn, label: str) -> No
 
 def _magnitude(vec: list[float], new: float, what: str) -> list[float]:
     norm = math.sqrt(sum(x * x for x in vec))
+    if new < 0:  # scaling by a negative length would turn the vector around, not shorten it
+        raise EditError(
+            f"{what}: its magnitude is {norm:.4g}, so this decrease would leave {new:.4g}, below zero; "
+            "decrease by at most the magnitude, or set it to 0"
+        )
     if norm == 0.0:
         raise EditError(f"{what} is zero, so it has no direction to scale along; give [x, y, z] or a component")
     return [x * new / norm for x in vec]

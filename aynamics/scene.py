@@ -92,7 +92,12 @@ RANGES: dict[str, Range] = {
         "log10 of the linear damping rate k: in free motion v and ω decay as exp(-k·t) (k = 10^damping); -4 → 1e-4/s",
     ),
     "physics.restitution": Range(
-        0.0, 0.95, "-", "-", "optional: normal bounce coefficient against the floor (absent: MuJoCo's soft contact)"
+        0.0,
+        0.95,
+        "-",
+        "-",
+        "optional: normal bounce coefficient against the floor, and against another object (the bouncier of the "
+        "two wins); absent: MuJoCo's soft contact",
     ),
     "physics.magnus": Range(
         -0.05,
@@ -236,6 +241,11 @@ MIN_QUATERNION_NORM = 0.1  # below: too close to [0, 0, 0, 0] to name a rotation
 def _unit_quaternion(q: tuple[float, ...]) -> tuple[float, ...]:
     # MuJoCo's compiler normalises any non-zero `quat`; so does `simulate` (the text keeps the numbers as written,
     # so that parse(dump(s)) == s). Only a near-zero quaternion, which names no rotation, is refused.
+    big = [x for x in q if abs(x) > 1.0]
+    if big:  # the table's [-1, 1]; larger numbers also overflowed the norm to inf (q / inf = 0: no rotation)
+        raise PydanticCustomError(
+            "range", "{msg}", {"msg": f"quaternion components must be in [-1, 1] (got {big[0]:.4g})"}
+        )
     norm = math.sqrt(sum(x * x for x in q))
     if norm < MIN_QUATERNION_NORM:
         raise PydanticCustomError(
@@ -471,6 +481,9 @@ def from_items(items: Any) -> Scene:
 
     # names: fill in {type}_{k} for unnamed objects, refuse duplicates
     named = [o.name for o in objects if o.name is not None]
+    for i, o in enumerate(objects):
+        if o.name == "floor":  # contacts name the floor "floor": an object so named could not be told apart
+            problems.append(Problem(f"objects[{i}].name", o.name, "reserved for the floor; choose another name"))
     for name in sorted({n for n in named if named.count(n) > 1}):
         idx = [i for i, o in enumerate(objects) if o.name == name]
         problems.append(Problem(f"objects[{idx[1]}].name", name, f"duplicate name (also objects[{idx[0]}])"))
@@ -507,7 +520,27 @@ def _short_type(value: Any) -> str:
 # --------------------------------------------------------------------------------------------
 # Safe YAML
 # --------------------------------------------------------------------------------------------
-class _NoAliasLoader(yaml.SafeLoader):
+class _UniqueKeys:
+    """Refuses a mapping that repeats a key (PyYAML keeps the last silently: `radius: 0.2` then `radius: 1.4` read
+    as 1.4). The constructor is Python in both loaders, so the C one gets this check too."""
+
+    def construct_mapping(self, node, deep=False):  # noqa: D102
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, str | int | float | bool) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"key {key!r} given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark,
+                )
+            if isinstance(key, str | int | float | bool):
+                seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
+class _NoAliasLoader(_UniqueKeys, yaml.SafeLoader):
     """SafeLoader that refuses anchors/aliases (no alias bombs) and python/* tags (SafeLoader already does)."""
 
     def compose_node(self, parent, index):  # noqa: D102
@@ -520,7 +553,7 @@ class _NoAliasLoader(yaml.SafeLoader):
 # libyaml's safe loader (PyYAML's C extension) parses a scene ~6x faster than the pure-Python one
 # (benchmarks/bench_parse.py); it can't refuse aliases itself, so it only reads texts without `&` and `*`, in which
 # no anchor or alias can occur.
-_FAST_LOADER = getattr(yaml, "CSafeLoader", None)
+_FAST_LOADER = type("_FastLoader", (_UniqueKeys, yaml.CSafeLoader), {}) if hasattr(yaml, "CSafeLoader") else None
 
 
 def _loader_for(text: str) -> type:
@@ -546,7 +579,7 @@ def load_yaml(text: str | bytes) -> Any:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         problem = getattr(e, "problem", None) or str(e)
-        if isinstance(e, yaml.constructor.ConstructorError):
+        if isinstance(e, yaml.constructor.ConstructorError) and "given twice" not in problem:
             problem = f"refused YAML tag: {problem}"
         raise SceneError([Problem("yaml", _NO_VALUE, f"{problem}{where}")]) from None
     except RecursionError:

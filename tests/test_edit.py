@@ -91,6 +91,8 @@ REFUSED = [
     ("set gravity of box_0 to 3", "whole scene"),
     ("move box_0 1 m sideways", "not understood"),
     ("reverse the mass of box_0", "can be reversed"),
+    # |v| = |[4.3, 2.5, 0]| = 4.974: 6 m/s less would turn the velocity around (it did: -1.03 m/s backwards)
+    ("decrease the velocity of box_0 by 6 m/s", "its magnitude is 4.974, so this decrease would leave -1.026"),
     ("", "empty instruction"),
 ]
 
