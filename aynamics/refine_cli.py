@@ -71,6 +71,13 @@ def add_refine_command(sub) -> None:
     )
     p.add_argument("--seed", type=int, default=0, help="CMA-ES seed (default 0)")
     p.add_argument(
+        "--sigma-scale",
+        type=float,
+        default=1.0,
+        help="multiplies the initial CMA-ES steps (0.3 m, 0.5 m/s, ...): below 1 for a prediction already close to "
+        "the video (e.g. 0.1 when its IoU is high and the objects are small; default 1)",
+    )
+    p.add_argument(
         "--stop-at",
         type=float,
         default=None,
@@ -96,6 +103,8 @@ def run_refine_command(args) -> int:
 
     if args.budget < 1 or args.seconds <= 0:
         raise UsageError(f"refine: --budget {args.budget} and --seconds {args.seconds:g} must be > 0")
+    if not args.sigma_scale > 0:
+        raise UsageError(f"refine: --sigma-scale {args.sigma_scale:g} must be > 0")
     preds = [load(p) for p in args.pred]
     obs_path = Path(args.observed)
     try:
@@ -115,6 +124,7 @@ def run_refine_command(args) -> int:
             seconds=args.seconds,
             seed=args.seed,
             stop_at=args.stop_at,
+            sigma_scale=args.sigma_scale,
         )
     except ValueError as e:
         raise UsageError(f"refine: {e}") from None
