@@ -38,7 +38,8 @@ def load_splits(path: str | Path):
     if not (path / "dataset_dict.json").is_file():
         raise FileNotFoundError(
             f"data.dir = {str(path)!r} holds no data set (no dataset_dict.json); make one with "
-            f"`aynamics generate --out {path}` or `make train`"
+            f"`aynamics generate --num 12 --out {path} width=64 height=48`, or point data.dir at one "
+            "(`make train` writes data/generated/make_train_plain)"
         )
     dd = load_from_disk(str(path))
     if not isinstance(dd, DatasetDict) or "train" not in dd:

@@ -120,6 +120,9 @@ def _run_score(args) -> int:
 
     if not (8 <= (args.width or 8) <= 1920 and 8 <= (args.height or 8) <= 1280):
         raise UsageError(f"score: --width {args.width} --height {args.height}: must be in [8, 1920] × [8, 1280]")
+    missing = [p for p in args.predictions if not Path(p).exists()]
+    if missing:  # a mistyped path, not a prediction to score 0 (a file that exists but cannot be read still is)
+        raise UsageError(f"score: prediction file(s) not found: {', '.join(map(repr, missing))}")
     observed = Path(args.observed)
     try:
         if observed.is_dir():

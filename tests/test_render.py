@@ -161,3 +161,6 @@ def test_cli_errors(tmp_path, capsys):
     assert "No such file" in capsys.readouterr().err
     assert _main(["score", PAPER, "--observed", PAPER, "--width", "2"]) == 2
     assert "--width 2" in capsys.readouterr().err
+    # a mistyped prediction path is a usage error (it printed an INVALID score and exited 0)
+    assert _main(["score", str(tmp_path / "nosuch.yaml"), "--observed", PAPER]) == 2
+    assert f"prediction file(s) not found: '{tmp_path / 'nosuch.yaml'}'" in capsys.readouterr().err
