@@ -160,7 +160,7 @@ def test_invalid_outputs_score_zero_with_their_reason(records):
     assert all(s.iou_full == 0 and s.epe_full == EPE_INVALID for s in scores[:5])
     kinds = ["no_yaml", "no_yaml", "no_yaml", "invalid_scene", "simulation", "valid"]
     assert [rw.reason_kind(s.reason) for s in scores] == kinds
-    assert "mass = -" in scores[3].reason and "sunk fell through the floor" in scores[4].reason
+    assert "mass = -" in scores[3].reason and "overlapping start: sunk and the floor" in scores[4].reason
     rewards = rw.rewards_of([scores])
     assert rewards.shape == (1, 6) and torch.all(rewards[0, :5] == 0) and rewards[0, 5] > 0.9
     stats = rw.RewardStats.of(rewards, [scores])
