@@ -245,7 +245,7 @@ def render_model(scene: Scene, appearance: Appearance, width: int, height: int) 
     spec.visual.global_.offheight = max(height, 64)
     spec.visual.quality.shadowsize = SHADOW_SIZE
     spec.visual.quality.offsamples = 0  # no MSAA: crisp ids at object borders, 3× faster RGB
-    spec.visual.headlight.active = 0
+    spec.visual.headlight.active = 1  # ambient only (diffuse and specular 0): MuJoCo ignores an inactive headlight
     spec.visual.headlight.ambient = [appearance.ambient] * 3
     spec.visual.headlight.diffuse = [0.0] * 3
     spec.visual.headlight.specular = [0.0] * 3

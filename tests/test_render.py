@@ -164,3 +164,28 @@ def test_cli_errors(tmp_path, capsys):
     # a mistyped prediction path is a usage error (it printed an INVALID score and exited 0)
     assert _main(["score", str(tmp_path / "nosuch.yaml"), "--observed", PAPER]) == 2
     assert f"prediction file(s) not found: '{tmp_path / 'nosuch.yaml'}'" in capsys.readouterr().err
+
+
+@needs_gl
+def test_ambient_light_reaches_the_picture(monkeypatch):
+    """The appearance's ambient light lifts faces the lights do not reach: with it at 0 the paper scene's objects
+    show 97 of 213 pixels pure black at 120x80 (seed 1; what every render looked like while the ambient sat on an
+    inactive headlight), at the sampler's 0.35 none."""
+    import dataclasses
+
+    scene = scenelib.load(PAPER)
+    rollout = sim.simulate(scene)
+    sample = renderlib.sample_appearance
+
+    def first_frame(ambient):
+        monkeypatch.setattr(
+            renderlib, "sample_appearance", lambda *a, **k: dataclasses.replace(sample(*a, **k), ambient=ambient)
+        )
+        frames = renderlib.render(scene, rollout, width=120, height=80, seed=1, backdrop="plain", depth=False)
+        return frames.rgb[0].astype(int), frames.segmentation[0] >= 0
+
+    (dark, objects), (lit, _) = first_frame(0.0), first_frame(0.35)
+    assert objects.sum() > 150
+    black = lambda img: int((img[objects].max(-1) < 8).sum())  # noqa: E731
+    assert black(dark) > 50 and black(lit) == 0
+    assert (lit >= dark).all() and np.abs(lit - dark).max() > 50
