@@ -429,11 +429,11 @@ class SceneDataModule(L.LightningDataModule):
         self.splits = load_splits(self.dir)
         if len(self.splits["train"]) == 0:
             raise ValueError(f"data.dir = {self.dir!r}: the train split is empty")
-        stored = len(self.splits["train"][0]["frame_indices"])
-        if self.prompt.num_frames > stored:
+        n_stored = len(used_columns(self.splits["train"], ("frame_indices",))[0]["frame_indices"])  # no image decoded
+        if self.prompt.num_frames > n_stored:
             raise ValueError(
-                f"data.num_frames = {self.prompt.num_frames}: the scenes in data.dir = {self.dir!r} store {stored} "
-                f"frames each; choose at most {stored}"
+                f"data.num_frames = {self.prompt.num_frames}: the scenes in data.dir = {self.dir!r} store {n_stored} "
+                f"frames each; choose at most {n_stored}"
             )
         if self.num_examples:
             stored = self.splits["train"].select(range(min(self.num_examples, len(self.splits["train"]))))["scene_yaml"]

@@ -250,7 +250,6 @@ def _eos_ids(model: torch.nn.Module) -> list[int]:
     return [eos] if isinstance(eos, int) else list(eos or [])
 
 
-@torch.no_grad()
 def decoding(temperature: float, top_p: float = 1.0) -> dict:
     """`generate` settings for exactly greedy decoding (temperature 0) or exactly temperature + nucleus sampling.
 
@@ -265,6 +264,7 @@ def decoding(temperature: float, top_p: float = 1.0) -> dict:
     return neutral | {"do_sample": False}
 
 
+@torch.no_grad()
 def sample_completions(
     model: torch.nn.Module,
     processor,

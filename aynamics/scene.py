@@ -236,16 +236,12 @@ def _ranged(key: str, positive: bool = False) -> AfterValidator:
 
 
 MIN_QUATERNION_NORM = 0.1  # below: too close to [0, 0, 0, 0] to name a rotation
+IDENTITY = (1.0, 0.0, 0.0, 0.0)  # w, x, y, z: no rotation
 
 
 def _unit_quaternion(q: tuple[float, ...]) -> tuple[float, ...]:
     # MuJoCo's compiler normalises any non-zero `quat`; so does `simulate` (the text keeps the numbers as written,
     # so that parse(dump(s)) == s). Only a near-zero quaternion, which names no rotation, is refused.
-    big = [x for x in q if abs(x) > 1.0]
-    if big:  # the table's [-1, 1]; larger numbers also overflowed the norm to inf (q / inf = 0: no rotation)
-        raise PydanticCustomError(
-            "range", "{msg}", {"msg": f"quaternion components must be in [-1, 1] (got {big[0]:.4g})"}
-        )
     norm = math.sqrt(sum(x * x for x in q))
     if norm < MIN_QUATERNION_NORM:
         raise PydanticCustomError(
@@ -265,7 +261,8 @@ class State(_Record):
 
     angular_velocity: Annotated[Vec3, _ranged("state.angular_velocity")] = (0.0, 0.0, 0.0)
     linear_velocity: Annotated[Vec3, _ranged("state.linear_velocity")] = (0.0, 0.0, 0.0)
-    orientation: Annotated[Vec4, AfterValidator(_unit_quaternion)] = (1.0, 0.0, 0.0, 0.0)
+    # components in the table's [-1, 1] first (larger ones also overflowed the norm to inf: q / inf = 0, no rotation)
+    orientation: Annotated[Vec4, _ranged("state.orientation"), AfterValidator(_unit_quaternion)] = IDENTITY
     position: Annotated[Vec3, _ranged("state.position")]
 
 
@@ -520,6 +517,10 @@ def _short_type(value: Any) -> str:
 # --------------------------------------------------------------------------------------------
 # Safe YAML
 # --------------------------------------------------------------------------------------------
+class _DuplicateKey(yaml.constructor.ConstructorError):
+    """A mapping repeats a key (reported as is; other constructor errors are refused tags)."""
+
+
 class _UniqueKeys:
     """Refuses a mapping that repeats a key (PyYAML keeps the last silently: `radius: 0.2` then `radius: 1.4` read
     as 1.4). The constructor is Python in both loaders, so the C one gets this check too."""
@@ -528,15 +529,13 @@ class _UniqueKeys:
         seen: dict = {}
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=True)
-            if isinstance(key, str | int | float | bool) and key in seen:
-                raise yaml.constructor.ConstructorError(
-                    None,
-                    None,
-                    f"key {key!r} given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
-                    key_node.start_mark,
-                )
-            if isinstance(key, str | int | float | bool):
-                seen[key] = key_node.start_mark.line
+            if not isinstance(key, str | int | float | bool):
+                continue
+            if key in seen:
+                line = key_node.start_mark.line + 1
+                msg = f"key {key!r} given twice (lines {seen[key]} and {line})"
+                raise _DuplicateKey(None, None, msg, key_node.start_mark)
+            seen[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep=deep)
 
 
@@ -579,7 +578,7 @@ def load_yaml(text: str | bytes) -> Any:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         problem = getattr(e, "problem", None) or str(e)
-        if isinstance(e, yaml.constructor.ConstructorError) and "given twice" not in problem:
+        if isinstance(e, yaml.constructor.ConstructorError) and not isinstance(e, _DuplicateKey):
             problem = f"refused YAML tag: {problem}"
         raise SceneError([Problem("yaml", _NO_VALUE, f"{problem}{where}")]) from None
     except RecursionError:

@@ -157,11 +157,11 @@ MALFORMED = [
     ("no objects", CAMERA, "objects"),
     ("huge velocity", _box(state="{position: [0, 0, 0.2], linear_velocity: [1e6, 0, 0]}"), "linear_velocity[0]"),
     ("zero quaternion", _box(state="{position: [0, 0, 0.2], orientation: [0, 0, 0, 0]}"), "state.orientation"),
-    ("quaternion past 1", _box(state="{position: [0, 0, 0.2], orientation: [5, 0, 0, 0]}"), "state.orientation"),
+    ("quaternion past 1", _box(state="{position: [0, 0, 0.2], orientation: [5, 0, 0, 0]}"), "state.orientation[0]"),
     (
         "quaternion overflowing the norm",
         _box(state="{position: [0, 0, 0.2], orientation: [1" + "0" * 155 + ", 1" + "0" * 155 + ", 0, 0]}"),
-        "state.orientation",
+        "state.orientation[0]",
     ),
     ("repeated key", "- type: sphere\n  radius: 0.2\n  radius: 1.4\n" + CAMERA, "yaml"),
     ("repeated key in flow style", _box(state="{position: [0, 0, 0.2], position: [0, 0, 5]}"), "yaml"),
