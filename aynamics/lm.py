@@ -252,10 +252,20 @@ def token_accuracy(logits: torch.Tensor, labels: torch.Tensor, mask: torch.Tenso
         raise ValueError(
             f"logits {tuple(logits.shape)}, labels {tuple(labels.shape)}, mask {tuple(mask.shape)} disagree on (B, L)"
         )
-    keep = mask[:, 1:] & (labels[:, 1:] != IGNORE_INDEX)
+    keep = _scored(labels, mask)
     if not keep.any():
         return torch.tensor(float("nan"))
     return (logits[:, :-1][keep].argmax(-1) == labels[:, 1:][keep]).float().mean()
+
+
+def _scored(labels: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B, L-1): the shifted positions `token_accuracy` scores: labelled and in `mask`."""
+    return mask[:, 1:] & (labels[:, 1:] != IGNORE_INDEX)
+
+
+def token_count(labels: torch.Tensor, mask: torch.Tensor) -> int:
+    """How many tokens `token_accuracy(logits, labels, mask)` scores (its weight in a mean over batches)."""
+    return int(_scored(labels, mask).sum())
 
 
 def shifted_visuals(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] | None:

@@ -246,21 +246,25 @@ class SFTModule(L.LightningModule):
         return loss if aux is None else loss + self.hparams.vision_aux_weight * aux
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
-        loss, _, logits = self._loss(batch)
+        loss, n, logits = self._loss(batch)
         bs = batch["input_ids"].shape[0]
-        self.log("val/loss", loss, prog_bar=True, batch_size=bs, sync_dist=True)
+        # Weighted by token counts, the epoch values are means over every response token of the split (not means
+        # of batch means: a batch of short answers would weigh as much as one of long answers).
+        tokens = max(int(n), 1)
+        self.log("val/loss", loss, prog_bar=True, batch_size=tokens, sync_dist=True)
         self._vision_aux(batch, bs, "val")
         types = batch.get("type_tokens")
-        has_types = types is not None and bool(types.any())
-        if has_types:  # teacher-forced: which shape comes next, or the camera (no more)
-            self.log("val/type_acc", lm.token_accuracy(logits, batch["labels"], types), batch_size=bs, sync_dist=True)
+        n_types = 0 if types is None else lm.token_count(batch["labels"], types)
+        if n_types:  # teacher-forced: which shape comes next, or the camera (no more)
+            acc = lm.token_accuracy(logits, batch["labels"], types)
+            self.log("val/type_acc", acc, batch_size=n_types, sync_dist=True)
         shifted = lm.shifted_visuals(batch)
         if shifted is not None:  # does the model look? the same with another example's frames
             other_loss, _, other = self._loss(shifted)
-            self.log("val/image_gap", other_loss - loss, batch_size=bs, sync_dist=True)
-            if has_types:
+            self.log("val/image_gap", other_loss - loss, batch_size=tokens, sync_dist=True)
+            if n_types:
                 acc = lm.token_accuracy(other, batch["labels"], types)
-                self.log("val/type_acc_other_frames", acc, batch_size=bs, sync_dist=True)
+                self.log("val/type_acc_other_frames", acc, batch_size=n_types, sync_dist=True)
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         loss, _, _ = self._loss(batch)

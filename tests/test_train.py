@@ -376,6 +376,34 @@ def test_type_weights_reach_the_training_loss_only(dataset_dir):
     assert abs(weighted - plain) > 1e-4
 
 
+def test_validation_means_are_over_tokens_not_batches(dataset_dir):
+    """val/loss is the split's total response NLL over its token count, and val/type_acc the share of right type
+    tokens, whatever the batch sizes: one example per batch, answers of different lengths (a mean of batch means
+    differs)."""
+    import lightning as L
+
+    spec = lm.ModelSpec(kind="tiny")
+    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=1, eval_batch_size=1)
+    dm.setup("fit")
+    module = SFTModule(spec).eval()
+    nll = tokens = right = typed = 0.0
+    per_batch = []
+    with torch.no_grad():
+        for batch in dm.val_dataloader():
+            logits = module.model(**model_inputs(batch), use_cache=False).logits
+            loss, n = lm.sft_loss(logits, batch["labels"])
+            nll, tokens = nll + loss.item() * n.item(), tokens + n.item()
+            per_batch.append(loss.item())
+            k = lm.token_count(batch["labels"], batch["type_tokens"])
+            right += lm.token_accuracy(logits, batch["labels"], batch["type_tokens"]).item() * k
+            typed += k
+    assert len(per_batch) >= 2 and abs(np.mean(per_batch) - nll / tokens) > 1e-4  # the two means differ here
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False)
+    metrics = trainer.validate(module, datamodule=dm, verbose=False)[0]
+    assert metrics["val/loss"] == pytest.approx(nll / tokens, rel=1e-5)
+    assert metrics["val/type_acc"] == pytest.approx(right / typed, rel=1e-5)
+
+
 def test_vision_aux_is_logged_and_misconfigurations_are_named(tmp_path, dataset_dir):
     """The dense visual loss and its warm-up reach the CSV; wrong combinations fail before training, naming the keys."""
     cfg = _cfg(
