@@ -157,7 +157,8 @@ class SceneEvaluation(L.Callback):
         every_n_validations: Evaluate at every n-th validation run (Lightning validates every
             `val_check_interval` steps or each epoch); the one that ends training (max_steps reached, or the
             last batch of the last epoch) is always evaluated.
-        baseline: Also score the constant "average scene" of the training split.
+        baseline: Also score the constant "average scene" (`data.mean_scene`): the training scenes of the most
+            common object list (in generated data, usually a single object), every number averaged.
         out_dir: Folder of predictions and animations (default: `<trainer.default_root_dir>/eval`).
     """
 
@@ -190,13 +191,16 @@ class SceneEvaluation(L.Callback):
     def _prepare(self, trainer: L.Trainer) -> None:
         if self._records is not None:
             return
-        from aynamics.scorer import Observation
+        from aynamics.scorer import Observation, scoring_size
 
         dm = trainer.datamodule
         self._records = dm.eval_records("validation", self.num_samples)
         for r in self._records:
             r["scene"] = parse(r["scene_yaml"])
-            r["observation"] = Observation.from_scene(r["scene"])
+            # The video's aspect ratio: the camera's field of view is vertical, so at another width the scene
+            # would be scored in a wider or narrower view than the model saw.
+            width, height = scoring_size(*r["size"])
+            r["observation"] = Observation.from_scene(r["scene"], width=width, height=height)
         if self.baseline:
             from aynamics.data import mean_scene_of_split
 

@@ -508,13 +508,16 @@ class SceneDataModule(L.LightningDataModule):
         return self._eval_loader("test")
 
     def eval_records(self, split: str = "validation", n: int = 8) -> list[dict[str, Any]]:
-        """A fixed subset for generation: the first `n` records' prompt (unbatched), scene text and frames."""
+        """A fixed subset for generation: the first `n` records' prompt (unbatched), scene text and the frames'
+        (width, height) in pixels (`size`: the view the scene is scored in)."""
         ds = self.splits[split]
         out = []
         for i in range(min(n, len(ds))):
             record = ds[i]
-            prompt = lm.prompt_inputs(self.processor, self.prompt, frames_of(record, self.prompt.modality))
-            out.append({"index": record.get("index", i), "prompt": prompt, "scene_yaml": record["scene_yaml"]})
+            frames = frames_of(record, self.prompt.modality)
+            prompt = lm.prompt_inputs(self.processor, self.prompt, frames)
+            row = {"index": record.get("index", i), "prompt": prompt, "scene_yaml": record["scene_yaml"]}
+            out.append(row | {"size": tuple(frames[0].size)})
         return out
 
 

@@ -272,6 +272,7 @@ class _ObservedSums:
     valid: np.ndarray | None  # (F, h*w) flow not occluded
     fg_index: np.ndarray | None  # (M,) flat f * h*w + pixel of observed object pixels whose flow is not occluded
     fg_norm: np.ndarray | None  # (M,) |observed flow| there (float64)
+    fg_count: np.ndarray | None  # (F,) such pixels per frame: the EPE divisor (`metrics.epe_divisor`)
 
     @classmethod
     def of(cls, obs: Observation) -> _ObservedSums:
@@ -281,12 +282,13 @@ class _ObservedSums:
         ids = np.where(seg >= 0, seg, n_obs).astype(np.int64)
         area = np.stack([np.bincount(row, minlength=n_obs + 1)[:n_obs] for row in ids])
         if obs.flow is None:
-            return cls(seg, area, None, None, None, None)
+            return cls(seg, area, None, None, None, None, None)
         flow = obs.flow.reshape(f_count, -1, 2).astype(np.float64)
         valid = np.ones(seg.shape, bool) if obs.occluded is None else ~obs.occluded.reshape(f_count, -1)
         index = np.flatnonzero((seg >= 0) & valid)
         fl = flow.reshape(-1, 2)[index]
-        return cls(seg, area, flow, valid, index, np.hypot(fl[:, 0], fl[:, 1]))
+        count = np.bincount(index // seg.shape[1], minlength=f_count)
+        return cls(seg, area, flow, valid, index, np.hypot(fl[:, 0], fl[:, 1]), count)
 
 
 def _score_hits(
@@ -314,7 +316,8 @@ def _score_hits(
         empty = ~np.isin(sums.fg_index, f * hw + pix, assume_unique=True)
         frame_of = sums.fg_index[empty] // hw
         err += np.bincount(frame_of, weights=sums.fg_norm[empty], minlength=f_count)
-        cnt += np.bincount(frame_of, minlength=f_count)
+        cnt += np.bincount(frame_of, minlength=f_count)  # the union of both sides' object pixels
+        cnt = np.where(sums.fg_count > 0, sums.fg_count, cnt)  # divided by the observed ones (`metrics`)
         with np.errstate(invalid="ignore", divide="ignore"):
             per = np.where(cnt > 0, err / np.maximum(cnt, 1), np.nan) * (REFERENCE_WIDTH / obs.width)
         finite = per[np.isfinite(per)]

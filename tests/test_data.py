@@ -154,6 +154,21 @@ def test_modality_and_video(dataset_dir):
     assert n_vid * 2 == n_img
 
 
+def test_evaluation_scores_in_the_view_of_the_video(dataset_dir):
+    """The evaluation records carry their frames' size, and the scene evaluation observes each true scene at that
+    aspect ratio (64×48 here: the scorer's default 120×80 would show a wider view than the model saw)."""
+    from types import SimpleNamespace
+
+    from aynamics.callbacks import SceneEvaluation
+
+    dm = SceneDataModule(str(dataset_dir), lm.ModelSpec(kind="tiny").processor_path, num_frames=2)
+    dm.setup("fit")
+    evaluation = SceneEvaluation(num_samples=2, baseline=False)
+    evaluation._prepare(SimpleNamespace(datamodule=dm))
+    assert [r["size"] for r in evaluation._records] == [(64, 48)] * 2
+    assert {(r["observation"].width, r["observation"].height) for r in evaluation._records} == {(64, 48)}
+
+
 def test_in_context_examples_enter_the_prompt(dataset_dir):
     dm = _dm(dataset_dir, num_examples=1)
     assert dm.prompt.examples == (dm.splits["train"][0]["scene_yaml"],)

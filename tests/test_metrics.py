@@ -60,27 +60,38 @@ def test_iou_falls_with_shift():
 
 
 def test_epe_hand_case():
-    """4 masked pixels, one off by (3, 4), the rest exact: EPE = 5 / 4 = 1.25 px. Unmasked errors do not count."""
+    """4 observed object pixels, one off by (3, 4), the rest exact: EPE = 5 / 4 = 1.25 px. Errors off every object
+    do not count; a static predicted object on still floor adds no error and does not dilute it (over the union
+    of both sides' pixels it would be 5 / 6); a moving one adds its error: (5 + 2) / 4."""
     obs = np.zeros((1, 2, 3, 2))
     pred = np.zeros((1, 2, 3, 2))
     pred[0, 0, 0] = (3.0, 4.0)
-    pred[0, 1, 2] = (100.0, 0.0)  # outside the mask
-    mask = np.array([[[True, True, False], [True, True, False]]])
-    assert metrics.flow_epe(pred, obs, mask) == (1.25, 1.25)
+    pred[0, 1, 2] = (100.0, 0.0)  # on no object of either side
+    obs_seg = _seg([[0, 0, -1], [0, 0, -1]])
+    assert metrics.flow_epe(pred, obs, obs_seg, obs_seg) == (1.25, 1.25)
+    wall = _seg([[0, 0, 1], [0, 0, -1]])  # a still extra object over (0, 2)
+    assert metrics.flow_epe(pred, obs, wall, obs_seg) == (1.25, 1.25)
+    pred[0, 0, 2] = (0.0, 2.0)  # the extra object moves
+    assert metrics.flow_epe(pred, obs, wall, obs_seg) == (1.75, 1.75)
 
 
-def test_epe_empty_frames_are_skipped():
-    """Frame 0 has no masked pixel (nan per frame, skipped in the mean; 0 as the first-frame figure: nothing
-    there to get wrong, as in the scorer), frame 1 an error of 2: first = 0, full = 2."""
-    obs = np.zeros((2, 1, 2, 2))
-    pred = np.zeros((2, 1, 2, 2))
+def test_epe_divides_by_the_observed_objects():
+    """Frame 0 shows no object on either side (nan, skipped; 0 as the first-frame figure, as in the scorer),
+    frame 1 an observed object pixel with an error of 2 beside a predicted-only still pixel: 2 / 1; frame 2 only
+    a predicted object moving by 3 over 2 pixels, where nothing is observed: divided by those 2 pixels."""
+    obs = np.zeros((3, 1, 2, 2))
+    pred = np.zeros((3, 1, 2, 2))
     pred[1, 0, 0] = (0.0, 2.0)
-    mask = np.array([[[False, False]], [[True, False]]])
-    assert np.isnan(metrics.flow_epe_frames(pred, obs, mask)[0])
-    first, full = metrics.flow_epe(pred, obs, mask)
-    assert first == 0.0 and full == 2.0
+    pred[2, 0, :] = (3.0, 0.0)
+    obs_seg = np.array([[[-1, -1]], [[0, -1]], [[-1, -1]]])
+    pred_seg = np.array([[[-1, -1]], [[0, 1]], [[0, 0]]])
+    per = metrics.flow_epe_frames(pred, obs, pred_seg, obs_seg)
+    assert np.isnan(per[0]) and per[1:].tolist() == [2.0, 3.0]
+    assert metrics.epe_divisor(obs_seg, metrics.epe_mask(pred_seg, obs_seg)).tolist() == [0, 1, 2]
+    first, full = metrics.flow_epe(pred, obs, pred_seg, obs_seg)
+    assert first == 0.0 and full == 2.5
     with pytest.raises(ValueError, match="flow shapes differ"):
-        metrics.flow_epe(pred, obs[:1], mask)
+        metrics.flow_epe(pred, obs[:1], pred_seg, obs_seg)
 
 
 def test_epe_mask_union_minus_occluded():
@@ -110,6 +121,18 @@ def test_state_mae_and_matching_by_position():
     assert metrics.state_mae_batch(["not: a scene"], [obs]) == [
         (metrics.POSITION_MAE_INVALID, metrics.VELOCITY_MAE_INVALID)
     ]
+
+
+def test_state_mae_counts_every_object():
+    """A 3-object video predicted as one of its objects, exactly: the other two are scored against it (position
+    errors (2, 0, 0) and (0, 4, 0), velocity errors (1, 0, 0) twice) -> 6 / 9 m and 2 / 9 m/s, not 0. An extra
+    predicted object 1 m from the nearest true one adds its error the same way."""
+    obj = "- {{type: box, size: [0.2, 0.2, 0.2], state: {{position: [{}, {}, 0.1], linear_velocity: [{}, 0, 0]}}}}\n"
+    truth = _scene(obj.format(0, 0, 0) + obj.format(2, 0, 1) + obj.format(0, 4, 1))
+    one = _scene(obj.format(0, 0, 0))
+    assert metrics.state_mae(one, truth) == pytest.approx((6 / 9, 2 / 9))
+    extra = _scene(obj.format(0, 0, 0) + obj.format(2, 0, 1) + obj.format(0, 4, 1) + obj.format(3, 0, 1))
+    assert metrics.state_mae(extra, truth) == pytest.approx((1 / 12, 0.0))
 
 
 def test_composition_accuracy():

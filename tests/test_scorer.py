@@ -191,7 +191,6 @@ def test_sparse_scores_equal_dense_metrics(observed):
     seg, flow = cast.seg, cast.dense_flow
     for k, s in enumerate(scorer.score(cands, observed)):
         iou = metrics.segmentation_iou(seg[k], observed.segmentation, pred_names=SCENE.names, obs_names=SCENE.names)
-        mask = metrics.epe_mask(seg[k], observed.segmentation, observed.occluded)
-        epe = metrics.flow_epe(flow[k], observed.flow, mask)
+        epe = metrics.flow_epe(flow[k], observed.flow, seg[k], observed.segmentation, observed.occluded)
         assert (s.iou_first, s.iou_full) == pytest.approx(iou, abs=1e-12)
         assert (s.epe_first, s.epe_full) == pytest.approx(tuple(x * 480 / W for x in epe), abs=1e-6)
