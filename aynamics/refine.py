@@ -38,7 +38,7 @@ import numpy as np
 from aynamics.refine_cli import add_refine_command, write_refine_animation
 from aynamics.refine_objectives import objective_value, score_objective, trajectory_objective
 from aynamics.refine_search import Budget, Objective, Search, cmaes_search
-from aynamics.refine_space import DEFAULT_PARAMS, ParamSpace, grounded_dims, param_space
+from aynamics.refine_space import DEFAULT_PARAMS, DEFAULT_SIGMA_SCALE, ParamSpace, grounded_dims, param_space
 from aynamics.refine_tracks import (
     Tracks,
     ballistic_frames,
@@ -53,6 +53,7 @@ from aynamics.scene import Scene
 
 __all__ = [
     "DEFAULT_PARAMS",
+    "DEFAULT_SIGMA_SCALE",
     "Budget",
     "Objective",
     "ParamSpace",
@@ -253,7 +254,7 @@ def refine(
     track_share: float = 0.2,
     kinematic_share: float = 0.5,
     track_sigma: float = 0.3,
-    sigma_scale: float = 1.0,
+    sigma_scale: float = DEFAULT_SIGMA_SCALE,
     flow_weight: float = 0.01,
     stop_at: float | None = None,
     fix_grounded: bool = True,
@@ -274,7 +275,8 @@ def refine(
         kinematic_share: share of the remaining budget for a first IoU stage over positions and velocities only
             (when `params` has more groups).
         track_sigma: multiplies the score stages' CMA-ES steps when the track stage found the start.
-        sigma_scale: multiplies the initial CMA-ES steps (0.3 m, 0.5 m/s, 0.15 per quaternion component, ...).
+        sigma_scale: multiplies the initial CMA-ES steps (`param_space`'s 0.3 m, 0.5 m/s, 0.15 per quaternion
+            component, ...; see `DEFAULT_SIGMA_SCALE`).
         flow_weight: objective = IoU_full - flow_weight × EPE_full (px) when the observation has flow.
         stop_at: stop once the objective reaches this value (e.g. 0.98); None spends the budget.
         fix_grounded: keep the height and vertical velocity of objects that start on the floor (`grounded_dims`).

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aynamics.refine_space import DEFAULT_PARAMS, OBJECT_GROUPS, SCENE_GROUPS
+from aynamics.refine_space import DEFAULT_PARAMS, DEFAULT_SIGMA_SCALE, OBJECT_GROUPS, SCENE_GROUPS
 
 # --------------------------------------------------------------------------------------------
 # Before/after animation and the CLI
@@ -73,9 +73,9 @@ def add_refine_command(sub) -> None:
     p.add_argument(
         "--sigma-scale",
         type=float,
-        default=1.0,
-        help="multiplies the initial CMA-ES steps (0.3 m, 0.5 m/s, ...): below 1 for a prediction already close to "
-        "the video (e.g. 0.1 when its IoU is high and the objects are small; default 1)",
+        default=DEFAULT_SIGMA_SCALE,
+        help="multiplies the initial CMA-ES steps (0.3 m, 0.5 m/s, ...): lower for a prediction already close to "
+        f"the video (e.g. 0.1 when its IoU is high and the objects are small; default {DEFAULT_SIGMA_SCALE:g})",
     )
     p.add_argument(
         "--stop-at",
