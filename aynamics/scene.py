@@ -521,6 +521,28 @@ class _DuplicateKey(yaml.constructor.ConstructorError):
     """A mapping repeats a key (reported as is; other constructor errors are refused tags)."""
 
 
+def _core_schema_numbers(table: dict) -> dict:
+    """The implicit-resolver table `table` (PyYAML's, YAML 1.1) with YAML 1.2 core-schema numbers: `1e-1` and
+    `2E5` are floats (1.1 reads them as strings, then "must be a number, got str"), `1:00` is not 60 (1.1's
+    base-60) nor `0x1F` an integer; `.inf` and `.nan` stay floats (the fields then refuse them by name)."""
+    int_tag, float_tag = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+    out = {k: [(tag, rx) for tag, rx in v if tag not in (int_tag, float_tag)] for k, v in table.items()}
+    numbers = (
+        (int_tag, re.compile(r"^[-+]?[0-9]+$"), "-+0123456789"),
+        (
+            float_tag,
+            re.compile(
+                r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+            ),
+            "-+0123456789.",
+        ),
+    )
+    for tag, rx, first in numbers:  # integers first: "10" also matches the float pattern
+        for ch in first:
+            out.setdefault(ch, []).append((tag, rx))
+    return {k: [(t, r) for t, r in v if t == int_tag] + [(t, r) for t, r in v if t != int_tag] for k, v in out.items()}
+
+
 class _UniqueKeys:
     """Refuses a mapping that repeats a key (PyYAML keeps the last silently: `radius: 0.2` then `radius: 1.4` read
     as 1.4). The constructor is Python in both loaders, so the C one gets this check too."""
@@ -542,6 +564,8 @@ class _UniqueKeys:
 class _NoAliasLoader(_UniqueKeys, yaml.SafeLoader):
     """SafeLoader that refuses anchors/aliases (no alias bombs) and python/* tags (SafeLoader already does)."""
 
+    yaml_implicit_resolvers = _core_schema_numbers(yaml.SafeLoader.yaml_implicit_resolvers)
+
     def compose_node(self, parent, index):  # noqa: D102
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
@@ -551,14 +575,27 @@ class _NoAliasLoader(_UniqueKeys, yaml.SafeLoader):
 
 # libyaml's safe loader (PyYAML's C extension) parses a scene ~6x faster than the pure-Python one
 # (benchmarks/bench_parse.py); it can't refuse aliases itself, so it only reads texts without `&` and `*`, in which
-# no anchor or alias can occur.
-_FAST_LOADER = type("_FastLoader", (_UniqueKeys, yaml.CSafeLoader), {}) if hasattr(yaml, "CSafeLoader") else None
+# no anchor or alias can occur. Its recursion is unbounded: ~25 000 nested `[` crash the process (segmentation
+# fault) where the Python loader raises RecursionError; so it only reads texts with few characters that can open a
+# level (`[`, `{`, `-`, `?`; deeper indentation alone needs more than MAX_TEXT_CHARS), a scene of ~100 objects.
+_FAST_LOADER = (
+    type(
+        "_FastLoader",
+        (_UniqueKeys, yaml.CSafeLoader),
+        {"yaml_implicit_resolvers": _NoAliasLoader.yaml_implicit_resolvers},
+    )
+    if hasattr(yaml, "CSafeLoader")
+    else None
+)
+_FAST_MAX_OPENERS = 2_000
 
 
 def _loader_for(text: str) -> type:
-    if _FAST_LOADER is not None and "&" not in text and "*" not in text:
-        return _FAST_LOADER
-    return _NoAliasLoader
+    if _FAST_LOADER is None or "&" in text or "*" in text:
+        return _NoAliasLoader
+    if sum(text.count(c) for c in "[{-?") > _FAST_MAX_OPENERS:
+        return _NoAliasLoader
+    return _FAST_LOADER
 
 
 def load_yaml(text: str | bytes) -> Any:
@@ -578,7 +615,7 @@ def load_yaml(text: str | bytes) -> Any:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         problem = getattr(e, "problem", None) or str(e)
-        if isinstance(e, yaml.constructor.ConstructorError) and not isinstance(e, _DuplicateKey):
+        if isinstance(e, yaml.constructor.ConstructorError) and problem.startswith("could not determine a constructor"):
             problem = f"refused YAML tag: {problem}"
         raise SceneError([Problem("yaml", _NO_VALUE, f"{problem}{where}")]) from None
     except RecursionError:

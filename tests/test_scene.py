@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import time
@@ -376,3 +377,34 @@ def test_text_with_an_ampersand_takes_the_checked_loader():
     text = "# boxes & cylinders\n" + OK_BOX + CAMERA
     assert S._loader_for(text) is S._NoAliasLoader
     assert S.parse(text) == S.parse(OK_BOX + CAMERA)
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["[" * 30_000 + "]" * 30_000, "- " * 30_000 + "x", "{a: " * 20_000 + "1" + "}" * 20_000],
+    ids=["flow lists", "block lists", "flow mappings"],
+)
+def test_deep_nesting_is_a_scene_error_not_a_crash(text):
+    """~25 000 nested levels crashed libyaml's C loader (a segmentation fault took the process down, score and
+    refine runs included); such texts take the Python loader, which reports the depth."""
+    assert len(text) < S.MAX_TEXT_CHARS and S._loader_for(text) is S._NoAliasLoader
+    with pytest.raises(S.SceneError, match="nested too deeply"):
+        S.load_yaml(text)
+
+
+def test_numbers_are_read_as_yaml_1_2():
+    """`1e-1`, `2E5`, `1.0e5` are numbers (YAML 1.1 read them as strings: "must be a number, got str"); `1:00` is
+    not 60 nor `0x1F` 31 (1.1's base-60 and hex integers). Both loaders agree."""
+    text = "a: 1e-1\nb: 2E5\nc: 1.0e5\nd: 1:00\ne: 0x1F\nf: 10\ng: -.5\nh: .inf\ni: true\n"
+    want = {"a": 0.1, "b": 2e5, "c": 1e5, "d": "1:00", "e": "0x1F", "f": 10, "g": -0.5, "h": math.inf, "i": True}
+    assert S.load_yaml(text) == want and yaml.load(text, Loader=S._NoAliasLoader) == want  # noqa: S506
+    box = OK_BOX + "  physics: {mass: 1e-1}\n" + CAMERA
+    assert S.parse(box).objects[0].physics.mass == pytest.approx(0.1)
+    with pytest.raises(S.SceneError, match=r"camera\.fovy.*number"):
+        S.parse(OK_BOX + "- type: camera\n  fovy: 1:00\n")
+
+
+def test_unhashable_key_is_not_called_a_tag():
+    with pytest.raises(S.SceneError, match="found unhashable key") as err:
+        S.load_yaml("[a]: 1\n")
+    assert "tag" not in str(err.value)
