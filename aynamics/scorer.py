@@ -164,6 +164,13 @@ class Observation:
                     f"expected (>= {frames[-1] + 1}, {full_h}, {full_w}, 2)"
                 )
             flow = (full_flow[sub] * (width / full_w)).astype(np.float32)
+            bad = ~np.isfinite(flow)
+            if bad.any():  # NaN would drop out of the EPE averages: every prediction would score 0 there
+                f = int(np.argwhere(bad)[0][0])
+                raise ValueError(
+                    f"{root / 'flow.npy'}: {int(bad.any(-1).sum())} sampled pixels hold NaN or infinite flow "
+                    f"(the first in flow {frames[f]}): mark pixels without flow in occlusion.npy instead"
+                )
             if (root / "occlusion.npy").is_file():
                 occ = _load_npy(root / "occlusion.npy", bool)
                 if occ.shape != full_flow.shape[:-1]:
@@ -173,10 +180,14 @@ class Observation:
         if (root / "meta.json").is_file():
             try:
                 meta = json.loads((root / "meta.json").read_text())
-                names = tuple(meta["names"]) if meta.get("names") is not None else None
+                names = meta.get("names")
                 fps = meta.get("fps", sim.FPS)
             except (ValueError, TypeError, AttributeError) as e:
                 raise ValueError(f"{root / 'meta.json'}: not a JSON object with names/fps ({e})") from None
+            if names is not None:
+                if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+                    raise ValueError(f"{root / 'meta.json'}: names = {names!r}: must be a list of object names")
+                names = tuple(names)
             if not (isinstance(fps, int) and not isinstance(fps, bool) and 1 <= fps <= 1000):
                 raise ValueError(
                     f"{root / 'meta.json'}: fps = {fps!r}: must be a whole number of frames per second >= 1"
@@ -238,7 +249,12 @@ def _load_segmentation(root: Path) -> np.ndarray:
         raise FileNotFoundError(2, f"{str(root)!r} has neither segmentation.npy nor segmentation/*.png", str(root))
     import imageio.v3 as iio
 
-    masks = [iio.imread(p) for p in files]
+    masks = []
+    for p in files:
+        try:
+            masks.append(iio.imread(p))
+        except (OSError, ValueError, SyntaxError) as e:  # truncated or not a PNG
+            raise ValueError(f"{p}: not a readable PNG mask ({e})") from None
     if len({m.shape for m in masks}) != 1:
         raise ValueError(f"{folder}: masks differ in size: {sorted({m.shape for m in masks})}")
     stack = np.stack(masks)

@@ -180,6 +180,29 @@ def test_observation_from_dir_errors(tmp_path):
         (tmp_path / "meta.json").write_text(json.dumps({"fps": fps}))
         with pytest.raises(ValueError, match=rf"meta.json: fps = {re.escape(repr(fps))}: must be a whole number"):
             scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    (tmp_path / "meta.json").write_text(json.dumps({"names": "box_0"}))  # was split into 5 one-letter names
+    with pytest.raises(ValueError, match="names = 'box_0': must be a list"):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    (tmp_path / "meta.json").unlink()
+    flow = np.zeros((29, 8, 8, 2), np.float32)
+    flow[3, 2, 2] = np.nan  # sampled flow 3: NaN dropped out of the averages, so any prediction scored EPE 0
+    np.save(tmp_path / "flow.npy", flow)
+    with pytest.raises(
+        ValueError, match=r"flow.npy: 1 sampled pixels hold NaN or infinite flow \(the first in flow 3\)"
+    ):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+
+
+def test_unreadable_mask_png_is_named(tmp_path):
+    import imageio.v3 as iio
+
+    (tmp_path / "segmentation").mkdir()
+    for k in range(30):
+        iio.imwrite(tmp_path / "segmentation" / f"{k:03d}.png", np.zeros((8, 8), np.uint8))
+    bad = tmp_path / "segmentation" / "007.png"
+    bad.write_bytes(bad.read_bytes()[:30])  # truncated
+    with pytest.raises(ValueError, match=r"007.png: not a readable PNG mask"):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
 
 
 def test_sparse_scores_equal_dense_metrics(observed):
