@@ -405,6 +405,11 @@ class SimConfig:
             raise ValueError(f"duration = {self.duration}: must be in (0, 60] s")
         if not (1 <= self.fps <= 1000) or not (1 <= self.substeps <= 1000):
             raise ValueError(f"fps = {self.fps}, substeps = {self.substeps}: must be in [1, 1000]")
+        if self.frames < 1:  # MuJoCo's rollout needs at least one step
+            raise ValueError(
+                f"duration = {self.duration} s at fps = {self.fps} is {self.frames} frames: need at least 1 "
+                f"(duration >= {0.5 / self.fps:.3g} s)"
+            )
 
     @property
     def frames(self) -> int:

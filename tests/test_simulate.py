@@ -435,6 +435,9 @@ def test_check_names_the_object_and_time():
 def test_invalid_timing_is_refused():
     with pytest.raises(ValueError, match="duration"):
         sim.SimConfig(duration=-1)
+    with pytest.raises(ValueError, match=r"duration = 0.01 s at fps = 30 is 0 frames: need at least 1"):
+        sim.SimConfig(duration=0.01)  # was MuJoCo's "nstep must be positive" at the rollout
+    assert sim.SimConfig(duration=0.02).frames == 1
 
 
 def test_contact_intervals_of_interleaved_pairs():
