@@ -35,6 +35,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     from aynamics.callbacks import SceneEvaluation, format_table
 
+    interval = cfg.trainer.get("val_check_interval")
+    if isinstance(interval, int | float) and not interval > 0:  # Lightning divided by it after the first step
+        raise ValueError(f"trainer.val_check_interval = {interval}: must be > 0 (steps, or a share of an epoch)")
     L.seed_everything(cfg.seed, workers=True)
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -194,14 +194,23 @@ class SceneEvaluation(L.Callback):
         from aynamics.scorer import Observation, scoring_size
 
         dm = trainer.datamodule
-        self._records = dm.eval_records("validation", self.num_samples)
-        for r in self._records:
-            r["scene"] = parse(r["scene_yaml"])
-            # The video's aspect ratio: the camera's field of view is vertical, so at another width the scene
-            # would be scored in a wider or narrower view than the model saw.
-            width, height = scoring_size(*r["size"])
-            r["observation"] = Observation.from_scene(r["scene"], width=width, height=height)
-        if self.baseline:
+        self._records = []
+        for r in dm.eval_records("validation", self.num_samples):
+            try:
+                r["scene"] = parse(r["scene_yaml"])
+                # The video's aspect ratio: the camera's field of view is vertical, so at another width the scene
+                # would be scored in a wider or narrower view than the model saw.
+                width, height = scoring_size(*r["size"])
+                r["observation"] = Observation.from_scene(r["scene"], width=width, height=height)
+            except (SceneError, ValueError) as e:  # a hand-edited or corrupted record: never stop the training run
+                warnings.warn(
+                    f"scene evaluation: validation record {r['index']} of data.dir = {getattr(dm, 'dir', '?')!r} "
+                    f"is left out: its scene_yaml cannot be scored ({e})",
+                    stacklevel=2,
+                )
+                continue
+            self._records.append(r)
+        if self.baseline and self._records:
             from aynamics.data import mean_scene_of_split
 
             avg = mean_scene_of_split(dm.splits["train"])
@@ -230,6 +239,8 @@ class SceneEvaluation(L.Callback):
         self._prepare(trainer)
         processor = trainer.datamodule.processor
         records = self._records
+        if not records:  # every record left out (warned in _prepare)
+            return {}
         texts: list[str] = []
         with torch.no_grad():
             for i in range(0, len(records), self.batch_size):

@@ -12,6 +12,7 @@ followed by the response; labels cover only the response (see `aynamics.processo
 from __future__ import annotations
 
 import math
+import warnings
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 from aynamics import lm
 from aynamics import scene as scene_lib
 from aynamics.processor import IGNORE_INDEX, build_sft_example, collate, sample_frames, type_tokens
-from aynamics.scene import Scene, from_items, parse, to_items
+from aynamics.scene import Scene, SceneError, from_items, parse, to_items
 from aynamics.visual_targets import token_targets
 
 SPLITS = ("train", "validation", "test")
@@ -41,7 +42,12 @@ def load_splits(path: str | Path):
             f"`aynamics generate --num 12 --out {path} width=64 height=48`, or point data.dir at one "
             "(`make train` writes data/generated/make_train_plain)"
         )
-    dd = load_from_disk(str(path))
+    try:
+        dd = load_from_disk(str(path))
+    except (OSError, ValueError) as e:  # truncated or foreign .arrow files, a broken dataset_info.json, ...
+        raise ValueError(
+            f"data.dir = {str(path)!r}: the data set cannot be read ({type(e).__name__}: {e}); generate it again"
+        ) from None
     if not isinstance(dd, DatasetDict) or "train" not in dd:
         raise ValueError(f"data.dir = {str(path)!r}: expected a DatasetDict with a 'train' split, got {type(dd)}")
     return dd
@@ -501,7 +507,16 @@ class SceneDataModule(L.LightningDataModule):
         ds = self.dataset(split, self.limit_val)
         return DataLoader(ds, batch_size=self.eval_batch_size, collate_fn=self._collate, num_workers=self.num_workers)
 
-    def val_dataloader(self) -> DataLoader:
+    def val_dataloader(self) -> DataLoader | list:
+        """The validation loader; none (Lightning then skips validation, with a warning) when the data set holds no
+        validation scene: e.g. a dozen generated scenes can all fall into the train split."""
+        if "validation" not in self.splits or len(self.splits["validation"]) == 0:
+            warnings.warn(
+                f"data.dir = {self.dir!r} holds no validation scenes (splits: {dict(self.splits.num_rows)}): "
+                "training without validation or scene evaluation; generate more scenes for them",
+                stacklevel=2,
+            )
+            return []
         return self._eval_loader("validation")
 
     def test_dataloader(self) -> DataLoader:
@@ -566,5 +581,11 @@ def mean_scene(scenes: list[Scene]) -> Scene:
 
 
 def mean_scene_of_split(split) -> Scene:
-    """`mean_scene` of the `scene_yaml` column of a data-set split."""
-    return mean_scene([parse(t) for t in split["scene_yaml"]])
+    """`mean_scene` of the `scene_yaml` column of a data-set split (records that do not parse are left out)."""
+    scenes = []
+    for text in split["scene_yaml"]:
+        try:
+            scenes.append(parse(text))
+        except SceneError:
+            continue
+    return mean_scene(scenes)

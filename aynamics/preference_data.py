@@ -19,6 +19,7 @@ Plus `summary.json`: counts, mean/best reward, share invalid, the sampling setti
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -85,10 +86,10 @@ def build_preferences(
         temperature: Sampling temperature (> 0).
         batch_size: Videos sampled together.
     """
-    if num_samples < 2 or temperature <= 0 or batch_size < 1:
+    if num_samples < 2 or not (0 < temperature < math.inf) or batch_size < 1:  # nan fails the comparison too
         raise ValueError(
             f"num_samples = {num_samples}, temperature = {temperature}, batch_size = {batch_size}: "
-            "need num_samples >= 2, temperature > 0, batch_size >= 1"
+            "need num_samples >= 2, a finite temperature > 0, batch_size >= 1"
         )
     rows: list[dict] = []
     all_rewards, all_scores = [], []

@@ -24,6 +24,7 @@ trainable (adapter) weights; `callbacks.AdapterExport` writes the peft adapter, 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -122,9 +123,9 @@ class ProModule(L.LightningModule):
             raise ValueError(f"stage.loss = {loss!r}: must be one of {LOSSES}")
         if num_samples < 2:
             raise ValueError(f"stage.num_samples = {num_samples}: a preference needs at least 2 candidates")
-        if tau < 0 or sft_weight < 0 or lr <= 0:
+        if not all(math.isfinite(x) for x in (tau, sft_weight, lr)) or tau < 0 or sft_weight < 0 or lr <= 0:
             raise ValueError(
-                f"tau = {tau}, sft_weight = {sft_weight}, lr = {lr}: need tau >= 0, sft_weight >= 0, lr > 0"
+                f"tau = {tau}, sft_weight = {sft_weight}, lr = {lr}: need finite tau >= 0, sft_weight >= 0, lr > 0"
             )
         self.reward_config = rw.RewardConfig(reward_metric, reward_span, mix_weight, epe_scale)
         spec = spec if isinstance(spec, lm.ModelSpec) else lm.ModelSpec(**spec)

@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from aynamics.refine_space import DEFAULT_PARAMS, DEFAULT_SIGMA_SCALE, OBJECT_GROUPS, SCENE_GROUPS
@@ -101,10 +103,12 @@ def run_refine_command(args) -> int:
     from aynamics.scene import load
     from aynamics.scorer import Observation
 
-    if args.budget < 1 or args.seconds <= 0:
+    if args.budget < 1 or not args.seconds > 0:  # nan fails the comparison; inf seconds: the budget alone
         raise UsageError(f"refine: --budget {args.budget} and --seconds {args.seconds:g} must be > 0")
-    if not args.sigma_scale > 0:
-        raise UsageError(f"refine: --sigma-scale {args.sigma_scale:g} must be > 0")
+    if not 0 < args.sigma_scale < math.inf:
+        raise UsageError(f"refine: --sigma-scale {args.sigma_scale:g} must be a finite number > 0")
+    if args.stop_at is not None and math.isnan(args.stop_at):
+        raise UsageError("refine: --stop-at nan: must be a number (an objective value such as 0.95)")
     preds = [load(p) for p in args.pred]
     obs_path = Path(args.observed)
     try:

@@ -101,10 +101,11 @@ class SFTModule(L.LightningModule):
         vision_lr_scale: float = 1.0,
     ) -> None:
         super().__init__()
-        if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= min_lr_ratio <= 1:
+        finite = all(math.isfinite(x) for x in (lr, weight_decay))  # inf trained to NaN, nan failed inside torch
+        if not finite or lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= min_lr_ratio <= 1:
             raise ValueError(
                 f"lr = {lr}, weight_decay = {weight_decay}, warmup_steps = {warmup_steps}, min_lr_ratio = "
-                f"{min_lr_ratio}: need lr > 0, weight_decay >= 0, warmup_steps >= 0, 0 <= min_lr_ratio <= 1"
+                f"{min_lr_ratio}: need finite lr > 0 and weight_decay >= 0, warmup_steps >= 0, 0 <= min_lr_ratio <= 1"
             )
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule = {schedule!r}: must be one of {SCHEDULES}")

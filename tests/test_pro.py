@@ -171,6 +171,8 @@ def test_build_preferences_pairs_each_videos_own_candidates(dataset_dir, monkeyp
     assert [r["rewards"] for r in rows] == [pytest.approx([0.9, 0.0]), pytest.approx([0.5, 0.2])]
     assert rows[0]["completion_ids"] == [response_ids(module.processor, texts[1][k]) for k in (1, 2)]
     assert (summary["pairs"], summary["videos_without_pairs"]) == (2, 1)
+    with pytest.raises(ValueError, match="temperature = nan.*a finite temperature > 0"):  # was transformers' error
+        build_preferences(module, [videos[0]], num_samples=4, temperature=float("nan"))
 
 
 def test_online_pro_scores_logs_and_prefers_fixed_candidates(tmp_path, dataset_dir, monkeypatch):
@@ -210,6 +212,8 @@ def test_module_arguments_are_checked():
         ({"loss": "dpo"}, "stage.loss = 'dpo'"),
         ({"num_samples": 1}, "num_samples = 1"),
         ({"reward_metric": "ssim"}, "'ssim'"),
+        ({"lr": float("nan")}, "lr = nan"),
+        ({"tau": float("inf")}, "tau = inf"),
     ]:
         with pytest.raises(ValueError, match=match):
             ProModule(SPEC, **kw)

@@ -255,6 +255,9 @@ def test_cli_sigma_scale_for_a_close_start(tmp_path, capsys):
     [
         (["--params", "spin"], "unknown group"),
         (["--budget", "0"], "--budget 0"),
+        (["--sigma-scale", "inf"], "--sigma-scale inf must be a finite number > 0"),  # was cmaes' AssertionError
+        (["--seconds", "nan"], "--seconds nan"),  # was accepted
+        (["--stop-at", "nan"], "--stop-at nan: must be a number"),
     ],
 )
 def test_cli_refine_errors(tmp_path, capsys, truth, args, message):

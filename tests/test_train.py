@@ -9,6 +9,7 @@ import io
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -531,6 +532,8 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["data.eval_batch_size=0"], r"data.eval_batch_size = 0: must be >= 1"),
         (["data.num_frames=20"], r"data.num_frames = 20: the scenes in data.dir = .* store 10 frames each"),
         (["data.min_pixels=0"], r"min_pixels = 0: must be >= 784"),
+        (["trainer.val_check_interval=0"], r"trainer.val_check_interval = 0: must be > 0"),  # ZeroDivisionError
+        (["stage.module.lr=inf"], r"lr = inf.*need finite lr > 0"),  # trained to NaN and saved the adapter
     ]
     from hydra.errors import InstantiationException  # hydra's wrapper of an error in a config's constructor
 
@@ -539,6 +542,44 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
             train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", *overrides))
     with pytest.raises(FileNotFoundError, match="holds no data set"):
         train(_cfg(tmp_path / "x", f"data.dir={tmp_path / 'nope'}"))
+    broken = tmp_path / "broken"
+    shutil.copytree(dataset_dir, broken)
+    arrow = next((broken / "train").glob("*.arrow"))
+    arrow.write_bytes(
+        arrow.read_bytes()[:1000]
+    )  # truncated: was pyarrow's error, naming neither the folder nor the file
+    with pytest.raises(ValueError, match=r"data.dir = .*broken': the data set cannot be read \(ArrowInvalid"):
+        train(_cfg(tmp_path / "x", f"data.dir={broken}"))
+
+
+def test_data_without_validation_or_with_a_broken_record_still_trains(tmp_path, dataset_dir):
+    """A data set with no validation scene trains without validation (it stopped at the first one, after the model
+    had loaded); a validation record whose scene_yaml cannot be scored is left out of the scene evaluation with a
+    warning naming it (a bare SceneError stopped the run at its first validation)."""
+    from datasets import DatasetDict, load_from_disk
+
+    dd = load_from_disk(str(dataset_dir))
+    run = [*FAST, "trainer.max_steps=2", "trainer.val_check_interval=1", "callbacks.evaluation.num_samples=2"]
+    run += ["callbacks.evaluation.max_new_tokens=8", "callbacks.evaluation.num_animations=0"]
+
+    from aynamics.generate import GenerateConfig, generate_dataset
+
+    none = tmp_path / "no_validation"  # what `generate --num 12 --seed 2` gives by chance
+    generate_dataset(none, num=3, seed=0, config=GenerateConfig(width=64, height=48, workers=0, splits=(1.0, 0, 0)))
+    with pytest.warns(UserWarning, match="holds no validation scenes"):
+        metrics = train(_cfg(tmp_path / "a", f"data.dir={none}", *run))
+    assert "train/loss" in metrics and not any(k.startswith("val/") for k in metrics)
+    assert (tmp_path / "a" / "adapter" / "adapter_config.json").is_file()
+
+    broken = tmp_path / "broken_record"
+    first = dd["validation"][0]["index"]
+    bad = dd["validation"].map(
+        lambda r: {"scene_yaml": "- type: box\n  size: -1\n" if r["index"] == first else r["scene_yaml"]}
+    )
+    DatasetDict({"train": dd["train"], "validation": bad, "test": dd["test"]}).save_to_disk(str(broken))
+    with pytest.warns(UserWarning, match=rf"validation record {first} of data.dir = .* is left out"):
+        metrics = train(_cfg(tmp_path / "b", f"data.dir={broken}", *run))
+    assert 0 <= metrics["val/yaml_valid"] <= 1  # the other record was evaluated
 
 
 def test_checkpoint_hooks_accept_deepspeed_checkpoints():
