@@ -376,6 +376,7 @@ def add_audit(sub) -> None:
 def run_audit(args) -> int:
     import json
     import sys
+    from pathlib import Path
 
     from aynamics.audit_report import write_report
     from aynamics.cli import UsageError
@@ -385,6 +386,14 @@ def run_audit(args) -> int:
         raise UsageError(f"audit: --step-hz {args.step_hz}: must be in [30, 10000] physics steps per second")
     if args.max_causes < 0 or args.max_trajectories < 0:
         raise UsageError(f"audit: --max-causes {args.max_causes}, --max-trajectories {args.max_trajectories}: >= 0")
+    if args.seed < 0:
+        raise UsageError(f"audit: --seed {args.seed}: must be >= 0")
+    if args.held_out_every < 0:
+        raise UsageError(f"audit: --held-out-every {args.held_out_every}: must be 0 (a random split) or >= 2")
+    out = Path(args.out)
+    there = next((p for p in (out, *out.parents) if p.exists()), None)  # checked before the audit's minutes
+    if there is not None and not there.is_dir():
+        raise UsageError(f"audit: cannot write --out {args.out!r}: {str(there)!r} is a file, not a folder")
     scene = scenelib.load(args.scene)
     try:
         measured = read_csv(args.measured)
@@ -402,9 +411,11 @@ def run_audit(args) -> int:
             held_out=held,
             step_hz=args.step_hz,
         )
-        write_report(result, measured, check_objects(measured, scene), args.out)
+        matched = check_objects(measured, scene)
     except MeasuredError as e:
         raise UsageError(f"audit: {e}") from None
+    try:
+        write_report(result, measured, matched, args.out)
     except OSError as e:
         raise UsageError(f"audit: cannot write --out {args.out!r}: {e.strerror or e}") from None
     if args.json:

@@ -47,7 +47,11 @@ def _print_json(obj) -> None:
 def _add_simulate(sub) -> None:
     p = sub.add_parser("simulate", help="simulate a scene and write its trajectory (npz)")
     p.add_argument("scene", help="scene YAML file (or model output holding one)")
-    p.add_argument("--out", help="trajectory .npz to write: names, t, position, orientation, velocities")
+    p.add_argument(
+        "--out",
+        help="trajectory file to write, NumPy .npz format at exactly this path (no suffix is added): names, t, "
+        "position, orientation, velocities",
+    )
     p.add_argument("--json", action="store_true", help="print final positions, rest times and contacts as JSON")
     p.add_argument("--duration", type=float, default=1.0, help="seconds to simulate (default 1.0)")
     p.add_argument("--fps", type=int, default=30, help="frames per second (default 30)")
@@ -66,10 +70,17 @@ def _run_simulate(args) -> int:
         raise UsageError(str(e)) from None
     if not args.out and not args.json:
         raise UsageError("simulate: nothing to do; give --out TRAJ.npz and/or --json")
+    if args.out:  # checked before simulating; numpy would write DIR.npz beside a folder, so the file is opened here
+        if os.path.isdir(args.out):
+            raise UsageError(f"simulate: --out {args.out!r} is a folder: give the trajectory file to write (TRAJ.npz)")
+        parent = os.path.dirname(args.out) or "."
+        if not os.path.isdir(parent):
+            raise UsageError(f"simulate: cannot write --out {args.out!r}: folder {parent!r} does not exist")
     rollout = sim.simulate(scene, config)
     if args.out:
         try:
-            rollout.to_npz(args.out)
+            with open(args.out, "wb") as f:
+                rollout.to_npz(f)
         except OSError as e:
             raise UsageError(f"simulate: cannot write --out {args.out!r}: {e.strerror or e}") from None
     if args.json:
@@ -159,4 +170,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # `python -m aynamics.cli` runs this file as `__main__`, a second copy of the module whose UsageError is not
+    # the `aynamics.cli.UsageError` the commands raise: run the package module's main instead
+    from aynamics.cli import main as package_main
+
+    sys.exit(package_main())

@@ -37,6 +37,8 @@ DEFAULT_METRICS = (
 def run_folders(root: str | Path) -> list[Path]:
     """Run folders under `root`: those holding `.hydra/overrides.yaml` or `metrics.json`, in name order."""
     root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise FileNotFoundError(f"{str(root)!r} is a file, not a multirun folder (multirun/DATE/TIME)")
     if not root.is_dir():
         raise FileNotFoundError(f"multirun folder {str(root)!r} does not exist")
     found = {p.parent.parent for p in root.rglob(".hydra/overrides.yaml")} | {

@@ -228,14 +228,24 @@ def apply_overrides(config: GenerateConfig, overrides: list[str]) -> GenerateCon
 
 
 def load_config(path: str | os.PathLike) -> GenerateConfig:
-    """A config from a YAML file (see conf/generate/default.yaml); a missing file raises FileNotFoundError."""
+    """A config from a YAML file (see conf/generate/default.yaml); a missing file raises FileNotFoundError.
+
+    Raises:
+        ValueError: the path is a folder or unreadable, or the file is not valid YAML or not a config.
+    """
     import yaml
 
-    with open(path, encoding="utf-8") as f:
-        try:
+    if Path(path).is_dir():
+        raise ValueError(f"--config {str(path)!r} is a folder: give a YAML file (see conf/generate/default.yaml)")
+    try:
+        with open(path, encoding="utf-8") as f:
             data = yaml.safe_load(f) or {}
-        except yaml.YAMLError as e:
-            raise ValueError(f"config file {str(path)!r}: invalid YAML: {e}") from None
+    except FileNotFoundError:
+        raise
+    except yaml.YAMLError as e:
+        raise ValueError(f"--config {str(path)!r}: invalid YAML: {e}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"--config {str(path)!r}: cannot read: {getattr(e, 'strerror', None) or e}") from None
     return config_from_dict(data, where=str(path))
 
 
@@ -444,10 +454,10 @@ def generate(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file, not a folder")
+    mine = shard_chunks(num, config.chunk_size, shard, num_shards)  # checked before anything is written
     write_manifest(out, {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": config.to_json()})
     (out / "chunks").mkdir(exist_ok=True)
     ranges = chunk_ranges(num, config.chunk_size)
-    mine = shard_chunks(num, config.chunk_size, shard, num_shards)
     remove_partial_chunks(out, mine)  # leftovers of a killed run of this shard
     todo = [c for c in mine if not chunk_dir(out, c).exists()]
     jobs = [(i, seed) for c in todo for i in ranges[c]]

@@ -337,21 +337,75 @@ def adapter_meta(spec: ModelSpec, prompt: PromptSpec) -> dict:
     return {"model": dataclasses.asdict(spec), "prompt": dataclasses.asdict(prompt)}
 
 
-def specs_of_meta(meta: dict) -> tuple[ModelSpec, PromptSpec]:
-    """The specs of an `adapter_meta` dict (lists back to tuples)."""
-    prompt = dict(meta["prompt"])
-    prompt["examples"] = tuple(prompt.get("examples", ()))
-    return ModelSpec(**meta["model"]), PromptSpec(**prompt)
+def specs_of_meta(meta: dict, where: str = "adapter meta") -> tuple[ModelSpec, PromptSpec]:
+    """The specs of an `adapter_meta` dict (lists back to tuples).
+
+    Raises:
+        ValueError: `meta` is not what `adapter_meta` writes (a missing key, an unknown field, a bad value),
+            named with `where` (the file it came from).
+    """
+    try:
+        if not isinstance(meta, dict) or not all(isinstance(meta.get(k), dict) for k in ("model", "prompt")):
+            got = sorted(meta) if isinstance(meta, dict) else type(meta).__name__
+            raise ValueError(f"must be an object with 'model' and 'prompt' objects, got {got}")
+        prompt = dict(meta["prompt"])
+        prompt["examples"] = tuple(prompt.get("examples", ()))
+        return ModelSpec(**meta["model"]), PromptSpec(**prompt)
+    except (TypeError, ValueError) as e:  # TypeError: an unknown or missing field of a spec
+        raise ValueError(f"{where}: not the model and prompt specs training writes: {e}") from None
+
+
+def _read_json(path: Path, what: str) -> Any:
+    """The JSON of a file of an adapter folder; a file that is not UTF-8 JSON raises ValueError naming it."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, ValueError) as e:
+        raise ValueError(f"{str(path)!r} ({what}) is not valid JSON: {e}") from None
+    except OSError as e:
+        raise ValueError(f"{str(path)!r} ({what}) cannot be read: {e.strerror or e}") from None
 
 
 def read_adapter_meta(adapter_dir: str | Path) -> tuple[ModelSpec, PromptSpec]:
-    """The model and prompt specs stored by `save_adapter`."""
+    """The model and prompt specs stored by `save_adapter`.
+
+    Raises:
+        FileNotFoundError: the folder has no `aynamics.json`.
+        ValueError: `aynamics.json` is not JSON or not the specs training writes (the file is named).
+    """
     path = Path(adapter_dir) / ADAPTER_META
     if not path.is_file():
         raise FileNotFoundError(
             f"{str(path)!r} not found: --adapter must be a folder written by training (adapter/ under the run)"
         )
-    return specs_of_meta(json.loads(path.read_text()))
+    return specs_of_meta(_read_json(path, "the adapter's model and prompt specs"), where=repr(str(path)))
+
+
+def check_adapter_files(adapter_dir: str | Path) -> None:
+    """Check the peft files of an adapter folder before a base model is built for them: `adapter_config.json`
+    is a JSON object naming its `peft_type`, and the weights file is there with a readable header.
+
+    Raises:
+        ValueError: a file is missing, not JSON or truncated (the file and the problem are named).
+    """
+    folder = Path(adapter_dir)
+    config_path = folder / "adapter_config.json"
+    if not config_path.is_file():
+        raise ValueError(f"{str(config_path)!r} not found: --adapter must be a folder written by training")
+    config = _read_json(config_path, "peft's adapter config")
+    if not isinstance(config, dict) or "peft_type" not in config:
+        raise ValueError(f"{str(config_path)!r} is not a peft adapter config: it has no 'peft_type'")
+    weights = folder / "adapter_model.safetensors"
+    if not weights.is_file():
+        if (folder / "adapter_model.bin").is_file():
+            return
+        raise ValueError(f"{str(folder)!r} holds no adapter weights (adapter_model.safetensors)")
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(weights), framework="pt") as f:
+            f.keys()
+    except Exception as e:  # safetensors raises its own SafetensorError (and OSError) for a truncated file
+        raise ValueError(f"{str(weights)!r} is not a readable safetensors file (truncated?): {e}") from None
 
 
 def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
@@ -374,7 +428,7 @@ def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
         raise ValueError(
             f"{str(checkpoint)!r} holds no 'aynamics_meta': not a checkpoint of `train.py` with the adapter callback"
         )
-    spec, prompt = specs_of_meta(ckpt["aynamics_meta"])
+    spec, prompt = specs_of_meta(ckpt["aynamics_meta"], where=f"'aynamics_meta' of {str(checkpoint)!r}")
     model = build_model(spec)
     params = dict(model.named_parameters())
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
@@ -390,12 +444,23 @@ def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
 
 
 def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, PromptSpec]:
-    """Rebuild the base model of an adapter folder and load the adapter onto it (eval mode)."""
+    """Rebuild the base model of an adapter folder and load the adapter onto it (eval mode).
+
+    Raises:
+        FileNotFoundError: the folder has no `aynamics.json`.
+        ValueError: a file of the folder is not what training writes, or the weights do not fit the base.
+    """
     from peft import PeftModel
 
     spec, prompt = read_adapter_meta(adapter_dir)
+    check_adapter_files(adapter_dir)
     base = build_base(spec)
-    model = PeftModel.from_pretrained(base, str(adapter_dir))
+    try:
+        model = PeftModel.from_pretrained(base, str(adapter_dir))
+    except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:  # e.g. weights of another base's shapes
+        raise ValueError(
+            f"adapter {str(adapter_dir)!r} does not load onto the base its aynamics.json names: {type(e).__name__}: {e}"
+        ) from None
     return model.eval(), spec, prompt
 
 

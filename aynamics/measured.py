@@ -18,6 +18,7 @@ import csv
 import gzip
 import io
 import math
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,14 +94,19 @@ def read_csv(path: str) -> Measured:
     """Read measured trajectories from a CSV (optionally .gz).
 
     Raises:
-        MeasuredError: missing file or column, non-numeric or non-finite value, duplicate timestamp.
+        MeasuredError: missing or unreadable file, missing column, a row with more or fewer values than the
+            header, non-numeric or non-finite value, duplicate timestamp.
     """
     try:
-        raw = open(path, "rb").read()
+        with open(path, "rb") as f:
+            raw = f.read()
     except OSError as e:
         raise MeasuredError(f"--measured {path!r}: {e.strerror or e}") from None
     if path.endswith(".gz"):
-        raw = gzip.decompress(raw)
+        try:
+            raw = gzip.decompress(raw)
+        except (OSError, EOFError, zlib.error) as e:  # not gzip, truncated, corrupt
+            raise MeasuredError(f"--measured {path!r}: not a readable gzip file ({type(e).__name__}: {e})") from None
     reader = csv.reader(io.StringIO(raw.decode("utf-8", errors="replace")))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in REQUIRED if c not in header]
@@ -116,7 +122,7 @@ def read_csv(path: str) -> Measured:
     for r, line in enumerate(reader, start=2):
         if not line or all(not c.strip() for c in line):
             continue
-        if len(line) < len(header):
+        if len(line) != len(header):
             raise MeasuredError(f"{path}: row {r} has {len(line)} values, the header has {len(header)}")
         vals = [_float(line[col[c]], r, c, path) for c in numeric]
         obj = line[col["object"]].strip()

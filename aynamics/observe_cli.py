@@ -48,21 +48,29 @@ def _run_render(args) -> int:
     scene = scenelib.load(args.scene)
     if not (16 <= args.width <= 4096 and 16 <= args.height <= 4096):
         raise UsageError(f"render: --width {args.width} --height {args.height}: each must be in [16, 4096]")
+    if args.seed < 0:
+        raise UsageError(f"render: --seed {args.seed}: must be >= 0")
+    if args.textures is not None:
+        try:
+            renderlib.texture_images(args.textures)
+        except (FileNotFoundError, ValueError) as e:
+            raise UsageError(f"render: --textures {args.textures!r}: {getattr(e, 'strerror', None) or e}") from None
     out = Path(args.out)
-    try:
-        (out / "frames").mkdir(parents=True, exist_ok=True)
-        (out / "flow").mkdir(exist_ok=True)
-    except OSError as e:
-        raise UsageError(f"render: cannot create --out {str(out)!r}: {e.strerror or e}") from None
+    ancestor = next((p for p in (out, *out.parents) if p.exists()), None)  # the part of --out already there
+    if ancestor is not None and not ancestor.is_dir():  # checked before the work; the folders are made after it
+        raise UsageError(f"render: cannot create --out {str(out)!r}: {str(ancestor)!r} is a file")
     rollout = sim.simulate(scene)
     try:
         frames = renderlib.render(
             scene, rollout, width=args.width, height=args.height, seed=args.seed, textures_dir=args.textures
         )
-    except renderlib.RenderError as e:
+    except (renderlib.RenderError, ValueError) as e:  # e.g. no headless OpenGL, a texture image that cannot be read
         raise UsageError(f"render: {e}") from None
-    except ValueError as e:
-        raise UsageError(f"render: --textures {args.textures!r}: {e}") from None
+    try:
+        (out / "frames").mkdir(parents=True, exist_ok=True)
+        (out / "flow").mkdir(exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"render: cannot create --out {str(out)!r}: {e.strerror or e}") from None
     flow, occluded = flowlib.motion_flow(scene, rollout, frames.depth, frames.camera, frames.segmentation)
     colours = flowlib.flow_to_color(flow)
     _write_outputs(out, scene, rollout, frames, flow, occluded, colours, args.seed, not args.no_gif)
@@ -134,16 +142,19 @@ def _run_score(args) -> int:
         if isinstance(e, scenelib.SceneError):
             raise
         raise UsageError(f"score: --observed {args.observed!r}: {e}") from None
-    texts = []
-    for path in args.predictions:
+    # read as `simulate` reads a scene (scene.load: its size cap, UTF-8); a file that cannot be read or parsed
+    # scores 0 with the reason, as an invalid prediction does
+    candidates, problems = [], {}
+    for k, path in enumerate(args.predictions):
         try:
-            texts.append(Path(path).read_text(encoding="utf-8", errors="replace"))
-        except OSError as e:
-            texts.append(f"<unreadable file {path!r}: {e.strerror or e}>")
-    scores = scorer.score(texts, obs)
-    for k, (path, s) in enumerate(zip(args.predictions, scores, strict=True)):
-        if s.reason and s.reason.startswith("invalid scene") and texts[k].startswith("<unreadable file"):
-            scores[k] = scorer._invalid(texts[k][1:-1], obs.flow is not None)
+            candidates.append(scenelib.load(path))
+        except scenelib.SceneError as e:
+            problems[k] = str(e)
+    scored = iter(scorer.score(candidates, obs))
+    scores = [
+        scorer._invalid(problems[k], obs.flow is not None) if k in problems else next(scored)
+        for k in range(len(args.predictions))
+    ]
     if args.json:
         json.dump([s.to_json() for s in scores], sys.stdout)
         sys.stdout.write("\n")

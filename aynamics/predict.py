@@ -42,7 +42,12 @@ def read_frames(path: str | Path) -> list[np.ndarray]:
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not files:
             raise ValueError(f"{str(path)!r} holds no frames (looked for {', '.join(IMAGE_SUFFIXES)})")
-        frames = [iio.imread(p) for p in files]
+        frames = []
+        for p in files:
+            try:
+                frames.append(iio.imread(p))
+            except Exception as e:  # Pillow and imageio raise OSError, ValueError and more for a broken image
+                raise ValueError(f"cannot read frame {str(p)!r}: {type(e).__name__}: {e}") from None
     else:
         try:
             frames = list(iio.imiter(path))
@@ -127,14 +132,44 @@ def add_export_command(sub) -> None:
         help="write the peft adapter folder of a training checkpoint (OUT/adapter holds the latest only)",
     )
     p.add_argument("checkpoint", help="a checkpoint written by train.py (OUT/checkpoints/stepNNNNNN.ckpt)")
-    p.add_argument("--out", required=True, help="folder to write (PeftModel.from_pretrained and --adapter read it)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="folder to write (PeftModel.from_pretrained and --adapter read it): new, empty, or an adapter folder "
+        "(holding adapter_config.json) to overwrite; any other folder with files in it is refused",
+    )
     p.set_defaults(run=run_export)
+
+
+def check_export_folder(out: str | Path) -> None:
+    """Refuse an `export-adapter --out` that would overwrite files of something other than an adapter folder.
+
+    peft writes README.md, adapter_config.json and the weights into the folder: a folder that is new, empty, or
+    already an adapter folder (holding adapter_config.json) may take them; another folder's files would be lost.
+
+    Raises:
+        ValueError: `out` is a file, or a non-empty folder that is not an adapter folder (the path is named).
+    """
+    out = Path(out)
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file, not a folder")
+    if any(out.iterdir()) and not (out / "adapter_config.json").is_file():
+        raise ValueError(
+            f"--out {str(out)!r} is a folder with files in it and not an adapter folder (no adapter_config.json): "
+            "its files could be overwritten; give a new or empty folder"
+        )
 
 
 def run_export(args) -> int:
     from aynamics import lm
     from aynamics.cli import UsageError
 
+    try:
+        check_export_folder(args.out)
+    except ValueError as e:
+        raise UsageError(f"export-adapter: {e}") from None
     try:
         out = lm.adapter_from_checkpoint(args.checkpoint, args.out)
     except FileNotFoundError:

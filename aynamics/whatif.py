@@ -159,7 +159,12 @@ def add_edit_command(sub) -> None:
     p.add_argument("scene", help="scene YAML file")
     p.add_argument("instruction", help="the edit, e.g. 'decrease gravity by 50%%; move box_0 0.5 m left'")
     p.add_argument("--out", help="write the edited scene YAML here (default: print it)")
-    p.add_argument("--render", metavar="DIR", help="re-simulate, render, compute flow, write side_by_side.gif")
+    p.add_argument(
+        "--render",
+        metavar="DIR",
+        help="re-simulate, render, compute flow, write side_by_side.gif; exit status 1 when a rollout is invalid "
+        "(e.g. the edit starts objects overlapping), the reason on stderr",
+    )
     p.add_argument("--llm", metavar="MODEL", help="edit with a transformers chat model (checked against the text)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="generation limit for --llm (default 2048)")
     p.add_argument("--width", type=int, default=240, help="render width in pixels (default 240)")
@@ -170,7 +175,11 @@ def add_edit_command(sub) -> None:
 
 
 def run_edit_command(args) -> int:
-    """`aynamics edit`: nothing is written unless the edit is understood and the edited scene is valid."""
+    """`aynamics edit`: nothing is written unless the edit is understood and the edited scene is valid.
+
+    Exit status 1 (as `simulate` and `render`) when `--render` finds a rollout invalid, e.g. an edit that moves an
+    object into the floor; the edited YAML is still written to `--out` and the files to `--render DIR`.
+    """
     from aynamics.cli import UsageError
     from aynamics.edit import EditError, apply_instruction
     from aynamics.scene import load
@@ -211,6 +220,11 @@ def run_edit_command(args) -> int:
             )
         except (RenderError, ValueError, OSError) as e:
             raise UsageError(f"edit --render {args.render!r}: {e}") from None
+    invalid = [  # (which, reason) of the rollouts --render found invalid
+        (which, report.get(f"{which}_reason"))
+        for which in ("original", "edited")
+        if f"{which}_valid" in report and not report[f"{which}_valid"]
+    ]
     if args.json:
         report["edited_yaml"] = text
         json.dump(report, sys.stdout)
@@ -220,4 +234,6 @@ def run_edit_command(args) -> int:
             sys.stderr.write(f"changed {c}\n")
         if not args.out:
             sys.stdout.write(text)
-    return 0
+        for which, reason in invalid:
+            sys.stderr.write(f"edit: the {which} scene's rollout is invalid: {reason}\n")
+    return 1 if invalid else 0

@@ -178,6 +178,33 @@ def test_cli_bad_input_exits_2_naming_the_file(tmp_path, capsys):
     assert rc == 2 and "--step-hz 5: must be in [30, 10000]" in capsys.readouterr().err
 
 
+def test_cli_blames_the_right_argument(tmp_path, capsys):
+    """A truncated or garbage .gz is a --measured problem (it raised EOFError, or read as "cannot write --out");
+    a negative --seed is refused up front; a row with more values than the header is refused naming the row."""
+    import gzip
+
+    scene = tmp_path / "s.yaml"
+    scene.write_text(
+        "- type: sphere\n  radius: 0.1\n  state:\n    position: [0, 0, 0.1]\n- type: camera\n  position: [0, -3, 2]\n"
+    )
+    rows = "trajectory,t,object,x,y,z\n" + "".join(f"0,{k / 10},a,0,0,0.1\n" for k in range(5))
+    whole = gzip.compress(rows.encode())
+    (tmp_path / "cut.csv.gz").write_bytes(whole[: len(whole) // 2])
+    (tmp_path / "junk.csv.gz").write_bytes(b"not gzip at all")
+    out = tmp_path / "out"
+    for name in ("cut.csv.gz", "junk.csv.gz"):
+        rc = main(["audit", "--measured", str(tmp_path / name), "--scene", str(scene), "--out", str(out)])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"--measured {str(tmp_path / name)!r}: not a readable gzip file" in err, err
+        assert "--out" not in err and not out.exists()
+    rc = main(["audit", "--measured", "m.csv", "--scene", str(scene), "--out", str(out), "--seed", "-1"])
+    assert rc == 2 and "--seed -1: must be >= 0" in capsys.readouterr().err
+    p = tmp_path / "long.csv"
+    p.write_text(rows + "0,0.5,a,0,0,0.1,9\n")
+    with pytest.raises(MeasuredError, match="row 7 has 7 values, the header has 6"):
+        read_csv(str(p))
+
+
 # ------------------------------------------------------------------------------------------------
 # hidden effects
 # ------------------------------------------------------------------------------------------------

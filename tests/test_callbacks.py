@@ -158,6 +158,8 @@ def test_collect_multirun_folder(tmp_path):
     assert "| 1 | flow | answer | done | 20 |" in to_markdown(rows)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         collect(tmp_path / "nope")
+    with pytest.raises(FileNotFoundError, match="is a file, not a multirun folder"):
+        collect(tmp_path / "0" / "metrics.json")
 
 
 def test_predict_cli_errors_are_clear(tmp_path, capsys):
@@ -168,6 +170,74 @@ def test_predict_cli_errors_are_clear(tmp_path, capsys):
     (tmp_path / "frames").mkdir()
     assert main(["predict", "--adapter", str(tmp_path), str(tmp_path / "frames")]) == 2
     assert "holds no frames" in capsys.readouterr().err
+
+
+def test_predict_cli_names_the_broken_file(tmp_path, capsys):
+    """A truncated frame, and each broken file of an adapter folder, exit 2 naming the file and the problem (they
+    raised OSError, KeyError 'prompt', SafetensorError, or "Expecting value" without a file name). Every check runs
+    before a base model is built, so the folders here are written by hand."""
+    import imageio.v3 as iio
+
+    from aynamics import lm
+    from aynamics.cli import main
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    iio.imwrite(frames / "a.png", np.zeros((16, 16, 3), np.uint8))
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    iio.imwrite(broken / "a.png", np.zeros((16, 16, 3), np.uint8))
+    png = (broken / "a.png").read_bytes()
+    (broken / "b.png").write_bytes(png[: len(png) // 2])
+    good_meta = json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec()))
+    adapter = tmp_path / "adapter"
+    adapter.mkdir()
+    assert main(["predict", "--adapter", str(adapter), str(broken)]) == 2
+    assert f"cannot read frame {str(broken / 'b.png')!r}" in capsys.readouterr().err
+    weights = b"\x40\x00\x00\x00\x00\x00\x00\x00" + b'{"w": {"dtype": "F32", "shape": [4], "data_offsets": [0, 16]}}'
+    cases = [  # (file, content, what the message says)
+        ("aynamics.json", "{}", "aynamics.json': not the model and prompt specs training writes"),
+        ("aynamics.json", "garbage", "aynamics.json' (the adapter's model and prompt specs) is not valid JSON"),
+        ("aynamics.json", '{"model": {"kind": "huge"}, "prompt": {}}', "model kind = 'huge'"),
+        ("adapter_config.json", "garbage", "adapter_config.json' (peft's adapter config) is not valid JSON"),
+        ("adapter_config.json", "{}", "adapter_config.json' is not a peft adapter config"),
+        ("adapter_model.safetensors", weights[:30], "adapter_model.safetensors' is not a readable safetensors"),
+        ("adapter_model.safetensors", weights, "adapter_model.safetensors' is not a readable safetensors"),
+    ]
+    for name, content, message in cases:
+        files = {"aynamics.json": good_meta, "adapter_config.json": '{"peft_type": "LORA"}', name: content}
+        for file, text in files.items():
+            (adapter / file).write_bytes(text if isinstance(text, bytes) else text.encode())
+        assert main(["predict", "--adapter", str(adapter), str(frames)]) == 2, name
+        err = capsys.readouterr().err
+        assert err.startswith("predict: ") and message in err and str(adapter) in err, (name, content, err)
+        for file in files:
+            (adapter / file).unlink()
+
+
+def test_export_adapter_refuses_a_folder_that_is_not_an_adapter(tmp_path, capsys):
+    """--out DIR holding other files (a repository's README.md) is refused before anything is read or written;
+    a folder written as an adapter before (adapter_config.json) may be rewritten."""
+    from aynamics.cli import main
+
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    (repo / "README.md").write_text("mine")
+    assert main(["export-adapter", str(tmp_path / "none.ckpt"), "--out", str(repo)]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {str(repo)!r} is a folder with files in it and not an adapter folder" in err
+    assert (repo / "README.md").read_text() == "mine" and len(list(repo.iterdir())) == 1
+    (tmp_path / "a_file").write_text("x")
+    assert main(["export-adapter", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "a_file")]) == 2
+    assert "is a file, not a folder" in capsys.readouterr().err
+    adapter = tmp_path / "adapter"
+    adapter.mkdir()
+    (adapter / "adapter_config.json").write_text("{}")
+    for out in (adapter, tmp_path / "empty", tmp_path / "new"):  # accepted: the checkpoint is what is missing
+        (tmp_path / "empty").mkdir(exist_ok=True)
+        assert main(["export-adapter", str(tmp_path / "none.ckpt"), "--out", str(out)]) == 2
+        assert "no such checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
 
 
 def _trainer(step, epoch, *, max_steps=-1, max_epochs=None, last_batch=False, sanity=False):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -65,3 +66,66 @@ def test_missing_file_messages_say_what_was_expected(tmp_path, capsys):
     )
     err = capsys.readouterr().err
     assert "None" not in err and "--adapter must be a folder written by training" in err
+
+
+ASSET = str(Path(__file__).parent / "assets" / "paper_example.yaml")
+
+
+def test_python_dash_m_reports_usage_errors_without_a_traceback(tmp_path):
+    """`python -m aynamics.cli` runs cli.py as `__main__`: its UsageError was another class than the
+    `aynamics.cli.UsageError` the command modules raise, so their errors escaped as tracebacks."""
+    argv = [sys.executable, "-m", "aynamics.cli", "render", ASSET, "--out", str(tmp_path / "r"), "--width", "3"]
+    run = subprocess.run(argv, capture_output=True, text=True)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert run.stderr.startswith("render: --width 3")
+
+
+def test_simulate_out_is_exactly_the_path_given(tmp_path, capsys):
+    """A folder as --out is refused (numpy wrote FOLDER.npz beside it and exited 0); a path without .npz is
+    written as given, not with .npz appended."""
+    import numpy as np
+
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    assert cli.main(["simulate", ASSET, "--out", str(folder)]) == 2
+    assert f"--out {str(folder)!r} is a folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"] and not any(folder.iterdir())
+    assert cli.main(["simulate", ASSET, "--out", str(tmp_path / "traj"), "--duration", "0.2"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs", "traj"]
+    assert np.load(tmp_path / "traj")["position"].shape == (7, 2, 3)  # 0.2 s at 30 FPS: states 0..6
+    assert cli.main(["simulate", ASSET, "--out", str(tmp_path / "no" / "t.npz")]) == 2
+    assert "folder" in capsys.readouterr().err
+
+
+def test_render_checks_its_arguments_before_making_folders(tmp_path, capsys):
+    """--seed -1 is named (the message blamed "--textures None"); a bad --textures is named; neither leaves
+    --out/frames or --out/flow behind."""
+    out = tmp_path / "r"
+    assert cli.main(["render", ASSET, "--out", str(out), "--seed", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--seed -1: must be >= 0" in err and "--textures" not in err
+    assert cli.main(["render", ASSET, "--out", str(out), "--textures", str(tmp_path / "none")]) == 2
+    assert f"--textures {str(tmp_path / 'none')!r}" in capsys.readouterr().err
+    (tmp_path / "f").write_text("x")
+    assert cli.main(["render", ASSET, "--out", str(tmp_path / "f" / "r")]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_score_reads_predictions_with_the_scene_loaders_limit(tmp_path, capsys):
+    """A prediction file past the scene loader's size cap scores 0 with the reason `simulate` gives for it (the
+    file was read whole); a binary one is "not UTF-8" (it was decoded with replacement characters)."""
+    import json
+
+    from aynamics.scene import MAX_TEXT_CHARS, SceneError, load
+
+    long, binary = tmp_path / "long.yaml", tmp_path / "bin.yaml"
+    long.write_text("#" * (MAX_TEXT_CHARS + 10))
+    binary.write_bytes(b"\xff\xfe\x00")
+    assert cli.main(["score", ASSET, str(long), str(binary), "--observed", ASSET, "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert [g["valid"] for g in got] == [True, False, False] and got[0]["iou_full"] == 1.0
+    with pytest.raises(SceneError) as refused:
+        load(str(long))
+    assert got[1]["reason"] == str(refused.value) and f"at most {MAX_TEXT_CHARS} characters" in got[1]["reason"]
+    assert "not UTF-8" in got[2]["reason"]

@@ -144,6 +144,28 @@ def test_cli_edit_refusal_leaves_input_untouched(tmp_path, capsys, instruction):
     assert src.read_text() == ASSET.read_text() and not out.exists()
 
 
+def test_cli_edit_render_reports_an_invalid_rollout(tmp_path, capsys):
+    """box_0 (z = 0.4, half-height 0.2) moved 0.5 m down starts 0.3 m into the floor: text mode says the edited
+    rollout is invalid with the simulator's reason on stderr and exits 1 (it exited 0 saying nothing); the edited
+    YAML is still written; --json exits 1 as well and reports edited_valid false."""
+    from aynamics.render import gl_available
+
+    ok, why = gl_available()
+    if not ok:
+        pytest.skip(why)
+    out = tmp_path / "edited.yaml"
+    argv = ["edit", str(ASSET), "move box_0 0.5 m down", "--render", str(tmp_path / "d"), "--width", "32"]
+    assert cli.main([*argv, "--height", "32", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "edit: the edited scene's rollout is invalid: overlapping start: box_0 and the floor" in err
+    assert "original scene" not in err
+    assert load(str(out)).object("box_0").state.position[2] == pytest.approx(-0.1)
+    assert cli.main([*argv, "--height", "32", "--json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["edited_valid"] is False and report["original_valid"] is True
+    assert "overlapping start" in report["edited_reason"]
+
+
 def test_cli_edit_missing_file(capsys):
     assert cli.main(["edit", "no/such.yaml", "stop box_0"]) == 2
     assert "no/such.yaml" in capsys.readouterr().err

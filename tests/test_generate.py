@@ -177,6 +177,22 @@ def test_cli_generate(tmp_path, capsys):
     assert main(["generate", "--num", "0", "--out", str(tmp_path / "x"), "--workers", "0"]) == 2
 
 
+def test_cli_generate_bad_arguments_write_nothing(tmp_path, capsys):
+    """A folder as --config is named (not an IsADirectoryError traceback); a bad --shard is refused before
+    generate.json is written, so a correct rerun into the same folder with other overrides still works."""
+    (tmp_path / "confdir").mkdir()
+    out = tmp_path / "g"
+    argv = ["generate", "--num", "2", "--out", str(out), "--workers", "0", "--quiet"]
+    assert main([*argv, "--config", str(tmp_path / "confdir")]) == 2
+    assert f"--config {str(tmp_path / 'confdir')!r} is a folder" in capsys.readouterr().err
+    assert main([*argv, "--shard", "3", "--num-shards", "2"]) == 2
+    assert "shard = 3, num_shards = 2" in capsys.readouterr().err
+    assert not out.exists()  # nothing written: a rerun with other overrides is not refused as another run
+    (tmp_path / "bad.yaml").write_bytes(b"\xff\xfe: 1\n")
+    assert main([*argv, "--config", str(tmp_path / "bad.yaml")]) == 2
+    assert "--config" in capsys.readouterr().err and not out.exists()
+
+
 def test_in_context_selection_covers_shapes_and_extremes():
     from aynamics.sampler import sample_scene, scene_seed
 
