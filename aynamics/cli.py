@@ -85,6 +85,8 @@ def _run_simulate(args) -> int:
             raise UsageError(f"simulate: cannot write --out {args.out!r}: {e.strerror or e}") from None
     if args.json:
         _print_json(rollout.summary())
+    if not rollout.valid:
+        sys.stderr.write(f"simulate: the rollout is invalid: {rollout.reason}\n")
     return 0 if rollout.valid else 1
 
 

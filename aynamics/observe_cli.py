@@ -75,6 +75,8 @@ def _run_render(args) -> int:
     colours = flowlib.flow_to_color(flow)
     _write_outputs(out, scene, rollout, frames, flow, occluded, colours, args.seed, not args.no_gif)
     sys.stdout.write(f"wrote {len(frames.rgb)} frames and {len(flow)} flow maps to {out}\n")
+    if not rollout.valid:
+        sys.stderr.write(f"render: the rollout is invalid: {rollout.reason}\n")
     return 0 if rollout.valid else 1
 
 

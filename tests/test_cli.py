@@ -97,6 +97,15 @@ def test_simulate_out_is_exactly_the_path_given(tmp_path, capsys):
     assert "folder" in capsys.readouterr().err
 
 
+def test_simulate_names_why_a_rollout_is_invalid(tmp_path, capsys):
+    """Two boxes at one place: exit status 1 and the reason on stderr (the exit status alone said nothing)."""
+    box = "- type: box\n  size: [0.2, 0.2, 0.2]\n  state: {position: [0, 0, 0.1]}\n"
+    path = tmp_path / "overlap.yaml"
+    path.write_text(box + box + "- type: camera\n  position: [0, -3, 3]\n")
+    assert cli.main(["simulate", str(path), "--out", str(tmp_path / "t.npz")]) == 1
+    assert "simulate: the rollout is invalid: overlapping start" in capsys.readouterr().err
+
+
 def test_render_checks_its_arguments_before_making_folders(tmp_path, capsys):
     """--seed -1 is named (the message blamed "--textures None"); a bad --textures is named; neither leaves
     --out/frames or --out/flow behind."""
