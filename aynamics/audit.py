@@ -376,10 +376,9 @@ def add_audit(sub) -> None:
 def run_audit(args) -> int:
     import json
     import sys
-    from pathlib import Path
 
     from aynamics.audit_report import write_report
-    from aynamics.cli import UsageError
+    from aynamics.cli import UsageError, check_out_folder
     from aynamics.measured import Measured, every_nth, read_csv
 
     if not 30 <= args.step_hz <= 10_000:
@@ -388,12 +387,9 @@ def run_audit(args) -> int:
         raise UsageError(f"audit: --max-causes {args.max_causes}, --max-trajectories {args.max_trajectories}: >= 0")
     if args.seed < 0:
         raise UsageError(f"audit: --seed {args.seed}: must be >= 0")
-    if args.held_out_every < 0:
+    if args.held_out_every < 0 or args.held_out_every == 1:
         raise UsageError(f"audit: --held-out-every {args.held_out_every}: must be 0 (a random split) or >= 2")
-    out = Path(args.out)
-    there = next((p for p in (out, *out.parents) if p.exists()), None)  # checked before the audit's minutes
-    if there is not None and not there.is_dir():
-        raise UsageError(f"audit: cannot write --out {args.out!r}: {str(there)!r} is a file, not a folder")
+    check_out_folder("audit", args.out)  # before the audit's minutes
     scene = scenelib.load(args.scene)
     try:
         measured = read_csv(args.measured)

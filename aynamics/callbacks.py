@@ -212,9 +212,13 @@ class SceneEvaluation(L.Callback):
             self._records.append(r)
         if self.baseline and self._records:
             from aynamics.data import mean_scene_of_split
-
-            avg = mean_scene_of_split(dm.splits["train"])
             from aynamics.scene import dump
+
+            try:
+                avg = mean_scene_of_split(dm.splits["train"])
+            except ValueError as e:  # no training scene parses
+                warnings.warn(f"scene evaluation: no average-scene baseline ({e})", stacklevel=2)
+                return
 
             texts = [dump(avg)] * len(self._records)
             per = evaluate_texts(texts, [r["scene"] for r in self._records], [r["observation"] for r in self._records])

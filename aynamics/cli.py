@@ -23,6 +23,7 @@ import importlib
 import json
 import os
 import sys
+from pathlib import Path
 
 from aynamics.scene import SceneError
 
@@ -34,6 +35,15 @@ class UsageError(Exception):
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):  # argparse prints usage + exits 2; we want one paragraph, same status
         raise UsageError(f"{self.prog}: {message}. Run `{self.prog} --help` for usage.")
+
+
+def check_out_folder(command: str, out: str | os.PathLike) -> None:
+    """Refuse, before a command's work, an `--out` folder that cannot be created: a part of its path already
+    there is a file."""
+    path = Path(out)
+    there = next((p for p in (path, *path.parents) if p.exists()), None)
+    if there is not None and not there.is_dir():
+        raise UsageError(f"{command}: cannot write --out {str(path)!r}: {str(there)!r} is a file, not a folder")
 
 
 def _print_json(obj) -> None:

@@ -45,8 +45,9 @@ def load_splits(path: str | Path):
     try:
         dd = load_from_disk(str(path))
     except (OSError, ValueError) as e:  # truncated or foreign .arrow files, a broken dataset_info.json, ...
+        hint = "" if isinstance(e, PermissionError) else "; generate it again"
         raise ValueError(
-            f"data.dir = {str(path)!r}: the data set cannot be read ({type(e).__name__}: {e}); generate it again"
+            f"data.dir = {str(path)!r}: the data set cannot be read ({type(e).__name__}: {e}){hint}"
         ) from None
     if not isinstance(dd, DatasetDict) or "train" not in dd:
         raise ValueError(f"data.dir = {str(path)!r}: expected a DatasetDict with a 'train' split, got {type(dd)}")

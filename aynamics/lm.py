@@ -448,7 +448,8 @@ def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, P
 
     Raises:
         FileNotFoundError: the folder has no `aynamics.json`.
-        ValueError: a file of the folder is not what training writes, or the weights do not fit the base.
+        ValueError: a file of the folder is not what training writes, peft refuses its config, or weights of
+            other shapes than the base's (weights with other names load with peft's warning only).
     """
     from peft import PeftModel
 
@@ -457,9 +458,13 @@ def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, P
     base = build_base(spec)
     try:
         model = PeftModel.from_pretrained(base, str(adapter_dir))
-    except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:  # e.g. weights of another base's shapes
+    except torch.OutOfMemoryError:
+        raise
+    except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:  # a peft config peft refuses, weights of
+        # another base's shapes, ...
         raise ValueError(
-            f"adapter {str(adapter_dir)!r} does not load onto the base its aynamics.json names: {type(e).__name__}: {e}"
+            f"adapter {str(adapter_dir)!r} cannot be loaded (its adapter_config.json, or weights that do not fit the "
+            f"base model its aynamics.json names): {type(e).__name__}: {e}"
         ) from None
     return model.eval(), spec, prompt
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aynamics.cli import UsageError
+from aynamics.cli import UsageError, check_out_folder
 
 
 def _add_render(sub) -> None:
@@ -56,9 +56,7 @@ def _run_render(args) -> int:
         except (FileNotFoundError, ValueError) as e:
             raise UsageError(f"render: --textures {args.textures!r}: {getattr(e, 'strerror', None) or e}") from None
     out = Path(args.out)
-    ancestor = next((p for p in (out, *out.parents) if p.exists()), None)  # the part of --out already there
-    if ancestor is not None and not ancestor.is_dir():  # checked before the work; the folders are made after it
-        raise UsageError(f"render: cannot create --out {str(out)!r}: {str(ancestor)!r} is a file")
+    check_out_folder("render", out)  # before the work; the folders are made after it
     rollout = sim.simulate(scene)
     try:
         frames = renderlib.render(

@@ -524,11 +524,12 @@ class _DuplicateKey(yaml.constructor.ConstructorError):
 def _core_schema_numbers(table: dict) -> dict:
     """The implicit-resolver table `table` (PyYAML's, YAML 1.1) with YAML 1.2 core-schema numbers: `1e-1` and
     `2E5` are floats (1.1 reads them as strings, then "must be a number, got str"), `1:00` is not 60 (1.1's
-    base-60) nor `0x1F` an integer; `.inf` and `.nan` stay floats (the fields then refuse them by name)."""
+    base 60), `010` is 10 (1.1: octal 8; `_construct_int`), `0o17` and `0x1F` are 15 and 31; `.inf` and `.nan`
+    stay floats (the fields then refuse them by name)."""
     int_tag, float_tag = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
     out = {k: [(tag, rx) for tag, rx in v if tag not in (int_tag, float_tag)] for k, v in table.items()}
     numbers = (
-        (int_tag, re.compile(r"^[-+]?[0-9]+$"), "-+0123456789"),
+        (int_tag, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"), "-+0123456789"),
         (
             float_tag,
             re.compile(
@@ -541,6 +542,15 @@ def _core_schema_numbers(table: dict) -> dict:
         for ch in first:
             out.setdefault(ch, []).append((tag, rx))
     return {k: [(t, r) for t, r in v if t == int_tag] + [(t, r) for t, r in v if t != int_tag] for k, v in out.items()}
+
+
+def _construct_int(loader, node) -> int:
+    """A YAML 1.2 integer: decimal (leading zeros included), or `0o` octal / `0x` hexadecimal."""
+    text = loader.construct_scalar(node)
+    body = text.lstrip("+-")
+    base = {"0o": 8, "0x": 16}.get(body[:2], 10)
+    value = int(body[2:] if base != 10 else body, base)
+    return -value if text.startswith("-") else value
 
 
 class _UniqueKeys:
@@ -565,6 +575,7 @@ class _NoAliasLoader(_UniqueKeys, yaml.SafeLoader):
     """SafeLoader that refuses anchors/aliases (no alias bombs) and python/* tags (SafeLoader already does)."""
 
     yaml_implicit_resolvers = _core_schema_numbers(yaml.SafeLoader.yaml_implicit_resolvers)
+    yaml_constructors = {**yaml.SafeLoader.yaml_constructors, "tag:yaml.org,2002:int": _construct_int}
 
     def compose_node(self, parent, index):  # noqa: D102
         if self.check_event(yaml.AliasEvent):
@@ -582,7 +593,10 @@ _FAST_LOADER = (
     type(
         "_FastLoader",
         (_UniqueKeys, yaml.CSafeLoader),
-        {"yaml_implicit_resolvers": _NoAliasLoader.yaml_implicit_resolvers},
+        {
+            "yaml_implicit_resolvers": _NoAliasLoader.yaml_implicit_resolvers,
+            "yaml_constructors": _NoAliasLoader.yaml_constructors,
+        },
     )
     if hasattr(yaml, "CSafeLoader")
     else None
@@ -699,7 +713,7 @@ def load(path: str) -> Scene:
     """Read and parse a scene file; a missing file raises SceneError naming the path."""
     try:
         with open(path, "rb") as f:
-            data = f.read(MAX_TEXT_CHARS + 1)
+            data = f.read(4 * MAX_TEXT_CHARS + 4)  # UTF-8: up to 4 bytes a character; the length check is in chars
     except OSError as e:
         raise SceneError([Problem("file", path, e.strerror or str(e))]) from None
     return parse(data)
@@ -709,9 +723,11 @@ def load(path: str) -> Scene:
 # Canonical dump
 # --------------------------------------------------------------------------------------------
 def _num(x: float, decimals: int = DECIMALS) -> str:
-    text = f"{x:.{decimals}f}".rstrip("0")
-    text = text + "0" if text.endswith(".") else text
-    return "0.0" if text == "-0.0" else text
+    text = f"{x:.{decimals}f}"
+    if "." in text:  # trailing zeros of the fraction only ("10" at 0 decimals stays 10)
+        text = text.rstrip("0")
+        text = text + "0" if text.endswith(".") else text
+    return {"-0.0": "0.0", "-0": "0"}.get(text, text)
 
 
 def _vec(v: tuple[float, ...], decimals: int = DECIMALS) -> str:

@@ -164,18 +164,21 @@ class Observation:
                     f"expected (>= {frames[-1] + 1}, {full_h}, {full_w}, 2)"
                 )
             flow = (full_flow[sub] * (width / full_w)).astype(np.float32)
-            bad = ~np.isfinite(flow)
-            if bad.any():  # NaN would drop out of the EPE averages: every prediction would score 0 there
-                f = int(np.argwhere(bad)[0][0])
-                raise ValueError(
-                    f"{root / 'flow.npy'}: {int(bad.any(-1).sum())} sampled pixels hold NaN or infinite flow "
-                    f"(the first in flow {frames[f]}): mark pixels without flow in occlusion.npy instead"
-                )
             if (root / "occlusion.npy").is_file():
                 occ = _load_npy(root / "occlusion.npy", bool)
                 if occ.shape != full_flow.shape[:-1]:
                     raise ValueError(f"{root / 'occlusion.npy'}: shape {occ.shape}, expected {full_flow.shape[:-1]}")
                 occluded = occ[sub]
+            bad = ~np.isfinite(flow).all(-1)
+            if occluded is not None:  # no flow where occlusion.npy says so: never read
+                flow[bad & occluded] = 0.0
+                bad &= ~occluded
+            if bad.any():  # NaN would drop out of the EPE averages: every prediction would score 0 there
+                f = int(np.argwhere(bad)[0][0])
+                raise ValueError(
+                    f"{root / 'flow.npy'}: {int(bad.sum())} sampled pixels hold NaN or infinite flow "
+                    f"(the first in flow {frames[f]}): mark pixels without flow in occlusion.npy instead"
+                )
         names, fps = None, sim.FPS
         if (root / "meta.json").is_file():
             try:
@@ -288,7 +291,7 @@ class _ObservedSums:
     valid: np.ndarray | None  # (F, h*w) flow not occluded
     fg_index: np.ndarray | None  # (M,) flat f * h*w + pixel of observed object pixels whose flow is not occluded
     fg_norm: np.ndarray | None  # (M,) |observed flow| there (float64)
-    fg_count: np.ndarray | None  # (F,) such pixels per frame: the EPE divisor (`metrics.epe_divisor`)
+    fg_count: np.ndarray | None  # (F,) such pixels per frame: what EPE averages over where > 0 (`metrics.epe_mask`)
 
     @classmethod
     def of(cls, obs: Observation) -> _ObservedSums:
@@ -323,17 +326,17 @@ def _score_hits(
     per_frame = metrics.iou_from_counts(counts, scene.names, obs.names)
     epe_first = epe_full = None
     if sums.flow is not None:
+        # `metrics.epe_mask`: the observed object pixels (flow not occluded), or in a frame without any the predicted
         ok = sums.valid[f, pix]
-        d = cast.flow[sel][ok] - sums.flow[f[ok], pix[ok]]
-        err = np.bincount(f[ok], weights=np.hypot(d[:, 0], d[:, 1]), minlength=f_count).astype(float)  # int when empty
-        cnt = np.bincount(f[ok], minlength=f_count).astype(float)
+        shows = sums.fg_count > 0
+        keep = ok & np.where(shows[f], o >= 0, True)  # predicted pixels that count: on an observed object, or all
+        d = cast.flow[sel][keep] - sums.flow[f[keep], pix[keep]]
+        err = np.bincount(f[keep], weights=np.hypot(d[:, 0], d[:, 1]), minlength=f_count).astype(float)  # int if empty
         # observed object pixels the prediction leaves empty: predicted flow 0 there, error |observed flow|
         hw = sums.seg.shape[1]
         empty = ~np.isin(sums.fg_index, f * hw + pix, assume_unique=True)
-        frame_of = sums.fg_index[empty] // hw
-        err += np.bincount(frame_of, weights=sums.fg_norm[empty], minlength=f_count)
-        cnt += np.bincount(frame_of, minlength=f_count)  # the union of both sides' object pixels
-        cnt = np.where(sums.fg_count > 0, sums.fg_count, cnt)  # divided by the observed ones (`metrics`)
+        err += np.bincount(sums.fg_index[empty] // hw, weights=sums.fg_norm[empty], minlength=f_count)
+        cnt = np.where(shows, sums.fg_count, np.bincount(f[keep], minlength=f_count)).astype(float)
         with np.errstate(invalid="ignore", divide="ignore"):
             per = np.where(cnt > 0, err / np.maximum(cnt, 1), np.nan) * (REFERENCE_WIDTH / obs.width)
         finite = per[np.isfinite(per)]

@@ -251,8 +251,9 @@ class SFTModule(L.LightningModule):
         bs = batch["input_ids"].shape[0]
         # Weighted by token counts, the epoch values are means over every response token of the split (not means
         # of batch means: a batch of short answers would weigh as much as one of long answers).
-        tokens = max(int(n), 1)
-        self.log("val/loss", loss, prog_bar=True, batch_size=tokens, sync_dist=True)
+        tokens = int(n)
+        if tokens:  # a batch without response tokens has no loss to average in
+            self.log("val/loss", loss, prog_bar=True, batch_size=tokens, sync_dist=True)
         self._vision_aux(batch, bs, "val")
         types = batch.get("type_tokens")
         n_types = 0 if types is None else lm.token_count(batch["labels"], types)
@@ -260,7 +261,7 @@ class SFTModule(L.LightningModule):
             acc = lm.token_accuracy(logits, batch["labels"], types)
             self.log("val/type_acc", acc, batch_size=n_types, sync_dist=True)
         shifted = lm.shifted_visuals(batch)
-        if shifted is not None:  # does the model look? the same with another example's frames
+        if shifted is not None and tokens:  # does the model look? the same with another example's frames
             other_loss, _, other = self._loss(shifted)
             self.log("val/image_gap", other_loss - loss, batch_size=tokens, sync_dist=True)
             if n_types:
@@ -268,8 +269,9 @@ class SFTModule(L.LightningModule):
                 self.log("val/type_acc_other_frames", acc, batch_size=n_types, sync_dist=True)
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
-        loss, _, _ = self._loss(batch)
-        self.log("test/loss", loss, batch_size=batch["input_ids"].shape[0], sync_dist=True)
+        loss, n, _ = self._loss(batch)
+        if int(n):  # a mean over the split's tokens, as val/loss
+            self.log("test/loss", loss, batch_size=int(n), sync_dist=True)
 
     def configure_optimizers(self):
         params = [p for p in self.parameters() if p.requires_grad]  # the model's, and the visual head's

@@ -162,8 +162,8 @@ def add_edit_command(sub) -> None:
     p.add_argument(
         "--render",
         metavar="DIR",
-        help="re-simulate, render, compute flow, write side_by_side.gif; exit status 1 when a rollout is invalid "
-        "(e.g. the edit starts objects overlapping), the reason on stderr",
+        help="re-simulate, render, compute flow, write side_by_side.gif; exit status 1 when the edited scene's rollout "
+        "is invalid (e.g. the edit starts objects overlapping), the reason on stderr (also the original's)",
     )
     p.add_argument("--llm", metavar="MODEL", help="edit with a transformers chat model (checked against the text)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="generation limit for --llm (default 2048)")
@@ -177,8 +177,9 @@ def add_edit_command(sub) -> None:
 def run_edit_command(args) -> int:
     """`aynamics edit`: nothing is written unless the edit is understood and the edited scene is valid.
 
-    Exit status 1 (as `simulate` and `render`) when `--render` finds a rollout invalid, e.g. an edit that moves an
-    object into the floor; the edited YAML is still written to `--out` and the files to `--render DIR`.
+    Exit status 1 (as `simulate` and `render`) when `--render` finds the edited scene's rollout invalid, e.g. an
+    edit that moves an object into the floor; the edited YAML is still written to `--out` and the files to
+    `--render DIR`. An invalid original is reported on stderr too, without failing an edit that repairs it.
     """
     from aynamics.cli import UsageError
     from aynamics.edit import EditError, apply_instruction
@@ -234,6 +235,6 @@ def run_edit_command(args) -> int:
             sys.stderr.write(f"changed {c}\n")
         if not args.out:
             sys.stdout.write(text)
-        for which, reason in invalid:
-            sys.stderr.write(f"edit: the {which} scene's rollout is invalid: {reason}\n")
-    return 1 if invalid else 0
+    for which, reason in invalid:
+        sys.stderr.write(f"edit: the {which} scene's rollout is invalid: {reason}\n")
+    return 1 if any(which == "edited" for which, _ in invalid) else 0  # an edit that repairs a scene succeeded

@@ -69,7 +69,7 @@ def naive(cands: list[S.Scene], obs: scorer.Observation, r: renderlib.Renderer) 
         seg = frames.segmentation[:, rows][:, :, cols]
         flow = np.stack(flows)[:, rows][:, :, cols] * (obs.width / r.width)
         out.append(metrics.segmentation_iou(seg, obs.segmentation)[1])
-        metrics.flow_epe(flow, obs.flow, metrics.epe_mask(seg, obs.segmentation, obs.occluded))
+        metrics.flow_epe(flow, obs.flow, seg, obs.segmentation, obs.occluded)
     return out
 
 

@@ -161,9 +161,14 @@ def test_cli_edit_render_reports_an_invalid_rollout(tmp_path, capsys):
     assert "original scene" not in err
     assert load(str(out)).object("box_0").state.position[2] == pytest.approx(-0.1)
     assert cli.main([*argv, "--height", "32", "--json"]) == 1
-    report = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
     assert report["edited_valid"] is False and report["original_valid"] is True
-    assert "overlapping start" in report["edited_reason"]
+    assert "overlapping start" in report["edited_reason"] and "overlapping start" in captured.err
+    # the edit that repairs it: the original's invalid rollout is reported, the edit succeeds
+    argv = ["edit", str(out), "move box_0 0.5 m up", "--render", str(tmp_path / "e"), "--width", "32"]
+    assert cli.main([*argv, "--height", "32"]) == 0
+    assert "edit: the original scene's rollout is invalid: overlapping start" in capsys.readouterr().err
 
 
 def test_cli_edit_missing_file(capsys):

@@ -60,45 +60,48 @@ def test_iou_falls_with_shift():
 
 
 def test_epe_hand_case():
-    """4 observed object pixels, one off by (3, 4), the rest exact: EPE = 5 / 4 = 1.25 px. Errors off every object
-    do not count; a static predicted object on still floor adds no error and does not dilute it (over the union
-    of both sides' pixels it would be 5 / 6); a moving one adds its error: (5 + 2) / 4."""
+    """4 observed object pixels, one off by (3, 4), the rest exact: EPE = 5 / 4 = 1.25 px. Errors off the observed
+    objects do not count: a still predicted object on still floor does not dilute it (over both sides' object
+    pixels it would be 5 / 5), a moving one does not inflate it (the IoU scores extra objects)."""
     obs = np.zeros((1, 2, 3, 2))
     pred = np.zeros((1, 2, 3, 2))
     pred[0, 0, 0] = (3.0, 4.0)
     pred[0, 1, 2] = (100.0, 0.0)  # on no object of either side
     obs_seg = _seg([[0, 0, -1], [0, 0, -1]])
     assert metrics.flow_epe(pred, obs, obs_seg, obs_seg) == (1.25, 1.25)
-    wall = _seg([[0, 0, 1], [0, 0, -1]])  # a still extra object over (0, 2)
-    assert metrics.flow_epe(pred, obs, wall, obs_seg) == (1.25, 1.25)
-    pred[0, 0, 2] = (0.0, 2.0)  # the extra object moves
-    assert metrics.flow_epe(pred, obs, wall, obs_seg) == (1.75, 1.75)
+    extra = _seg([[0, 0, 1], [0, 0, -1]])  # a predicted object over (0, 2), where the video shows none
+    assert metrics.flow_epe(pred, obs, extra, obs_seg) == (1.25, 1.25)
+    pred[0, 0, 2] = (0.0, 2.0)  # ... moving
+    assert metrics.flow_epe(pred, obs, extra, obs_seg) == (1.25, 1.25)
 
 
-def test_epe_divides_by_the_observed_objects():
+def test_epe_over_the_observed_objects_else_the_predicted():
     """Frame 0 shows no object on either side (nan, skipped; 0 as the first-frame figure, as in the scorer),
-    frame 1 an observed object pixel with an error of 2 beside a predicted-only still pixel: 2 / 1; frame 2 only
-    a predicted object moving by 3 over 2 pixels, where nothing is observed: divided by those 2 pixels."""
+    frame 1 an observed object pixel with an error of 2 beside a predicted-only pixel: 2 / 1; frame 2 only a
+    predicted object moving by 3 over 2 pixels, where nothing is observed: 3."""
     obs = np.zeros((3, 1, 2, 2))
     pred = np.zeros((3, 1, 2, 2))
     pred[1, 0, 0] = (0.0, 2.0)
+    pred[1, 0, 1] = (50.0, 0.0)
     pred[2, 0, :] = (3.0, 0.0)
     obs_seg = np.array([[[-1, -1]], [[0, -1]], [[-1, -1]]])
     pred_seg = np.array([[[-1, -1]], [[0, 1]], [[0, 0]]])
     per = metrics.flow_epe_frames(pred, obs, pred_seg, obs_seg)
     assert np.isnan(per[0]) and per[1:].tolist() == [2.0, 3.0]
-    assert metrics.epe_divisor(obs_seg, metrics.epe_mask(pred_seg, obs_seg)).tolist() == [0, 1, 2]
+    assert metrics.epe_mask(pred_seg, obs_seg).tolist() == [[[False, False]], [[True, False]], [[True, True]]]
     first, full = metrics.flow_epe(pred, obs, pred_seg, obs_seg)
     assert first == 0.0 and full == 2.5
     with pytest.raises(ValueError, match="flow shapes differ"):
         metrics.flow_epe(pred, obs[:1], pred_seg, obs_seg)
 
 
-def test_epe_mask_union_minus_occluded():
+def test_epe_mask_leaves_out_occluded_flow():
     pred = _seg([[0, -1, -1, 0]])
     obs = _seg([[-1, 0, -1, 0]])
     occ = np.array([[[False, False, False, True]]])
-    assert metrics.epe_mask(pred, obs, occ).tolist() == [[[True, True, False, False]]]
+    assert metrics.epe_mask(pred, obs, occ).tolist() == [[[False, True, False, False]]]
+    # every observed pixel occluded: as a frame without observed objects, the predicted pixels (not occluded)
+    assert metrics.epe_mask(pred, _seg([[-1, -1, -1, 0]]), occ).tolist() == [[[True, False, False, False]]]
 
 
 def _scene(objects: str) -> scenelib.Scene:
@@ -125,14 +128,18 @@ def test_state_mae_and_matching_by_position():
 
 def test_state_mae_counts_every_object():
     """A 3-object video predicted as one of its objects, exactly: the other two are scored against it (position
-    errors (2, 0, 0) and (0, 4, 0), velocity errors (1, 0, 0) twice) -> 6 / 9 m and 2 / 9 m/s, not 0. An extra
-    predicted object 1 m from the nearest true one adds its error the same way."""
+    errors (2, 0, 0) and (0, 4, 0), velocity errors (1, 0, 0) twice) -> 6 / 9 m and 2 / 9 m/s, not 0. Extra
+    predicted objects are not scored: copies of a well-placed object cannot lower the mean, nor a stray one raise
+    it (the count accuracy sees both)."""
     obj = "- {{type: box, size: [0.2, 0.2, 0.2], state: {{position: [{}, {}, 0.1], linear_velocity: [{}, 0, 0]}}}}\n"
     truth = _scene(obj.format(0, 0, 0) + obj.format(2, 0, 1) + obj.format(0, 4, 1))
     one = _scene(obj.format(0, 0, 0))
     assert metrics.state_mae(one, truth) == pytest.approx((6 / 9, 2 / 9))
     extra = _scene(obj.format(0, 0, 0) + obj.format(2, 0, 1) + obj.format(0, 4, 1) + obj.format(3, 0, 1))
-    assert metrics.state_mae(extra, truth) == pytest.approx((1 / 12, 0.0))
+    assert metrics.state_mae(extra, truth) == pytest.approx((0.0, 0.0))
+    off = _scene(obj.format(0.3, 0, 0) + obj.format(2, 0, 1) + obj.format(0, 4, 1))  # 0.3 m off: 0.3 / 9
+    padded = _scene(obj.format(0.3, 0, 0) + obj.format(2, 0, 1) + obj.format(0, 4, 1) + obj.format(2.01, 0, 1) * 3)
+    assert metrics.state_mae(off, truth)[0] == pytest.approx(0.3 / 9) == metrics.state_mae(padded, truth)[0]
 
 
 def test_composition_accuracy():

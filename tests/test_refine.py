@@ -246,8 +246,10 @@ def test_cli_sigma_scale_for_a_close_start(tmp_path, capsys):
     assert cli.main([*args, "--sigma-scale", "0.1", "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
     assert record["iou_full_before"] < 0.75 and record["iou_full_after"] > record["iou_full_before"] + 0.1
+    assert cli.main([*args, "--json"]) == 0  # the default scale improves it too
+    assert json.loads(capsys.readouterr().out)["iou_full_after"] > record["iou_full_before"] + 0.05
     assert cli.main([*args, "--sigma-scale", "0"]) == 2
-    assert "--sigma-scale 0 must be > 0" in capsys.readouterr().err
+    assert "--sigma-scale 0 must be a finite number > 0" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

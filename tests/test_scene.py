@@ -394,9 +394,11 @@ def test_deep_nesting_is_a_scene_error_not_a_crash(text):
 
 def test_numbers_are_read_as_yaml_1_2():
     """`1e-1`, `2E5`, `1.0e5` are numbers (YAML 1.1 read them as strings: "must be a number, got str"); `1:00` is
-    not 60 nor `0x1F` 31 (1.1's base-60 and hex integers). Both loaders agree."""
-    text = "a: 1e-1\nb: 2E5\nc: 1.0e5\nd: 1:00\ne: 0x1F\nf: 10\ng: -.5\nh: .inf\ni: true\n"
-    want = {"a": 0.1, "b": 2e5, "c": 1e5, "d": "1:00", "e": "0x1F", "f": 10, "g": -0.5, "h": math.inf, "i": True}
+    not 60 (1.1's base 60) and `010` is 10, not octal 8 (`09` was an unreadable octal); `0x1F` and `0o17` are 31
+    and 15, as in YAML 1.2. Both loaders agree."""
+    text = "a: 1e-1\nb: 2E5\nc: 1.0e5\nd: 1:00\ne: 0x1F\nf: 10\ng: -.5\nh: .inf\ni: true\nj: 010\nk: 09\nl: 0o17\n"
+    want = {"a": 0.1, "b": 2e5, "c": 1e5, "d": "1:00", "e": 31, "f": 10, "g": -0.5, "h": math.inf, "i": True}
+    want |= {"j": 10, "k": 9, "l": 15}
     assert S.load_yaml(text) == want and yaml.load(text, Loader=S._NoAliasLoader) == want  # noqa: S506
     box = OK_BOX + "  physics: {mass: 1e-1}\n" + CAMERA
     assert S.parse(box).objects[0].physics.mass == pytest.approx(0.1)
@@ -408,3 +410,19 @@ def test_unhashable_key_is_not_called_a_tag():
     with pytest.raises(S.SceneError, match="found unhashable key") as err:
         S.load_yaml("[a]: 1\n")
     assert "tag" not in str(err.value)
+
+
+def test_whole_numbers_at_zero_decimals_keep_their_digits():
+    """`dump(decimals=0)` wrote 10.0 as `1` and 0.0 as an empty value (trailing zeros stripped without a point)."""
+    assert [S._num(x, 0) for x in (10.0, 0.0, -0.2, 250.0)] == ["10", "0", "0", "250"]
+    assert [S._num(x) for x in (10.0, 0.0, -0.0, 0.25)] == ["10.0", "0.0", "0.0", "0.25"]
+
+
+def test_load_counts_characters_not_bytes(tmp_path):
+    """A valid file of non-ASCII text longer than MAX_TEXT_CHARS bytes but not characters loads (it was cut at
+    MAX_TEXT_CHARS + 1 bytes, mid-character: "not UTF-8 text")."""
+    text = OK_BOX + CAMERA + "# " + "é" * (S.MAX_TEXT_CHARS // 2 + 100) + "\n"
+    assert len(text) < S.MAX_TEXT_CHARS < len(text.encode())
+    path = tmp_path / "accents.yaml"
+    path.write_text(text, encoding="utf-8")
+    assert S.load(str(path)) == S.parse(OK_BOX + CAMERA)

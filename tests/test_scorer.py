@@ -191,6 +191,11 @@ def test_observation_from_dir_errors(tmp_path):
         ValueError, match=r"flow.npy: 1 sampled pixels hold NaN or infinite flow \(the first in flow 3\)"
     ):
         scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    occluded = np.zeros((29, 8, 8), bool)
+    occluded[3, 2, 2] = True  # ... unless occlusion.npy marks the pixel: it is never read
+    np.save(tmp_path / "occlusion.npy", occluded)
+    obs = scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    assert np.isfinite(obs.flow).all() and obs.occluded[1, 2, 2]
 
 
 def test_unreadable_mask_png_is_named(tmp_path):
@@ -205,13 +210,22 @@ def test_unreadable_mask_png_is_named(tmp_path):
         scorer.Observation.from_dir(tmp_path, width=8, height=8)
 
 
-def test_sparse_scores_equal_dense_metrics(observed):
-    """The scorer's sparse metrics equal `aynamics.metrics` on the dense arrays of the same candidates."""
+@pytest.mark.parametrize("empty_frame", [False, True], ids=["as observed", "frame 2 shows nothing"])
+def test_sparse_scores_equal_dense_metrics(observed, empty_frame):
+    """The scorer's sparse metrics equal `aynamics.metrics` on the dense arrays of the same candidates, also in a
+    frame where the video shows no object (EPE then averages over the predicted pixels)."""
+    import dataclasses
+
     from aynamics import metrics
 
+    if empty_frame:
+        seg = observed.segmentation.copy()
+        seg[2] = -1
+        observed = dataclasses.replace(observed, segmentation=seg)
     cands = [_moved(SCENE, dx) for dx in (0.03, 0.15, 0.5)]
     cast = raycast.cast_group(cands, SCENE.structure, observed.frames, W, H, observed.config, 1)
     seg, flow = cast.seg, cast.dense_flow
+    assert (seg[:, 2] >= 0).any()
     for k, s in enumerate(scorer.score(cands, observed)):
         iou = metrics.segmentation_iou(seg[k], observed.segmentation, pred_names=SCENE.names, obs_names=SCENE.names)
         epe = metrics.flow_epe(flow[k], observed.flow, seg[k], observed.segmentation, observed.occluded)
