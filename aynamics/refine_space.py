@@ -34,8 +34,8 @@ SCENE_GROUPS = ("camera", "gravity")
 DEFAULT_PARAMS = ("position", "orientation", "linear_velocity", "angular_velocity")
 # What `refine` multiplies the steps by at first. Measured (`benchmarks/study_refine_steps.py`: 10 sampled scenes
 # of 1-3 objects per level, positions and velocities perturbed horizontally by normal errors, default params,
-# budget 400): final full IoU at step scales 1 / 0.3 / 0.1 was 0.81 / 0.89 / 0.90 from close starts (0.1 m,
-# 0.4 m/s; start IoU 0.54), 0.88 / 0.93 / 0.92 from medium ones (0.3 m, 1 m/s; 0.21) and 0.77 / 0.79 from far
+# budget 400): final full IoU at step scales 1 / 0.3 / 0.1 was 0.82 / 0.90 / 0.91 from close starts (0.1 m,
+# 0.4 m/s; start IoU 0.54), 0.90 / 0.93 / 0.92 from medium ones (0.3 m, 1 m/s; 0.21) and 0.77 / 0.79 from far
 # ones (2 m, 3 m/s; 0.07, where the track stage moves first).
 DEFAULT_SIGMA_SCALE = 0.3
 
