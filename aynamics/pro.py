@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,7 @@ from aynamics import lm
 from aynamics import reward as rw
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
-from aynamics.unlabeled import UnlabeledVideo, collate_videos, open_videos
+from aynamics.unlabeled import UnlabeledVideo, collate_videos, is_generated, open_videos
 
 LOSSES = ("soft", "ranking")
 MODES = ("online", "offline")
@@ -297,6 +298,9 @@ class ProDataModule(L.LightningDataModule):
         as_video, num_frames, min_pixels, max_pixels: How the frames are given (see `lm.PromptSpec`).
         preferences_dir: The offline preference data set (`aynamics preferences`); None in online mode.
         train_split, val_split: Splits of a generated data set (validation falls back to the first training videos).
+        val_dir: Held-out videos for validation (a generated data set, whose `val_split` is read, or a folder of
+            video folders). A folder of video folders as `dir` has no splits: without `val_dir` its first videos,
+            trained on, are validated on too (with a warning).
         batch_size: Videos (online) or preference rows (offline) per step per process.
         limit_train, limit_val: Keep only the first videos of each split (None: all).
         use_flow: Decode the observed flow (needed for EPE rewards and the EPE columns of validation).
@@ -317,6 +321,7 @@ class ProDataModule(L.LightningDataModule):
         preferences_dir: str | None = None,
         train_split: str = "train",
         val_split: str = "validation",
+        val_dir: str | None = None,
         batch_size: int = 1,
         limit_train: int | None = None,
         limit_val: int | None = 4,
@@ -350,11 +355,19 @@ class ProDataModule(L.LightningDataModule):
             self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
         if len(self.train_set) == 0:
             raise ValueError(f"data.dir = {hp.dir!r}: split {hp.train_split!r} holds no videos")
+        held_out = hp.val_dir if hp.val_dir is not None else hp.dir
         try:
-            self.val_set = open_videos(hp.dir, hp.val_split, limit=hp.limit_val, **kw)
+            self.val_set = open_videos(held_out, hp.val_split, limit=hp.limit_val, **kw)
         except ValueError:  # no such split
             self.val_set = []
-        if len(self.val_set) == 0:
+        if hp.val_dir is not None and len(self.val_set) == 0:
+            raise ValueError(f"data.val_dir = {hp.val_dir!r}: holds no videos (split {hp.val_split!r})")
+        if hp.val_dir is None and (len(self.val_set) == 0 or not is_generated(hp.dir)):
+            warnings.warn(
+                f"PRO validation scores the first training videos of data.dir = {hp.dir!r} (no {hp.val_split!r} "
+                "split there): give held-out videos as data.val_dir",
+                stacklevel=2,
+            )
             self.val_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_val or 1, **kw)
 
     def transfer_batch_to_device(self, batch: list, device: torch.device, dataloader_idx: int) -> list:

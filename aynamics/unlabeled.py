@@ -244,6 +244,12 @@ def load_folders(path: str | Path, *, width: int | None = None, height: int | No
     return [video_from_folder(p, width=width, height=height) for p in subs]
 
 
+def is_generated(path: str | Path) -> bool:
+    """Whether `path` is a generated data set (with splits) rather than a folder of video folders."""
+    root = Path(path)
+    return (root / "dataset_dict.json").is_file() or (root / "state.json").is_file()
+
+
 def open_videos(
     path: str | Path,
     split: str = "train",
@@ -256,7 +262,7 @@ def open_videos(
 ) -> Sequence[UnlabeledVideo]:
     """Unlabeled videos from a generated data set (a folder with `dataset_dict.json` or `state.json`) or folders."""
     root = Path(path)
-    if (root / "dataset_dict.json").is_file() or (root / "state.json").is_file():
+    if is_generated(root):
         return GeneratedVideos(root, split, inputs=inputs, width=width, height=height, use_flow=use_flow, limit=limit)
     videos = load_folders(root, width=width, height=height)
     return videos[:limit] if limit is not None else videos

@@ -395,3 +395,39 @@ def test_pro_loader_shards_over_the_trainers_ranks(dataset_dir):
     assert len(r0) == len(r1) == -(-n // 2) and set(r0) | set(r1) == {v.key for v in dm.train_set}
     assert len(set(r0) & set(r1)) <= 1  # at most the one padding video, as DDP pads
     assert keys(0, step=1) == r0[1:] and keys(1, step=1) == r1[1:]
+
+
+def _video_folder(root, value: int) -> None:
+    """A 30-frame video folder (frames/*.png, segmentation.npy) of 16×16 pixels, every frame of colour `value`."""
+    import numpy as np
+    from PIL import Image
+
+    (root / "frames").mkdir(parents=True)
+    seg = np.full((30, 16, 16), -1, np.int16)
+    seg[:, 4:8, 4:8] = 0
+    np.save(root / "segmentation.npy", seg)
+    for k in range(30):
+        Image.fromarray(np.full((16, 16, 3), value, np.uint8)).save(root / "frames" / f"{k:03d}.png")
+
+
+def test_folder_videos_validate_on_val_dir_or_say_they_do_not(tmp_path):
+    """A folder of video folders has no splits: with data.val_dir, validation reads those held-out videos; without,
+    it scores the first training videos, as before, but now says so."""
+    from aynamics.pro import ProDataModule
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    for name, value in (("a", 10), ("b", 20)):
+        _video_folder(tmp_path / "train" / name, value)
+    _video_folder(tmp_path / "held_out" / "c", 30)
+    kw = {"batch_size": 1, "num_frames": 2, "use_flow": False}
+    dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), val_dir=str(tmp_path / "held_out"), **kw)
+    dm.setup("fit")
+    assert [v.frames[0].getpixel((0, 0)) for v in dm.val_set] == [(30, 30, 30)]
+    dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), **kw)
+    with pytest.warns(UserWarning, match="PRO validation scores the first training videos"):
+        dm.setup("fit")
+    assert [v.frames[0].getpixel((0, 0)) for v in dm.val_set] == [(10, 10, 10), (20, 20, 20)]
+    (tmp_path / "empty").mkdir()
+    dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), val_dir=str(tmp_path / "empty"), **kw)
+    with pytest.raises(FileNotFoundError, match="empty"):
+        dm.setup("fit")
