@@ -38,6 +38,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     interval = cfg.trainer.get("val_check_interval")
     if isinstance(interval, int | float) and not interval > 0:  # Lightning divided by it after the first step
         raise ValueError(f"trainer.val_check_interval = {interval}: must be > 0 (steps, or a share of an epoch)")
+    if cfg.get("ckpt_path"):
+        from aynamics.lm import check_resume_checkpoint
+
+        check_resume_checkpoint(cfg.ckpt_path)  # before the model loads
     L.seed_everything(cfg.seed, workers=True)
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)

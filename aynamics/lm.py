@@ -408,6 +408,32 @@ def check_adapter_files(adapter_dir: str | Path) -> None:
         raise ValueError(f"{str(weights)!r} is not a readable safetensors file (truncated?): {e}") from None
 
 
+def check_resume_checkpoint(path: str | Path) -> None:
+    """Refuse, before a model is built, a `ckpt_path` that Lightning could not resume from: a missing path, a file
+    torch cannot read (as Lightning reads it: `weights_only`) or a dict without Lightning's version key (Lightning
+    then failed with `KeyError: 'pytorch-lightning_version'`). A folder (DeepSpeed's sharded checkpoints) is left
+    to Lightning.
+
+    Raises:
+        FileNotFoundError: nothing at `path`.
+        ValueError: not a Lightning checkpoint (the path and the reason named).
+    """
+    path = Path(path)
+    if path.is_dir():
+        return
+    if not path.is_file():
+        raise FileNotFoundError(2, f"ckpt_path = {str(path)!r}: no such checkpoint", str(path))
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as e:  # torch raises pickle, zip and runtime errors for a file that is no checkpoint
+        raise ValueError(f"ckpt_path = {str(path)!r}: not a checkpoint torch can read ({type(e).__name__})") from None
+    if not isinstance(ckpt, dict) or "pytorch-lightning_version" not in ckpt:
+        raise ValueError(
+            f"ckpt_path = {str(path)!r}: not a Lightning training checkpoint (resume from OUT/checkpoints/last.ckpt "
+            "or a stepNNNNNN.ckpt of a train.py run)"
+        )
+
+
 def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     """Write the peft adapter folder (what `save_adapter` writes) of a training checkpoint: any step's, while
     `OUT/adapter` holds the latest. The checkpoint keeps the trained weights only (LoRA, `modules_to_save`, a

@@ -542,6 +542,16 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
             train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", *overrides))
     with pytest.raises(FileNotFoundError, match="holds no data set"):
         train(_cfg(tmp_path / "x", f"data.dir={tmp_path / 'nope'}"))
+    torch.save({"state_dict": {}}, tmp_path / "plain.pt")  # a torch file, not Lightning's: KeyError in Lightning
+    (tmp_path / "garbage.ckpt").write_bytes(b"not a checkpoint")
+    for ckpt, message in [
+        (tmp_path / "plain.pt", "not a Lightning training checkpoint"),
+        (tmp_path / "garbage.ckpt", "not a checkpoint torch can read"),
+    ]:
+        with pytest.raises(ValueError, match=rf"ckpt_path = .*{ckpt.name}': {message}"):
+            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", f"ckpt_path={ckpt}"))
+    with pytest.raises(FileNotFoundError, match="no such checkpoint"):
+        train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", f"ckpt_path={tmp_path / 'none.ckpt'}"))
     broken = tmp_path / "broken"
     shutil.copytree(dataset_dir, broken)
     arrow = next((broken / "train").glob("*.arrow"))
