@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from aynamics.metrics import state_mae
-from aynamics.refine import refine
+from aynamics.refine import DEFAULT_SIGMA_SCALE, refine
 from aynamics.sampler import SamplerConfig, sample_scene, scene_seed
 from aynamics.scene import RANGES, Scene, from_items, to_items
 from aynamics.scorer import Observation
@@ -58,10 +58,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--stop-at", type=float, default=0.99, help="refine's stop_at (objective value)")
     ap.add_argument("--params", default="position,linear_velocity", help="groups searched (refine's params)")
+    ap.add_argument("--sigma-scale", type=float, default=DEFAULT_SIGMA_SCALE, help="refine's initial step scale")
     args = ap.parse_args()
     print(
         f"machine: {os.cpu_count()} CPU cores, load average {os.getloadavg()[0]:.1f} at start; budget "
-        f"{args.budget} simulations / {args.seconds:g} s per scene; params {args.params}; stop at {args.stop_at}"
+        f"{args.budget} simulations / {args.seconds:g} s per scene; params {args.params}; stop at {args.stop_at}; "
+        f"step scale {args.sigma_scale:g}"
     )
     cfg = SamplerConfig(max_objects=3)
     for level in args.levels.split(","):
@@ -81,6 +83,7 @@ def main() -> None:
                     seconds=args.seconds,
                     seed=i,
                     stop_at=args.stop_at,
+                    sigma_scale=args.sigma_scale,
                 )
             except Exception as e:  # report and go on: one failing scene must not hide the others' figures
                 print(f"  [{level}] scene {i:2d} FAILED: {type(e).__name__}: {e}", flush=True)
