@@ -122,10 +122,11 @@ def run_collect(args) -> int:
         rows = collect(args.folder)
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(f"collect: {e}") from None
+    dest = args.out or Path(args.folder) / "summary.csv"
     try:
-        out = write_csv(rows, args.out or Path(args.folder) / "summary.csv")
+        out = write_csv(rows, dest)
     except OSError as e:
-        raise UsageError(f"collect: cannot write {args.out or Path(args.folder) / 'summary.csv'}: {e}") from None
+        raise UsageError(f"collect: cannot write {dest}: {e}") from None
     sys.stdout.write(to_markdown(rows) + f"\n\n(written to {out})\n")
     return 0
 

@@ -532,8 +532,14 @@ class SceneDataModule(L.LightningDataModule):
             record = ds[i]
             frames = frames_of(record, self.prompt.modality)
             prompt = lm.prompt_inputs(self.processor, self.prompt, frames)
-            row = {"index": record.get("index", i), "prompt": prompt, "scene_yaml": record["scene_yaml"]}
-            out.append(row | {"size": tuple(frames[0].size)})
+            out.append(
+                {
+                    "index": record.get("index", i),
+                    "prompt": prompt,
+                    "scene_yaml": record["scene_yaml"],
+                    "size": tuple(frames[0].size),
+                }
+            )
         return out
 
 

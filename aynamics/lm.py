@@ -408,6 +408,15 @@ def check_adapter_files(adapter_dir: str | Path) -> None:
         raise ValueError(f"{str(weights)!r} is not a readable safetensors file (truncated?): {e}") from None
 
 
+def keep_trainable_weights(checkpoint: dict, module: torch.nn.Module) -> None:
+    """Keep only `module`'s trainable weights (the adapter, `modules_to_save`, a trained tower) in a Lightning
+    checkpoint dict; the frozen base is rebuilt from the spec. DeepSpeed's dict has no `state_dict` (it saves the
+    weights itself, `exclude_frozen_parameters` in its config)."""
+    if "state_dict" in checkpoint:
+        trainable = {k for k, p in module.named_parameters() if p.requires_grad}
+        checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
+
+
 def check_resume_checkpoint(path: str | Path) -> None:
     """Refuse, before a model is built, a `ckpt_path` that Lightning could not resume from: a missing path, a file
     torch cannot read (as Lightning reads it: `weights_only`) or a dict without Lightning's version key (Lightning

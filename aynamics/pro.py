@@ -272,9 +272,7 @@ class ProModule(L.LightningModule):
     # ----------------------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Keep only the trainable weights (the adapter) in the checkpoint."""
-        trainable = {f"model.{n}" for n, p in self.model.named_parameters() if p.requires_grad}
-        if "state_dict" in checkpoint:  # DeepSpeed saves the weights itself
-            checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
+        lm.keep_trainable_weights(checkpoint, self)  # all of them under self.model
 
 
 def _margin(seq: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:

@@ -538,10 +538,10 @@ def _core_schema_numbers(table: dict) -> dict:
             "-+0123456789.",
         ),
     )
-    for tag, rx, first in numbers:  # integers first: "10" also matches the float pattern
+    for tag, rx, first in numbers:  # integers appended first: "10" also matches the float pattern
         for ch in first:
             out.setdefault(ch, []).append((tag, rx))
-    return {k: [(t, r) for t, r in v if t == int_tag] + [(t, r) for t, r in v if t != int_tag] for k, v in out.items()}
+    return out
 
 
 def _construct_int(loader, node) -> int:

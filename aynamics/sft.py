@@ -304,9 +304,7 @@ class SFTModule(L.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Keep only the trainable weights (the adapter) and record the RNG states for an exact resume."""
-        trainable = {k for k, p in self.named_parameters() if p.requires_grad}
-        if "state_dict" in checkpoint:  # DeepSpeed saves the weights itself (exclude_frozen_parameters in its config)
-            checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
+        lm.keep_trainable_weights(checkpoint, self)
         kind, keys, pos, has_gauss, gauss = np.random.get_state()
         # plain types and tensors only: Lightning loads checkpoints with torch.load(weights_only=True)
         checkpoint["rng"] = {
