@@ -181,7 +181,10 @@ class GeneratedVideos(torch.utils.data.Dataset):
             raise FileNotFoundError(2, f"data set folder {str(root)!r} does not exist", str(root))
         if inputs not in INPUTS:
             raise ValueError(f"inputs = {inputs!r}: must be one of {INPUTS}")
-        ds = datasets.load_from_disk(str(root))
+        try:
+            ds = datasets.load_from_disk(str(root))
+        except (OSError, ValueError) as e:  # no dataset_dict.json / state.json, truncated .arrow files, bad JSON
+            raise ValueError(f"data set {str(root)!r} cannot be read ({type(e).__name__}: {e})") from None
         if isinstance(ds, datasets.DatasetDict):
             if split not in ds:
                 raise ValueError(f"split = {split!r}: {str(root)!r} holds the splits {sorted(ds)}")
@@ -203,6 +206,15 @@ class GeneratedVideos(torch.utils.data.Dataset):
         return video_from_record(rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow)
 
 
+def _read_rgb(path: Path) -> Image.Image:
+    """One frame as RGB, its file named when Pillow cannot read it (truncated, not an image, unreadable)."""
+    try:
+        with Image.open(path) as im:
+            return im.convert("RGB")
+    except (OSError, ValueError, Image.DecompressionBombError) as e:
+        raise ValueError(f"cannot read frame {str(path)!r}: {type(e).__name__}: {e}") from None
+
+
 def video_from_folder(path: str | Path, *, width: int | None = None, height: int | None = None) -> UnlabeledVideo:
     """An `UnlabeledVideo` from `frames/*.png` plus the scorer's observed layout (see the module docstring).
 
@@ -211,7 +223,7 @@ def video_from_folder(path: str | Path, *, width: int | None = None, height: int
 
     Raises:
         FileNotFoundError: the folder, its frames or its segmentation is missing.
-        ValueError: frame counts that fit neither case.
+        ValueError: frame counts that fit neither case, or a frame Pillow cannot read (named).
     """
     root = Path(path)
     obs = Observation.from_dir(root, width=width, height=height)  # raises for a missing folder / masks
@@ -227,7 +239,7 @@ def video_from_folder(path: str | Path, *, width: int | None = None, height: int
             f"{str(root / 'frames')!r}: {len(files)} frames; need every video frame (> {int(obs.frames.max())}) "
             f"or exactly the {len(obs.frames)} sampled ones"
         )
-    frames = tuple(Image.open(f).convert("RGB") for f in chosen)
+    frames = tuple(_read_rgb(f) for f in chosen)
     return UnlabeledVideo(root.name, frames, obs)
 
 

@@ -241,6 +241,19 @@ def test_video_folder_with_frames_and_masks(tmp_path):
     assert len(video.frames) == 10 and video.frames[1].getpixel((0, 0)) == (3, 3, 3)
     r = rw.simulator_rewards([dump(scene), dump(_moved(scene, dx=0.5))], [video.observation] * 2)
     assert r[0] == pytest.approx(1.0) and r[1] < 0.9
+    broken = root / "frames" / "003.png"
+    broken.write_bytes(broken.read_bytes()[:40])  # truncated
+    with pytest.raises(ValueError, match=r"cannot read frame .*003\.png"):
+        open_videos(root)
+
+
+def test_generated_videos_broken_data_set_named(tmp_path):
+    """A data set folder whose files cannot be read: a ValueError naming the folder (was the library's own error)."""
+    root = tmp_path / "ds"
+    root.mkdir()
+    (root / "dataset_dict.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"data set '.*ds' cannot be read"):
+        open_videos(root)
 
 
 # --------------------------------------------------------------------------------------------
