@@ -26,6 +26,16 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
 _THINK = re.compile(r"<think>(.*?)(?:</think>|$)", re.S)
 
 
+def read_image(path: str | Path) -> np.ndarray:
+    """One image file as an array, its path named when it cannot be read (truncated, not an image, unreadable)."""
+    import imageio.v3 as iio
+
+    try:
+        return iio.imread(path)
+    except Exception as e:  # Pillow and imageio raise OSError, ValueError and more for a broken image
+        raise ValueError(f"cannot read frame {str(path)!r}: {type(e).__name__}: {e}") from None
+
+
 def read_frames(path: str | Path) -> list[np.ndarray]:
     """RGB frames (H, W, 3) uint8 of a folder of images (name order) or a video file.
 
@@ -42,12 +52,7 @@ def read_frames(path: str | Path) -> list[np.ndarray]:
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not files:
             raise ValueError(f"{str(path)!r} holds no frames (looked for {', '.join(IMAGE_SUFFIXES)})")
-        frames = []
-        for p in files:
-            try:
-                frames.append(iio.imread(p))
-            except Exception as e:  # Pillow and imageio raise OSError, ValueError and more for a broken image
-                raise ValueError(f"cannot read frame {str(p)!r}: {type(e).__name__}: {e}") from None
+        frames = [read_image(p) for p in files]
     else:
         try:
             frames = list(iio.imiter(path))

@@ -26,6 +26,7 @@ import torch
 from matplotlib.colors import rgb_to_hsv
 from PIL import Image
 
+from aynamics.predict import read_image
 from aynamics.scorer import Observation, scoring_size
 
 # Columns of a generated record that the PRO stage may read; everything else (the labels) is dropped on loading.
@@ -206,15 +207,6 @@ class GeneratedVideos(torch.utils.data.Dataset):
         return video_from_record(rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow)
 
 
-def _read_rgb(path: Path) -> Image.Image:
-    """One frame as RGB, its file named when Pillow cannot read it (truncated, not an image, unreadable)."""
-    try:
-        with Image.open(path) as im:
-            return im.convert("RGB")
-    except (OSError, ValueError, Image.DecompressionBombError) as e:
-        raise ValueError(f"cannot read frame {str(path)!r}: {type(e).__name__}: {e}") from None
-
-
 def video_from_folder(path: str | Path, *, width: int | None = None, height: int | None = None) -> UnlabeledVideo:
     """An `UnlabeledVideo` from `frames/*.png` plus the scorer's observed layout (see the module docstring).
 
@@ -239,7 +231,7 @@ def video_from_folder(path: str | Path, *, width: int | None = None, height: int
             f"{str(root / 'frames')!r}: {len(files)} frames; need every video frame (> {int(obs.frames.max())}) "
             f"or exactly the {len(obs.frames)} sampled ones"
         )
-    frames = tuple(_read_rgb(f) for f in chosen)
+    frames = tuple(Image.fromarray(read_image(f)).convert("RGB") for f in chosen)
     return UnlabeledVideo(root.name, frames, obs)
 
 
