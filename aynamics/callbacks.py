@@ -25,9 +25,8 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-from lightning.pytorch.utilities import rank_zero_only
 
-from aynamics import lm, metrics
+from aynamics import lm, metrics, sharding
 from aynamics.scene import Scene, SceneError, parse
 
 METRIC_KEYS = (
@@ -119,9 +118,13 @@ class AdapterExport(L.Callback):
     def _prompt(trainer: L.Trainer) -> lm.PromptSpec:
         return trainer.datamodule.prompt if trainer.datamodule is not None else lm.PromptSpec()
 
-    @rank_zero_only
-    def export(self, trainer: L.Trainer, pl_module: L.LightningModule) -> Path:
-        return lm.save_adapter(pl_module.model, self._dir(trainer), pl_module.spec, self._prompt(trainer))
+    def export(self, trainer: L.Trainer, pl_module: L.LightningModule) -> Path | None:
+        """Rank 0 writes the adapter folder (returned; None on other ranks). Sharded weights (trainer=fsdp) are
+        gathered first, on every rank."""
+        state = sharding.trainable_state(pl_module.model) if sharding.is_sharded(pl_module.model) else None
+        if not trainer.is_global_zero:
+            return None
+        return lm.save_adapter(pl_module.model, self._dir(trainer), pl_module.spec, self._prompt(trainer), state)
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
         # plain JSON types (peft's dict holds enums and sets): checkpoints load with torch.load(weights_only=True)
@@ -237,19 +240,17 @@ class SceneEvaluation(L.Callback):
             return
         if trainer.is_global_zero:
             self.evaluate(trainer, pl_module)
+        elif sharding.is_sharded(pl_module.model):  # each forward gathers weights from every rank: generate too
+            self._prepare(trainer)
+            self._generate(trainer, pl_module)
 
     def evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:
         """Generate, score, log and write files; returns the model's summary."""
         self._prepare(trainer)
-        processor = trainer.datamodule.processor
         records = self._records
         if not records:  # every record left out (warned in _prepare)
             return {}
-        texts: list[str] = []
-        with torch.no_grad():
-            for i in range(0, len(records), self.batch_size):
-                chunk = [r["prompt"] for r in records[i : i + self.batch_size]]
-                texts += lm.greedy_texts(pl_module.model, processor, chunk, self.max_new_tokens)
+        texts = self._generate(trainer, pl_module)
         per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
         summary = summarize(per)
         self.last, self.evaluated = summary, len(records)
@@ -260,6 +261,16 @@ class SceneEvaluation(L.Callback):
             pl_module.log(k, float(v), rank_zero_only=True, on_epoch=True)
         self._write(trainer, texts, records, per)
         return summary
+
+    def _generate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> list[str]:
+        """Greedy responses to the evaluation prompts (on every rank when the weights are sharded)."""
+        processor = trainer.datamodule.processor
+        texts: list[str] = []
+        with torch.no_grad():
+            for i in range(0, len(self._records), self.batch_size):
+                chunk = [r["prompt"] for r in self._records[i : i + self.batch_size]]
+                texts += lm.greedy_texts(pl_module.model, processor, chunk, self.max_new_tokens)
+        return texts
 
     def _write(self, trainer: L.Trainer, texts: list[str], records: list[dict], per: dict[str, list]) -> None:
         out = self._out(trainer)

@@ -292,11 +292,20 @@ def trainable_state_dict(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {k: p.detach() for k, p in model.named_parameters() if p.requires_grad}
 
 
-def save_adapter(model: torch.nn.Module, out: str | Path, spec: ModelSpec, prompt: PromptSpec) -> Path:
-    """Write the peft adapter (`PeftModel.from_pretrained(base, out)` loads it) and `aynamics.json` beside it."""
+def save_adapter(
+    model: torch.nn.Module,
+    out: str | Path,
+    spec: ModelSpec,
+    prompt: PromptSpec,
+    state_dict: dict[str, torch.Tensor] | None = None,
+) -> Path:
+    """Write the peft adapter (`PeftModel.from_pretrained(base, out)` loads it) and `aynamics.json` beside it.
+
+    `state_dict`: the weights to write instead of the model's own (sharded models: `sharding.trainable_state`).
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    model.save_pretrained(str(out))
+    model.save_pretrained(str(out), **({"state_dict": state_dict} if state_dict is not None else {}))
     (out / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
     return out
 

@@ -35,7 +35,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from aynamics import lm
+from aynamics import lm, sharding
 from aynamics import reward as rw
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
@@ -135,6 +135,11 @@ class ProModule(L.LightningModule):
         self.hparams["spec"] = dataclasses.asdict(self.spec)
         self.processor, self.prompt = processor, prompt
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
+
+    def configure_model(self) -> None:
+        """Under `trainer=fsdp` (a device mesh is set): shard the policy (`aynamics.sharding`)."""
+        if self.device_mesh is not None and not sharding.is_sharded(self.model):
+            sharding.shard_model(self.model, sharding.data_parallel_mesh(self.device_mesh))
 
     def setup(self, stage: str) -> None:
         """Processor and prompt from the data module (the frames it serves are shown the way the prompt says)."""

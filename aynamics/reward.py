@@ -300,6 +300,8 @@ def sample_completions(
         raise ValueError(f"temperature = 0 (greedy) with num_samples = {num_samples}: greedy gives one response")
     if max_new_tokens < 1:
         raise ValueError(f"max_new_tokens = {max_new_tokens}: must be >= 1")
+    from aynamics.sharding import generation_kwargs
+
     tok = processor.tokenizer
     batch = collate(list(prompts), tok.pad_token_id)
     device = next(model.parameters()).device
@@ -315,6 +317,7 @@ def sample_completions(
             use_cache=True,
             suppress_tokens=vision_token_ids(model),  # never sampled: they would count as image slots
             **decoding(temperature, top_p),
+            **generation_kwargs(model),  # sharded weights (trainer=fsdp): every process generates together
         )
     finally:
         model.train(was_training)

@@ -20,7 +20,7 @@ import lightning as L
 import numpy as np
 import torch
 
-from aynamics import lm, visual_targets
+from aynamics import lm, sharding, visual_targets
 from aynamics.model import find_visual
 from aynamics.processor import model_inputs
 
@@ -154,6 +154,11 @@ class SFTModule(L.LightningModule):
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
         self._rng_to_restore: dict | None = None
 
+    def configure_model(self) -> None:
+        """Under `trainer=fsdp` (a device mesh is set): shard the model and the dense visual head."""
+        if self.device_mesh is not None and not sharding.is_sharded(self.model):
+            sharding.shard_model(self.model, sharding.data_parallel_mesh(self.device_mesh), (self.visual_head,))
+
     # ------------------------------------------------------------------ steps
     def _keep_visual_tokens(self, module, args, output) -> None:
         self._visual_tokens = getattr(output, "pooler_output", output)  # merged tokens, in the processor's order
@@ -206,6 +211,12 @@ class SFTModule(L.LightningModule):
         # Resuming (global_step is restored only after this hook): the checkpoint holds the warmed-up weights.
         if not steps or self.trainer.ckpt_path is not None:
             return
+        if sharding.is_sharded(self.model):
+            raise ValueError(
+                f"stage.module.vision_warmup_steps = {steps} with sharded weights (trainer=fsdp): the warm-up runs "
+                "the vision tower outside the model's forward, which FSDP2 cannot order; set it to 0, or warm up "
+                "under trainer=cpu / ddp"
+            )
         history = visual_targets.warm_up(
             find_visual(self.model),
             self.visual_head,

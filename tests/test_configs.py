@@ -52,9 +52,15 @@ def test_group_composes(tmp_path, group, name):
         loggers = [hydra.utils.instantiate(c) for c in cfg.logger.values()]
         assert len(loggers) == {"default": 2, "csv": 1, "tensorboard": 1, "none": 0}[name]
     if group == "trainer":
-        if name in ("cpu", "ddp"):
-            trainer = hydra.utils.instantiate(cfg.trainer, accelerator="cpu", logger=False)
-            assert trainer.world_size == (2 if name == "ddp" else 1)
+        if name in ("cpu", "ddp", "fsdp"):  # FSDP2 (aynamics.sharding) runs on the CPU too
+            trainer = hydra.utils.instantiate(
+                cfg.trainer, accelerator="cpu", devices=2 if name != "cpu" else 1, logger=False
+            )
+            assert trainer.world_size == (1 if name == "cpu" else 2)
+            if name == "fsdp":
+                from aynamics.sharding import FullyShardedDataParallel
+
+                assert isinstance(trainer.strategy, FullyShardedDataParallel)
         elif torch.cuda.is_available():
             hydra.utils.instantiate(cfg.trainer, logger=False)
         else:

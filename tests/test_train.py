@@ -467,16 +467,88 @@ def test_multirun_grid_and_collect(tmp_path, dataset_dir, capsys):
 @pytest.mark.slow
 def test_ddp_two_processes_on_cpu(tmp_path, dataset_dir):
     out = tmp_path / "ddp"
-    cmd = [sys.executable, "train.py", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]
-    cmd += [f"data.dir={dataset_dir}", "trainer.max_steps=2", f"hydra.run.dir={out}", *FAST]
-    cmd += ["callbacks.evaluation.num_samples=2", "callbacks.evaluation.max_new_tokens=8"]
-    cmd += ["trainer.val_check_interval=2", "trainer.enable_progress_bar=false"]
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
-    assert done.returncode == 0, done.stderr[-3000:]
+    _two_processes(out, "trainer=ddp", f"data.dir={dataset_dir}", "trainer.max_steps=2", "trainer.val_check_interval=2")
     record = json.loads((out / "metrics.json").read_text())
     assert record["global_step"] == 2 and "val/yaml_valid" in record["metrics"]
     assert (out / "adapter" / "adapter_model.safetensors").is_file()
+
+
+def _two_processes(out: Path, *overrides: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "train.py", "trainer.accelerator=cpu", "trainer.devices=2", f"hydra.run.dir={out}"]
+    cmd += [*FAST, "callbacks.evaluation.num_samples=2", "callbacks.evaluation.max_new_tokens=8"]
+    cmd += ["trainer.enable_progress_bar=false", *overrides]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900, env=_one_thread())
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done
+
+
+def _one_thread() -> dict:
+    return dict(os.environ, OMP_NUM_THREADS="1")
+
+
+def _weights(run: Path, name: str = "last.ckpt") -> dict[str, torch.Tensor]:
+    return torch.load(run / "checkpoints" / name, map_location="cpu", weights_only=True)["state_dict"]
+
+
+def test_fsdp_gradients_equal_data_parallel_ones(tmp_path, dataset_dir):
+    """Two CPU processes (gloo), a different batch each, the tiny model with its tower trained and the dense
+    visual head: the gradients of the sharded model (aynamics.sharding.shard_model, FSDP2 reduce-scatter),
+    gathered, equal the mean of the two unsharded models' gradients on all 60 trainable tensors."""
+    out = tmp_path / "grads.pt"
+    env = dict(_one_thread(), PYTHONPATH=str(ROOT), FSDP_TEST_PORT=str(29500 + os.getpid() % 500))
+    worker = [sys.executable, str(ROOT / "tests" / "fsdp_worker.py")]
+    procs = [subprocess.Popen([*worker, str(r), str(dataset_dir), str(out)], env=env) for r in (1, 0)]
+    assert [p.wait(timeout=600) for p in procs] == [0, 0]
+    grads = torch.load(out, weights_only=True)
+    ddp, fsdp = grads["ddp"], grads["fsdp"]
+    assert set(ddp) == set(fsdp) and len(ddp) == 60 and "visual_head.weight" in ddp
+    for k in ddp:
+        assert (ddp[k].abs().max() > 0) != ("lora_A" in k), k  # all but LoRA's A (B starts at 0) get gradients
+        torch.testing.assert_close(fsdp[k], ddp[k], rtol=1e-5, atol=1e-7, msg=k)
+
+
+@pytest.mark.slow
+def test_fsdp_matches_ddp_and_resumes_exactly(tmp_path, dataset_dir):
+    """trainer=fsdp (FSDP2, aynamics.sharding) on 2 CPU processes, with the tower trained and the dense visual
+    head (sharded like the adapter): 2 steps end where DDP's end. Their gradients are equal (the test above),
+    but entries whose true gradient is 0 (e.g. attention key biases) carry float noise that Adam's first steps
+    scale to ±lr, so the weights agree to about one step (lr 1e-3) and the losses to 1e-4. The scene evaluation
+    runs (every rank generates, rank 0 scores), the adapter holds the full gathered weights, and a run resumed
+    from step 2 ends exactly where the straight run ends."""
+    from safetensors.torch import load_file
+
+    same = [f"data.dir={dataset_dir}", "model.train_vision=true", "data.visual_targets=true"]
+    same += ["stage.module.vision_aux_weight=1.0", "trainer.max_steps=2", "trainer.val_check_interval=2"]
+    _two_processes(tmp_path / "ddp", "trainer=ddp", *same)
+    _two_processes(tmp_path / "fsdp", "trainer=fsdp", *same)
+    ddp, fsdp = _weights(tmp_path / "ddp"), _weights(tmp_path / "fsdp")
+    assert set(fsdp) == set(ddp) and any("visual_head" in k for k in fsdp) and any("lora_B" in k for k in fsdp)
+    for k in ddp:
+        assert fsdp[k].shape == ddp[k].shape and torch.allclose(fsdp[k], ddp[k], atol=1e-3), k
+    a = load_file(tmp_path / "fsdp" / "adapter" / "adapter_model.safetensors")
+    b = load_file(tmp_path / "ddp" / "adapter" / "adapter_model.safetensors")
+    assert set(a) == set(b) and all(a[k].shape == b[k].shape and torch.allclose(a[k], b[k], atol=1e-3) for k in a)
+    record = json.loads((tmp_path / "fsdp" / "metrics.json").read_text())["metrics"]
+    reference = json.loads((tmp_path / "ddp" / "metrics.json").read_text())["metrics"]
+    for key in ("val/loss", "val/vision_aux"):
+        assert record[key] == pytest.approx(reference[key], rel=1e-3), key
+    assert record["val/yaml_valid"] == 0.0  # 8 tokens hold no scene
+    assert len((tmp_path / "fsdp" / "eval" / "predictions_step000002.jsonl").read_text().splitlines()) == 2
+
+    three = [f"data.dir={dataset_dir}", "trainer.max_steps=3", "trainer.val_check_interval=3", "trainer=fsdp"]
+    three += ["callbacks.checkpoint.every_n_train_steps=2"]
+    _two_processes(tmp_path / "straight", *three)
+    step2 = tmp_path / "straight" / "checkpoints" / "step000002.ckpt"
+    _two_processes(tmp_path / "resumed", *three, f"ckpt_path={step2}")
+    # the adapter holds the final (step 3) weights; Lightning's last.ckpt is the step-2 checkpoint here
+    straight = load_file(tmp_path / "straight" / "adapter" / "adapter_model.safetensors")
+    resumed = load_file(tmp_path / "resumed" / "adapter" / "adapter_model.safetensors")
+    at_step2 = _weights(tmp_path / "straight", step2.name)
+    assert not torch.equal(
+        straight["base_model.model.lm_head.weight"],
+        at_step2["model.base_model.model.lm_head.modules_to_save.default.weight"],
+    )
+    assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
 
 
 def test_vision_lr_scale_sets_the_tower_group(dataset_dir):

@@ -1,0 +1,130 @@
+"""Fully sharded data parallel training (FSDP2) of the LoRA-wrapped model: `trainer=fsdp`.
+
+    python train.py stage=sft model=qwen2_5_vl_7b trainer=fsdp              # every visible GPU
+    python train.py stage=sft trainer=fsdp trainer.accelerator=cpu trainer.devices=2   # 2 CPU processes (gloo)
+
+Each decoder layer, each vision block, the vision tower, the model and the dense visual head become
+`torch.distributed.fsdp.fully_shard` units (FSDP2) in the modules' `configure_model`, on Lightning's
+`ModelParallelStrategy` with one data-parallel dimension over all processes (`FullyShardedDataParallel` below).
+A layer's weights are gathered for its forward and backward only, so no process holds the whole model at once.
+
+Why FSDP2 and not Lightning's `FSDPStrategy` (FSDP1): FSDP1 flattens a unit's parameters into one tensor and
+refuses mixed dtypes (`Must flatten tensors with uniform dtype but got torch.bfloat16 and torch.float32`), which
+is what a bfloat16 base with peft's float32 LoRA weights is; FSDP2 keeps every parameter a DTensor shard of its
+own dtype. FSDP2 also runs on the CPU (gloo), so this path is tested here (`tests/test_train.py`, slow).
+
+Sharded weights change three things elsewhere, all handled through this module:
+- generation: every forward gathers weights from every process, so all processes generate together
+  (`synced_gpus`, `generation_kwargs`), also for the scene evaluation that only rank 0 scores;
+- the adapter: its weights are gathered on every process before rank 0 writes it (`trainable_state`);
+- checkpoints: only the trainable weights are gathered (the frozen base is rebuilt from the spec).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from lightning.pytorch.strategies import ModelParallelStrategy
+from torch.distributed.tensor import DTensor
+
+# Module classes that become their own shard unit (besides the tower, the model and the head).
+UNIT_CLASSES = ("Qwen2_5_VLDecoderLayer", "Qwen2_5_VLVisionBlock")
+
+
+def is_sharded(module: torch.nn.Module) -> bool:
+    """Whether `module`'s weights are DTensor shards (a `fully_shard` model)."""
+    return any(isinstance(p, DTensor) for p in module.parameters())
+
+
+def generation_kwargs(model: torch.nn.Module) -> dict[str, Any]:
+    """`generate` arguments for `model`: with sharded weights, `synced_gpus=True`, so a process whose responses
+    ended keeps taking part in the others' forwards (each gathers weights from every process)."""
+    return {"synced_gpus": True} if is_sharded(model) else {}
+
+
+def data_parallel_mesh(mesh):
+    """The 1-D data-parallel mesh to shard over (`ModelParallelStrategy`'s mesh is 2-D: data x tensor
+    parallel; `fully_shard` on a 2-D mesh would replicate over the first dimension instead of sharding)."""
+    return mesh["data_parallel"] if mesh.ndim > 1 else mesh
+
+
+def trainable_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The trainable weights of `module` as full CPU tensors, keyed as in its `state_dict`.
+
+    With sharded weights every process must call it (each weight is gathered from all of them, in the same
+    order); every process gets the full tensors.
+    """
+    from torch.distributed.fsdp import FSDPModule
+
+    for m in module.modules():  # a unit left gathered after a forward (the root, after generation) holds plain
+        if isinstance(m, FSDPModule):  # tensors on some ranks and shards on others: shard every unit first
+            m.reshard()
+    out = {}
+    for name, p in module.named_parameters():
+        if p.requires_grad:
+            full = p.full_tensor() if isinstance(p, DTensor) else p
+            # a copy: full_tensor() may return a wrapper awaiting the gather (no storage of its own: safetensors
+            # and peft's alias check crashed on it), and an unsharded weight must not alias the live parameter
+            out[name] = full.detach().to("cpu", copy=True)
+    return out
+
+
+def shard_model(
+    model: torch.nn.Module, mesh, extra: tuple[torch.nn.Module | None, ...] = (), *, vision: bool = True
+) -> None:
+    """Make `model` (a peft-wrapped Qwen2.5-VL) fully sharded over `mesh`'s processes, in place.
+
+    Units, innermost first: every decoder layer and vision block (by class name, so the copies peft makes for
+    `modules_to_save` are included), the vision tower (called on its own by the vision warm-up and the dense
+    loss), then the Hugging Face model under peft (the module whose `forward` and `generate` run), and each
+    module of `extra` (trainable modules outside the model, e.g. the dense visual head: every trainable weight
+    must be in a unit, or its gradients would not be averaged over the processes).
+    """
+    from torch.distributed.fsdp import fully_shard, register_fsdp_forward_method
+
+    from aynamics.model import find_visual
+
+    for m in list(model.modules()):
+        if type(m).__name__ in UNIT_CLASSES:
+            fully_shard(m, mesh=mesh)
+    if vision:
+        fully_shard(find_visual(model), mesh=mesh)
+    root = hf_model(model)
+    fully_shard(root, mesh=mesh)
+    # `generate` gathers the root's own weights like `forward` does: a first call before any forward (PRO's
+    # first step samples) otherwise ran the vision tower as a root of its own and failed
+    register_fsdp_forward_method(root, "generate")
+    for m in extra:
+        if m is not None:
+            fully_shard(m, mesh=mesh)
+
+
+def hf_model(model: torch.nn.Module) -> torch.nn.Module:
+    """The Hugging Face model under a peft wrapper (the model itself when not wrapped)."""
+    base = getattr(model, "base_model", None)  # PeftModel -> LoraModel
+    return getattr(base, "model", model) if base is not None else model
+
+
+class FullyShardedDataParallel(ModelParallelStrategy):
+    """Lightning's `ModelParallelStrategy` as plain FSDP2 data parallelism: one data-parallel dimension over all
+    processes (no tensor parallelism), checkpoints as one file holding the trainable weights (gathered on every
+    process, written by rank 0). The modules shard themselves in `configure_model` (`shard_model`)."""
+
+    def __init__(self, process_group_backend: str | None = None, **kwargs: Any) -> None:
+        super().__init__(
+            data_parallel_size="auto",
+            tensor_parallel_size=1,
+            save_distributed_checkpoint=False,
+            process_group_backend=process_group_backend,
+            **kwargs,
+        )
+
+    def setup_environment(self) -> None:
+        self._data_parallel_size = self.num_nodes * self.num_processes  # every process is a data-parallel rank
+        super().setup_environment()
+
+    def lightning_module_state_dict(self) -> dict[str, Any]:
+        """The trainable weights only (Lightning's gathers the whole model, frozen base included, each time)."""
+        state = trainable_state(self.lightning_module)
+        return state if self.global_rank == 0 else {}
