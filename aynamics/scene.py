@@ -612,8 +612,8 @@ def _loader_for(text: str) -> type:
     return _FAST_LOADER
 
 
-def load_yaml(text: str | bytes) -> Any:
-    """Parse YAML text safely: no tags that build Python objects, no aliases, bounded size."""
+def _checked_text(text: str | bytes) -> str:
+    """`text` as a string (bytes decoded as UTF-8), refused when binary or longer than MAX_TEXT_CHARS."""
     if isinstance(text, bytes):
         try:
             text = text.decode("utf-8")
@@ -623,6 +623,12 @@ def load_yaml(text: str | bytes) -> Any:
         raise SceneError([Problem("text", _NO_VALUE, "contains NUL bytes: binary input?")])
     if len(text) > MAX_TEXT_CHARS:
         raise SceneError([Problem("text", len(text), f"too long: at most {MAX_TEXT_CHARS} characters")])
+    return text
+
+
+def load_yaml(text: str | bytes) -> Any:
+    """Parse YAML text safely: no tags that build Python objects, no aliases, bounded size."""
+    text = _checked_text(text)
     try:
         return yaml.load(text, Loader=_loader_for(text))  # noqa: S506 - safe loaders only
     except yaml.YAMLError as e:
@@ -698,9 +704,8 @@ def parse(text: str | bytes) -> Scene:
     Raises:
         SceneError: naming every problem (path, value, what is allowed).
     """
-    if isinstance(text, bytes):
-        load_yaml(text)  # raises a clear error on binary input
-        text = text.decode("utf-8")
+    if isinstance(text, bytes):  # a file's contents: decoded and checked, not parsed (it may wrap the YAML)
+        text = _checked_text(text)
     if not isinstance(text, str):
         raise SceneError([Problem("text", _short_type(text), "must be a string")])
     if not text.strip():

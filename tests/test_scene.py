@@ -426,3 +426,20 @@ def test_load_counts_characters_not_bytes(tmp_path):
     path = tmp_path / "accents.yaml"
     path.write_text(text, encoding="utf-8")
     assert S.load(str(path)) == S.parse(OK_BOX + CAMERA)
+
+
+def test_load_reads_model_output_files(tmp_path):
+    """A file holding a model's response (tags, or prose around a fence) loads as `parse` reads the same text:
+    its bytes are decoded and checked, not parsed as YAML first (that refused every wrapped file)."""
+    for k, text in enumerate(
+        [
+            f"<think>one box</think>\n<answer>\n{OK_BOX}{CAMERA}</answer>\n",
+            f"Here is the scene:\n```yaml\n{OK_BOX}{CAMERA}```\nDone.\n",
+        ]
+    ):
+        path = tmp_path / f"response{k}.txt"
+        path.write_text(text, encoding="utf-8")
+        assert S.load(str(path)) == S.parse(OK_BOX + CAMERA)
+    (tmp_path / "binary").write_bytes(b"- type: box\x00\n")
+    with pytest.raises(S.SceneError, match="NUL bytes"):
+        S.load(str(tmp_path / "binary"))
