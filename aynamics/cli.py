@@ -37,13 +37,21 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message}. Run `{self.prog} --help` for usage.")
 
 
-def check_out_folder(command: str, out: str | os.PathLike) -> None:
-    """Refuse, before a command's work, an `--out` folder that cannot be created: a part of its path already
-    there is a file."""
+def check_out_folder(command: str, out: str | os.PathLike, *, earlier: str | None = None, flag: str = "--out") -> None:
+    """Refuse, before a command's work, an output folder that cannot be created (a part of its path already there
+    is a file) and, with `earlier` (a file every output of the command holds), a folder holding other files:
+    the command's files would be mixed into them (a data set, a repository), same-named ones overwritten."""
     path = Path(out)
     there = next((p for p in (path, *path.parents) if p.exists()), None)
     if there is not None and not there.is_dir():
-        raise UsageError(f"{command}: cannot write --out {str(path)!r}: {str(there)!r} is a file, not a folder")
+        raise UsageError(f"{command}: cannot write {flag} {str(path)!r}: {str(there)!r} is a file, not a folder")
+    if earlier is not None and path.is_dir() and not (path / earlier).exists():
+        other = next(iter(sorted(path.iterdir())), None)
+        if other is not None:
+            raise UsageError(
+                f"{command}: {flag} {str(path)!r} holds other files ({other.name!r}, ...): give a new or empty "
+                f"folder, or one an earlier {command} wrote (with {earlier})"
+            )
 
 
 def _print_json(obj) -> None:

@@ -30,7 +30,7 @@ from aynamics.cli import UsageError, check_out_folder
 def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render a scene: RGB, segmentation, depth, exact flow, camera, GIF")
     p.add_argument("scene", help="scene YAML file")
-    p.add_argument("--out", required=True, help="folder to write (created)")
+    p.add_argument("--out", required=True, help="folder to write: new, empty, or an earlier render (created)")
     p.add_argument("--seed", type=int, default=0, help="appearance seed: lights, textures, floor and sky (default 0)")
     p.add_argument("--width", type=int, default=480, help="image width in pixels (default 480)")
     p.add_argument("--height", type=int, default=320, help="image height in pixels (default 320)")
@@ -56,7 +56,7 @@ def _run_render(args) -> int:
         except (FileNotFoundError, ValueError) as e:
             raise UsageError(f"render: --textures {args.textures!r}: {getattr(e, 'strerror', None) or e}") from None
     out = Path(args.out)
-    check_out_folder("render", out)  # before the work; the folders are made after it
+    check_out_folder("render", out, earlier="meta.json")  # before the work; the folders are made after it
     rollout = sim.simulate(scene)
     try:
         frames = renderlib.render(

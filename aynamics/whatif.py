@@ -181,11 +181,13 @@ def run_edit_command(args) -> int:
     edit that moves an object into the floor; the edited YAML is still written to `--out` and the files to
     `--render DIR`. An invalid original is reported on stderr too, without failing an edit that repairs it.
     """
-    from aynamics.cli import UsageError
+    from aynamics.cli import UsageError, check_out_folder
     from aynamics.edit import EditError, apply_instruction
     from aynamics.scene import load
 
     scene = load(args.scene)
+    if args.render:
+        check_out_folder("edit", args.render, earlier="edited.yaml", flag="--render")
     try:
         if args.llm:
             from aynamics.edit_llm import LLMEditor

@@ -121,6 +121,26 @@ def test_render_checks_its_arguments_before_making_folders(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_render_and_edit_refuse_a_folder_of_other_files(tmp_path, capsys):
+    """`render --out` (and `edit --render`) into a folder of other files, e.g. a data set, mixed the frames and
+    arrays into it with exit 0; now refused before any work, naming a file there. A new folder, an empty one or
+    an earlier render is written."""
+    data = tmp_path / "dataset"
+    data.mkdir()
+    (data / "dataset_dict.json").write_text("{}")
+    assert cli.main(["render", ASSET, "--out", str(data), "--width", "32", "--height", "32"]) == 2
+    assert f"--out {str(data)!r} holds other files ('dataset_dict.json', ...)" in capsys.readouterr().err
+    assert cli.main(["edit", ASSET, "stop box_0", "--render", str(data)]) == 2
+    assert f"edit: --render {str(data)!r} holds other files" in capsys.readouterr().err
+    assert sorted(p.name for p in data.iterdir()) == ["dataset_dict.json"]
+    cli.check_out_folder("render", tmp_path / "new", earlier="meta.json")  # new: fine
+    (tmp_path / "empty").mkdir()
+    cli.check_out_folder("render", tmp_path / "empty", earlier="meta.json")
+    (tmp_path / "empty" / "meta.json").write_text("{}")  # as an earlier render left it
+    (tmp_path / "empty" / "video.gif").write_text("")
+    cli.check_out_folder("render", tmp_path / "empty", earlier="meta.json")
+
+
 def test_score_reads_predictions_with_the_scene_loaders_limit(tmp_path, capsys):
     """A prediction file past the scene loader's size cap scores 0 with the reason `simulate` gives for it (the
     file was read whole); a binary one is "not UTF-8" (it was decoded with replacement characters)."""
