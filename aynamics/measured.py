@@ -91,7 +91,8 @@ def _float(value: str, row: int, column: str, path: str) -> float:
 
 
 def read_csv(path: str) -> Measured:
-    """Read measured trajectories from a CSV (optionally .gz).
+    """Read measured trajectories from a CSV (optionally .gz); the cube tosses' published file (a `toss` column,
+    one cube) reads as it is, as `cube_tosses_csv` would convert it.
 
     Raises:
         MeasuredError: missing or unreadable file, missing column, a row with more or fewer values than the
@@ -109,6 +110,10 @@ def read_csv(path: str) -> Measured:
             raise MeasuredError(f"--measured {path!r}: not a readable gzip file ({type(e).__name__}: {e})") from None
     reader = csv.reader(io.StringIO(raw.decode("utf-8", errors="replace")))
     header = [h.strip() for h in next(reader, [])]
+    if "toss" in header and "trajectory" not in header and "object" not in header:
+        # the cube tosses as published (../shared/data/cube_tosses/tosses.csv.gz): one object, "cube"
+        header = ["trajectory" if h == "toss" else h for h in header] + ["object"]
+        reader = (line + ["cube"] if line else line for line in reader)
     missing = [c for c in REQUIRED if c not in header]
     if missing:
         raise MeasuredError(f"{path}: missing column(s) {missing}; header is {header}; required: {list(REQUIRED)}")

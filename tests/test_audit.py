@@ -267,25 +267,25 @@ def test_cube_toss_converter_reads_through_the_user_loader(tmp_path):
     assert data.ids == ["0", "1", "2"] and data.objects == ("cube",)
     assert n == sum(len(tr.t) for tr in data.tracks.values())
     assert abs(data.tracks["0"].t[1] - 1 / 148) < 1e-5
+    published = read_csv(str(CUBES))  # the file as published reads the same, every toss
+    assert len(published.ids) == 550 and published.objects == ("cube",)
+    for k in data.ids:
+        a, b = data.tracks[k], published.tracks[k]
+        assert np.array_equal(a.t, b.t) and np.array_equal(a.position, b.position), k
 
 
 @pytest.mark.slow
 @pytest.mark.skipif(not CUBES.exists(), reason=f"cube tosses not found at {CUBES}")
 def test_cube_tosses_report_end_to_end(tmp_path, capsys):
-    cube_tosses_csv(str(CUBES), str(tmp_path / "c.csv"))
-    (tmp_path / "cube.yaml").write_text(
-        "- type: box\n  name: cube\n  size: [0.0524, 0.0524, 0.0524]\n  state:\n    position: [0, 0, 0.0524]\n"
-        "  physics:\n    friction: [0.18, 0.0]\n    mass: 0.37\n    damping: -6\n"
-        "- type: camera\n  position: [0, -1, 1]\n"
-    )
+    """The README's command on the published file and the repository's data/cube.yaml (60 tosses)."""
     out = tmp_path / "out"
     rc = main(
         [
             "audit",
             "--measured",
-            str(tmp_path / "c.csv"),
+            str(CUBES),
             "--scene",
-            str(tmp_path / "cube.yaml"),
+            str(Path(__file__).resolve().parents[1] / "data" / "cube.yaml"),
             "--out",
             str(out),
             "--json",
