@@ -21,6 +21,7 @@ import yaml
 
 DEFAULT_METRICS = (
     "val/yaml_valid",
+    "val/sim_valid",
     "val/count_acc",
     "val/composition_acc",
     "val/iou_first",
@@ -30,6 +31,7 @@ DEFAULT_METRICS = (
     "val/position_mae",
     "val/velocity_mae",
     "val/loss",
+    "val/type_acc",
     "val/baseline/iou_full",
 )
 

@@ -17,6 +17,7 @@ MLPs that share the projection names stay untouched) and freezes or trains the v
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -252,7 +253,9 @@ def apply_lora(
         task_type="CAUSAL_LM",
     )
     try:
-        return get_peft_model(model, config)
+        with warnings.catch_warnings():  # peft reads transformers' deprecated name: a warning on every run, not ours
+            warnings.filterwarnings("ignore", ".*is_gradient_checkpointing.* is deprecated", FutureWarning)
+            return get_peft_model(model, config)
     except ValueError as e:  # peft: "Target modules ... not found in the base model"
         raise ValueError(f"LoRA target_modules = {list(target_modules)}: no such module in language_model") from e
 
