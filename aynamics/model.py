@@ -159,13 +159,18 @@ def load_pretrained(
     looks_local = str(name_or_path).startswith((".", "/", "~")) or isinstance(name_or_path, Path)
     if looks_local and not Path(name_or_path).expanduser().is_dir():
         raise FileNotFoundError(f"model path {str(name_or_path)!r} is not a directory (or pass a hub id)")
-    model = Qwen2_5_VLForConditionalGeneration.from_pretrained(
-        str(name_or_path),
-        dtype=dtype,
-        attn_implementation=attn_implementation,
-        device_map=device_map,
-        local_files_only=local_files_only,
-    )
+    try:
+        model = Qwen2_5_VLForConditionalGeneration.from_pretrained(
+            str(name_or_path),
+            dtype=dtype,
+            attn_implementation=attn_implementation,
+            device_map=device_map,
+            local_files_only=local_files_only,
+        )
+    except (OSError, ValueError) as e:  # not found, no hub, not a repo id, broken files
+        from aynamics.processor import checkpoint_error
+
+        raise checkpoint_error(name_or_path, "model", e) from None
     gen = model.generation_config
     if gen.pad_token_id is None:
         gen.pad_token_id = model.config.text_config.pad_token_id or model.config.text_config.bos_token_id

@@ -252,13 +252,27 @@ def load_processor(
         video_fps: Frame rate of the frames given to the model (sets video temporal positions); None: saved or 2.0.
         local_files_only: Never touch the network.
     """
-    return ImageOnlyQwenProcessor.from_pretrained(
-        name_or_path,
-        min_pixels=min_pixels,
-        max_pixels=max_pixels,
-        num_frames=num_frames,
-        video_fps=video_fps,
-        local_files_only=local_files_only,
+    try:
+        return ImageOnlyQwenProcessor.from_pretrained(
+            name_or_path,
+            min_pixels=min_pixels,
+            max_pixels=max_pixels,
+            num_frames=num_frames,
+            video_fps=video_fps,
+            local_files_only=local_files_only,
+        )
+    except (OSError, ValueError) as e:  # not found, no hub, not a repo id, broken files
+        raise checkpoint_error(name_or_path, "processor", e) from None
+
+
+def checkpoint_error(name_or_path: str | Path, what: str, error: Exception) -> OSError:
+    """The error for a checkpoint `from_pretrained` could not load: the path named, the cause's first line, and
+    what to give instead (the library's message alone says neither which setting nor what would work)."""
+    cause = (str(error).strip().splitlines() or [type(error).__name__])[0]
+    return OSError(
+        f"model path {str(name_or_path)!r}: cannot load the {what} ({cause}); give a local folder holding a "
+        "Qwen2.5-VL checkpoint (e.g. model.path=/models/Qwen2.5-VL-3B-Instruct), or a hub id on a machine that "
+        "reaches the Hugging Face hub"
     )
 
 

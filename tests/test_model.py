@@ -185,6 +185,13 @@ def test_save_and_load_pretrained_round_trip(batches, tmp_path):
         torch.testing.assert_close(loaded(**model_inputs(batch)).logits, model(**model_inputs(batch)).logits)
     with pytest.raises(FileNotFoundError, match="not a directory"):
         load_pretrained(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()  # a folder without a checkpoint, a path that is no hub id: the path is named
+    with pytest.raises(OSError, match=r"model path '.*empty': cannot load the model \("):
+        load_pretrained(tmp_path / "empty", local_files_only=True)
+    from aynamics.processor import load_processor
+
+    with pytest.raises(OSError, match=r"model path 'a/b/c': cannot load the processor \(.*a local folder"):
+        load_processor("a/b/c", local_files_only=True)
 
 
 def test_completion_logprobs_match_the_sft_loss(proc, frames):
