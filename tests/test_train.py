@@ -551,6 +551,37 @@ def test_fsdp_matches_ddp_and_resumes_exactly(tmp_path, dataset_dir):
     assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
 
 
+@pytest.mark.slow
+def test_fsdp_with_the_7b_config(tmp_path, dataset_dir):
+    """`model=qwen2_5_vl_7b trainer=fsdp` as a GPU user runs it (bfloat16 base, float32 LoRA, gradient
+    checkpointing, bf16-mixed), on 2 CPU processes with a tiny Qwen2.5-VL saved as the checkpoint: it trains,
+    validates and writes a float32 adapter of full (gathered) LoRA weights, rank 16 as configured."""
+    from safetensors.torch import load_file
+
+    from aynamics.model import build_tiny_model
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    folder = tmp_path / "qwen"
+    build_tiny_model(seed=3).save_pretrained(folder)
+    shutil.copytree(TINY_ASSET_DIR, folder, dirs_exist_ok=True)
+    out = tmp_path / "run"
+    _two_processes(
+        out,
+        "trainer=fsdp",
+        "model=qwen2_5_vl_7b",
+        f"model.path={folder}",
+        f"data.dir={dataset_dir}",
+        "trainer.max_steps=2",
+        "trainer.val_check_interval=2",
+    )
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["config"]["trainer"]["precision"] == "bf16-mixed" and record["config"]["model"]["dtype"] == "bfloat16"
+    assert math.isfinite(record["metrics"]["val/loss"])
+    adapter = load_file(out / "adapter" / "adapter_model.safetensors")
+    a = next(v for k, v in adapter.items() if k.endswith("q_proj.lora_A.weight"))
+    assert a.dtype == torch.float32 and a.shape == (16, 64)  # rank 16 x the tiny width, not a shard
+
+
 def test_vision_lr_scale_sets_the_tower_group(dataset_dir):
     """vision_lr_scale = 0 leaves the (warmed-up) tower and the dense head as they are while the adapter moves;
     another value puts them in a second group at lr × scale; 1 keeps one group; a bad value is named."""
