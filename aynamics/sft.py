@@ -326,7 +326,8 @@ class SFTModule(L.LightningModule):
         if torch.cuda.is_available():  # LoRA dropout on a GPU draws from the CUDA generators
             checkpoint["rng"]["cuda"] = torch.cuda.get_rng_state_all()
 
-    def on_load_checkpoint(self, checkpoint: dict) -> None:
+    def check_checkpoint(self, checkpoint: dict) -> None:
+        """Refuse a checkpoint written for another model or optimizer layout (before anything loads under fsdp)."""
         stored = checkpoint.get("state_dict")  # None under DeepSpeed, which loads its own files
         missing = {k for k, p in self.named_parameters() if p.requires_grad} - set(stored or ())
         if stored is not None and missing:
@@ -340,6 +341,9 @@ class SFTModule(L.LightningModule):
                 f"stage.module.vision_lr_scale = {self.hparams.vision_lr_scale}, but the checkpoint was trained with "
                 f"{saved}: resume with the same value"
             )
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
         self._rng_to_restore = checkpoint.get("rng")
 
     def on_before_optimizer_step(self, optimizer) -> None:

@@ -6,7 +6,8 @@
 Each decoder layer, each vision block, the vision tower, the model and the dense visual head become
 `torch.distributed.fsdp.fully_shard` units (FSDP2) in the modules' `configure_model`, on Lightning's
 `ModelParallelStrategy` with one data-parallel dimension over all processes (`FullyShardedDataParallel` below).
-A layer's weights are gathered for its forward and backward only, so no process holds the whole model at once.
+A layer's weights are gathered for its forward and backward only, so no GPU holds the whole model at once
+(each process still builds the full base in host memory before sharding it: ~16 GB for the 7B in bfloat16).
 
 Why FSDP2 and not Lightning's `FSDPStrategy` (FSDP1): FSDP1 flattens a unit's parameters into one tensor and
 refuses mixed dtypes (`Must flatten tensors with uniform dtype but got torch.bfloat16 and torch.float32`), which
@@ -128,3 +129,56 @@ class FullyShardedDataParallel(ModelParallelStrategy):
         """The trainable weights only (Lightning's gathers the whole model, frozen base included, each time)."""
         state = trainable_state(self.lightning_module)
         return state if self.global_rank == 0 else {}
+
+    def load_checkpoint(self, checkpoint_path, weights_only: bool | None = None) -> dict[str, Any]:
+        """Load a one-file checkpoint written under any strategy (fsdp, ddp, cpu) into the sharded model.
+
+        Lightning's loader reads integer optimizer-state keys as positions among all the model's parameters
+        (frozen ones included), which is how FSDP checkpoints number them but not how a cpu / ddp checkpoint does
+        (0..n-1 over the optimizer's own): resuming one of those under fsdp failed with a size mismatch. Here
+        the saved ids are named by their position in the saved parameter groups, which both layouts keep in the
+        optimizer's order. The module's `check_checkpoint(checkpoint)`, when it has one, runs first, so a
+        checkpoint of another model is named before anything loads (Lightning calls `on_load_checkpoint` only
+        after loading the weights and optimizer).
+        """
+        from pathlib import Path
+
+        from lightning.fabric.strategies.model_parallel import _load_raw_module_state
+        from torch.distributed.checkpoint.state_dict import StateDictOptions, set_optimizer_state_dict
+
+        path = Path(self.broadcast(checkpoint_path))
+        if not path.is_file():  # a distributed checkpoint folder: Lightning's own loader
+            return super().load_checkpoint(path, weights_only=weights_only)
+        checkpoint = torch.load(path, mmap=True, map_location="cpu", weights_only=weights_only)
+        module = self.lightning_module
+        check = getattr(module, "check_checkpoint", None)
+        if check is not None:
+            check(checkpoint)
+        _load_raw_module_state(checkpoint["state_dict"], module, world_size=self.world_size, strict=False)
+        options = StateDictOptions(full_state_dict=True, broadcast_from_rank0=True)
+        for optimizer, state in zip(self.optimizers, checkpoint.get("optimizer_states", ()), strict=False):
+            named = named_optimizer_state(state, optimizer, module)
+            set_optimizer_state_dict(module, optimizer, optim_state_dict=named, options=options)
+        return checkpoint
+
+
+def named_optimizer_state(state: dict[str, Any], optimizer: torch.optim.Optimizer, module: torch.nn.Module) -> dict:
+    """A saved optimizer state dict keyed by `module`'s parameter names: the j-th id of saved group i is the
+    j-th parameter of the optimizer's group i (as `torch.optim.Optimizer.load_state_dict` pairs them).
+
+    Raises:
+        ValueError: the saved groups do not have the optimizer's sizes (another model or stage setting).
+    """
+    saved = [list(g["params"]) for g in state["param_groups"]]
+    current = [list(g["params"]) for g in optimizer.param_groups]
+    if [len(g) for g in saved] != [len(g) for g in current]:
+        raise ValueError(
+            f"checkpoint optimizer groups of {[len(g) for g in saved]} parameters, this run's of "
+            f"{[len(g) for g in current]}: resume with the model.* and stage settings it was written with"
+        )
+    names = {id(p): n for n, p in module.named_parameters()}
+    key = {pid: names[id(p)] for ids, params in zip(saved, current, strict=True) for pid, p in zip(ids, params)}
+    return {
+        "state": {key[k]: v for k, v in state["state"].items()},
+        "param_groups": [{**g, "params": [key[i] for i in g["params"]]} for g in state["param_groups"]],
+    }

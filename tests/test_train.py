@@ -494,11 +494,20 @@ def test_fsdp_gradients_equal_data_parallel_ones(tmp_path, dataset_dir):
     """Two CPU processes (gloo), a different batch each, the tiny model with its tower trained and the dense
     visual head: the gradients of the sharded model (aynamics.sharding.shard_model, FSDP2 reduce-scatter),
     gathered, equal the mean of the two unsharded models' gradients on all 60 trainable tensors."""
+    import socket
+
     out = tmp_path / "grads.pt"
-    env = dict(_one_thread(), PYTHONPATH=str(ROOT), FSDP_TEST_PORT=str(29500 + os.getpid() % 500))
+    with socket.socket() as s:  # a free port for the process group
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = dict(_one_thread(), PYTHONPATH=str(ROOT), FSDP_TEST_PORT=str(port))
     worker = [sys.executable, str(ROOT / "tests" / "fsdp_worker.py")]
     procs = [subprocess.Popen([*worker, str(r), str(dataset_dir), str(out)], env=env) for r in (1, 0)]
-    assert [p.wait(timeout=600) for p in procs] == [0, 0]
+    try:
+        assert [p.wait(timeout=600) for p in procs] == [0, 0]
+    finally:
+        for p in procs:  # one failed: the other would wait for it forever
+            p.kill()
     grads = torch.load(out, weights_only=True)
     ddp, fsdp = grads["ddp"], grads["fsdp"]
     assert set(ddp) == set(fsdp) and len(ddp) == 60 and "visual_head.weight" in ddp
@@ -549,6 +558,31 @@ def test_fsdp_matches_ddp_and_resumes_exactly(tmp_path, dataset_dir):
         at_step2["model.base_model.model.lm_head.modules_to_save.default.weight"],
     )
     assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
+
+
+@pytest.mark.slow
+def test_fsdp_resumes_checkpoints_of_other_strategies(tmp_path, dataset_dir):
+    """A checkpoint written by a one-process run resumes under trainer=fsdp (its optimizer state numbers the
+    optimizer's own parameters, which Lightning's loader read as positions among all the model's: a size
+    mismatch) and continues as the same checkpoint resumed under DDP does (Adam's noise apart: 1e-3); resumed
+    with another LoRA setting, its optimizer groups are named as not fitting (was a tensor size mismatch)."""
+    from safetensors.torch import load_file
+
+    base = [f"data.dir={dataset_dir}", "trainer.val_check_interval=3", "callbacks.checkpoint.every_n_train_steps=2"]
+    cmd = [sys.executable, "train.py", f"hydra.run.dir={tmp_path / 'cpu'}", *FAST, *base, "trainer.max_steps=2"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600, env=_one_thread())
+    assert done.returncode == 0, done.stderr[-3000:]
+    step2 = tmp_path / "cpu" / "checkpoints" / "step000002.ckpt"
+    for strategy in ("fsdp", "ddp"):
+        _two_processes(tmp_path / strategy, f"trainer={strategy}", *base, "trainer.max_steps=3", f"ckpt_path={step2}")
+    a = load_file(tmp_path / "fsdp" / "adapter" / "adapter_model.safetensors")
+    b = load_file(tmp_path / "ddp" / "adapter" / "adapter_model.safetensors")
+    assert set(a) == set(b) and all(torch.allclose(a[k], b[k], atol=1e-3) for k in a)
+    cmd = [sys.executable, "train.py", "trainer=fsdp", "trainer.accelerator=cpu", "trainer.devices=2", *FAST, *base]
+    cmd += [f"hydra.run.dir={tmp_path / 'other'}", "trainer.max_steps=3", f"ckpt_path={step2}"]
+    cmd += ["model.lora_targets=[q_proj]", "trainer.enable_progress_bar=false"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600, env=_one_thread())
+    assert done.returncode != 0 and "this run's of" in done.stderr, done.stderr[-3000:]
 
 
 @pytest.mark.slow
