@@ -23,6 +23,7 @@ import importlib
 import json
 import os
 import sys
+from collections.abc import Collection
 from pathlib import Path
 
 from aynamics.scene import SceneError
@@ -37,20 +38,23 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message}. Run `{self.prog} --help` for usage.")
 
 
-def check_out_folder(command: str, out: str | os.PathLike, *, earlier: str | None = None, flag: str = "--out") -> None:
+def check_out_folder(
+    command: str, out: str | os.PathLike, *, writes: Collection[str] | None = None, flag: str = "--out"
+) -> None:
     """Refuse, before a command's work, an output folder that cannot be created (a part of its path already there
-    is a file) and, with `earlier` (a file every output of the command holds), a folder holding other files:
-    the command's files would be mixed into them (a data set, a repository), same-named ones overwritten."""
+    is a file) and, given the names the command `writes` there, a folder holding anything else (hidden files
+    aside): the command's files would be mixed into another's (a data set, a repository). A new or empty folder,
+    and one an earlier run of the command wrote (even partly), are fine."""
     path = Path(out)
     there = next((p for p in (path, *path.parents) if p.exists()), None)
     if there is not None and not there.is_dir():
         raise UsageError(f"{command}: cannot write {flag} {str(path)!r}: {str(there)!r} is a file, not a folder")
-    if earlier is not None and path.is_dir() and not (path / earlier).exists():
-        other = next(iter(sorted(path.iterdir())), None)
-        if other is not None:
+    if writes is not None and path.is_dir():
+        other = sorted(p.name for p in path.iterdir() if p.name not in writes and not p.name.startswith("."))
+        if other:
             raise UsageError(
-                f"{command}: {flag} {str(path)!r} holds other files ({other.name!r}, ...): give a new or empty "
-                f"folder, or one an earlier {command} wrote (with {earlier})"
+                f"{command}: {flag} {str(path)!r} holds other files ({other[0]!r}, ...): give a new or empty "
+                f"folder, or one an earlier {command} wrote"
             )
 
 

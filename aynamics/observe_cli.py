@@ -26,6 +26,12 @@ import numpy as np
 
 from aynamics.cli import UsageError, check_out_folder
 
+# What `render --out DIR` writes (see the module docstring): a folder holding anything else is refused.
+RENDER_FILES = frozenset(
+    {"frames", "flow", "segmentation.npy", "depth.npy", "flow.npy", "occlusion.npy", "camera.json", "meta.json"}
+    | {"scene.yaml", "video.gif"}
+)
+
 
 def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render a scene: RGB, segmentation, depth, exact flow, camera, GIF")
@@ -56,7 +62,7 @@ def _run_render(args) -> int:
         except (FileNotFoundError, ValueError) as e:
             raise UsageError(f"render: --textures {args.textures!r}: {getattr(e, 'strerror', None) or e}") from None
     out = Path(args.out)
-    check_out_folder("render", out, earlier="meta.json")  # before the work; the folders are made after it
+    check_out_folder("render", out, writes=RENDER_FILES)  # before the work; the folders are made after it
     rollout = sim.simulate(scene)
     try:
         frames = renderlib.render(

@@ -87,6 +87,13 @@ def write_animation(path: str | Path, grid: list[list[np.ndarray]], labels: list
     return path
 
 
+# What `render_what_if` writes (`edit --render DIR`): a folder holding anything else is refused.
+WHAT_IF_FILES = frozenset(
+    {"original.yaml", "edited.yaml", "original_rollout.npz", "edited_rollout.npz", "edited_flow.npz"}
+    | {"side_by_side.gif", "synthesized.gif"}
+)
+
+
 def render_what_if(
     original: Scene,
     edited: Scene,
@@ -187,7 +194,7 @@ def run_edit_command(args) -> int:
 
     scene = load(args.scene)
     if args.render:
-        check_out_folder("edit", args.render, earlier="edited.yaml", flag="--render")
+        check_out_folder("edit", args.render, writes=WHAT_IF_FILES, flag="--render")
     try:
         if args.llm:
             from aynamics.edit_llm import LLMEditor

@@ -133,12 +133,19 @@ def test_render_and_edit_refuse_a_folder_of_other_files(tmp_path, capsys):
     assert cli.main(["edit", ASSET, "stop box_0", "--render", str(data)]) == 2
     assert f"edit: --render {str(data)!r} holds other files" in capsys.readouterr().err
     assert sorted(p.name for p in data.iterdir()) == ["dataset_dict.json"]
-    cli.check_out_folder("render", tmp_path / "new", earlier="meta.json")  # new: fine
-    (tmp_path / "empty").mkdir()
-    cli.check_out_folder("render", tmp_path / "empty", earlier="meta.json")
-    (tmp_path / "empty" / "meta.json").write_text("{}")  # as an earlier render left it
-    (tmp_path / "empty" / "video.gif").write_text("")
-    cli.check_out_folder("render", tmp_path / "empty", earlier="meta.json")
+    from aynamics.observe_cli import RENDER_FILES
+
+    cli.check_out_folder("render", tmp_path / "new", writes=RENDER_FILES)  # new: fine
+    folder = tmp_path / "earlier"
+    (folder / "frames").mkdir(parents=True)  # a render that stopped after making its folders, a hidden file
+    (folder / ".DS_Store").write_text("")
+    cli.check_out_folder("render", folder, writes=RENDER_FILES)
+    (folder / "meta.json").write_text("{}")
+    (folder / "video.gif").write_text("")
+    cli.check_out_folder("render", folder, writes=RENDER_FILES)
+    (folder / "notes.txt").write_text("mine")
+    with pytest.raises(cli.UsageError, match="holds other files \\('notes.txt', ...\\)"):
+        cli.check_out_folder("render", folder, writes=RENDER_FILES)
 
 
 def test_score_reads_predictions_with_the_scene_loaders_limit(tmp_path, capsys):
