@@ -275,3 +275,51 @@ def test_evaluation_every_n_validations_and_always_at_the_end(monkeypatch):
     assert not ends_training(_trainer(4, 0, max_epochs=-1, last_batch=True))  # max_epochs -1: no epoch limit
     with pytest.raises(ValueError, match="every_n_validations = 0"):
         SceneEvaluation(every_n_validations=0)
+
+
+def test_sim_valid_is_not_yaml_valid(truth):
+    """A sphere whose centre starts 0.4 m under the floor is a valid scene (z in [-0.5, 10]) that does not
+    simulate (it overlaps the floor by 0.6 m at t = 0): yaml_valid 1, sim_valid 0, with the simulator's reason."""
+    scene, obs = truth
+    text = "- {type: sphere, radius: 0.2, state: {position: [0, 0, -0.4]}}\n- {type: camera, position: [0, -2, 3.5]}\n"
+    per = evaluate_texts([text], [scene], [obs])
+    assert per["yaml_valid"] == [1.0] and per["sim_valid"] == [0.0]
+    assert per["reason"][0].startswith("sim: overlapping start")
+
+
+def test_evaluation_baseline_scores_the_average_training_scene(monkeypatch):
+    """With a stand-in data module (two training spheres at x = 0 and x = 2, two validation scenes) the baseline is
+    the metrics of the average scene (one sphere at x = 1) written for every record:
+    `summarize(evaluate_texts([dump(avg)] * 2, targets, observations))`; the model's own summary is separate."""
+    from types import SimpleNamespace
+
+    from aynamics.callbacks import SceneEvaluation
+    from aynamics.data import mean_scene_of_split
+    from aynamics.scene import parse
+    from aynamics.scorer import scoring_size
+
+    sphere = (
+        "- {{type: sphere, radius: 0.3, state: {{position: [{}, 0, 0.3]}}}}\n- type: camera\n  position: [0, -2, 3.5]\n"
+    )
+    train = {"scene_yaml": [sphere.format(0), sphere.format(2)]}
+    val = [sphere.format(0.5), sphere.format(1)]
+    records = [{"index": i, "scene_yaml": t, "size": (64, 48)} for i, t in enumerate(val)]
+    dm = SimpleNamespace(eval_records=lambda split, n: [dict(r) for r in records][:n], splits={"train": train}, dir="x")
+    trainer = SimpleNamespace(datamodule=dm, default_root_dir="unused")
+    cb = SceneEvaluation(num_samples=2, num_animations=0)
+    monkeypatch.setattr(cb, "_generate", lambda trainer, module: ["no scene here"] * 2)
+    monkeypatch.setattr(cb, "_write", lambda *a: None)
+    logged = {}
+    module = SimpleNamespace(log=lambda k, v, **kw: logged.__setitem__(k, v))
+    summary = cb.evaluate(trainer, module)
+
+    avg = mean_scene_of_split(train)
+    assert avg.objects[0].state.position == (1.0, 0.0, 0.3)
+    targets = [parse(t) for t in val]
+    width, height = scoring_size(64, 48)
+    observations = [Observation.from_scene(s, width=width, height=height) for s in targets]
+    expected = summarize(evaluate_texts([dump(avg)] * 2, targets, observations))
+    assert cb.last_baseline == pytest.approx(expected)
+    assert expected["yaml_valid"] == 1.0 and expected["position_mae"] == pytest.approx((0.5 + 0.0) / 3 / 2)
+    assert summary["yaml_valid"] == 0.0
+    assert logged["val/baseline/position_mae"] == pytest.approx(expected["position_mae"])

@@ -154,3 +154,57 @@ def test_flow_to_color_ignores_non_finite_and_accepts_one_vector():
     np.testing.assert_array_equal(img[0, 0], flowlib.flow_to_color(np.array([0.0, 1.0]), max_norm=2.0))
     np.testing.assert_array_equal(img[0, 3], flowlib.flow_to_color(np.array([0.0, 2.0])))
     assert tuple(flowlib.flow_to_color(np.array([5.0, 0.0]))) == (255, 0, 0)
+
+
+def _unit_camera(width: int, height: int) -> camlib.CameraMatrices:
+    """Camera at the origin looking along world z with K = I: pixel (u, v) at depth z sees (z u, z v, z), and a
+    point (x, y, z) lands at (x / z, y / z)."""
+    return camlib.CameraMatrices(K=np.eye(3), R=np.eye(3), t=np.zeros(3), width=width, height=height)
+
+
+def _translations(*d) -> tuple[np.ndarray, np.ndarray]:
+    """(position, orientation) at frames k, k + 1 of bodies starting at the origin and moved by d (no rotation)."""
+    position = np.stack([np.zeros((len(d), 3)), np.array(d, float)])
+    return position, np.tile([1.0, 0.0, 0.0, 0.0], (2, len(d), 1))
+
+
+def test_motion_field_image_edges_and_behind_the_camera():
+    """A 2×4 image at depth 1, one body per pixel (pixel centres u0 = u + 0.5, v0 = v + 0.5), each moved by hand:
+    (0, 0) by dx 3.5 lands at u1 = 4 = W: outside, occluded; (0, 1) by dx -1.5 at u1 = 0: inside; (0, 2) by
+    (-5, -1, -2): z1 = -1 (behind the camera) though q / z1 = (2.5, 0.5) is inside: occluded; (0, 3) by
+    (-3.5, -0.5, -1): z1 = 0, occluded; (1, 0) by dy 0.5 at v1 = 2 = H: occluded; (1, 1) by dy -1.5 at v1 = 0:
+    inside; (1, 2) still: inside, zero flow; (1, 3) background."""
+    seg = np.array([[0, 1, 2, 3], [4, 5, 6, -1]], np.int16)
+    depth = np.ones((2, 4))
+    position, orientation = _translations(
+        (3.5, 0, 0), (-1.5, 0, 0), (-5, -1, -2), (-3.5, -0.5, -1), (0, 0.5, 0), (0, -1.5, 0), (0, 0, 0)
+    )
+    flow, occluded = flowlib.motion_field(depth, seg, _unit_camera(4, 2), position, orientation)
+    assert occluded.tolist() == [[True, False, True, True], [True, False, False, False]]
+    assert flow[0, 0].tolist() == [3.5, 0.0] and flow[0, 1].tolist() == [-1.5, 0.0] and flow[1, 1].tolist() == [0, -1.5]
+    assert flow[1, 2].tolist() == [0.0, 0.0]
+
+
+def test_motion_field_occlusion_at_the_next_frame():
+    """1×4 image. A floor pixel an object (id 0 or 1) covers at frame k + 1 has occluded flow; one still floor next
+    frame does not. Object 0 at (0, 0), depth 2, moved by dx 2 lands at pixel 1 (u1 = (2·0.5 + 2) / 2 = 1.5) at
+    depth 2: where the next frame shows it 0.5 % nearer (1.99, within OCCLUSION_TOLERANCE = 1 %) it is visible;
+    1.5 % nearer (1.97) it is hidden; a different object there hides it whatever the depth."""
+    cam = _unit_camera(4, 1)
+    floor = np.full((1, 4), -1, np.int16)
+    still = _translations((0, 0, 0), (0, 0, 0))
+    next_seg = np.array([[-1, 0, 1, -1]], np.int16)
+    _, occluded = flowlib.motion_field(np.full((1, 4), np.inf), floor, cam, *still, next_segmentation=next_seg)
+    assert occluded.tolist() == [[False, True, True, False]]
+
+    seg = np.array([[0, -1, -1, -1]], np.int16)
+    depth = np.array([[2.0, np.inf, np.inf, np.inf]])
+    moved = _translations((2, 0, 0), (0, 0, 0))
+    results = []
+    for near, other in ((1.99, 0), (1.97, 0), (2.0, 1)):
+        next_depth = np.array([[np.inf, near, np.inf, np.inf]])
+        next_seg = np.array([[-1, other, -1, -1]], np.int16)
+        flow, occluded = flowlib.motion_field(depth, seg, cam, *moved, next_depth, next_seg)
+        assert flow[0, 0].tolist() == [1.0, 0.0]
+        results.append(bool(occluded[0, 0]))
+    assert results == [False, True, True]

@@ -182,3 +182,48 @@ def test_default_names_are_not_identities():
     swapped = _scene(two.format(2) + two.format(0))
     assert truth.names == swapped.names == ("box_0", "box_1")
     assert metrics.state_mae(swapped, truth) == (0.0, 0.0)
+
+
+def test_iou_union_subtracts_the_intersection_in_matching():
+    """One 16-px row. Sizes: pred 0 = 3, pred 1 = 9, obs 0 = 7, obs 1 = 6 px; shared: (p0, o0) 2, (p1, o0) 5,
+    (p1, o1) 2. Sequence IoUs: p0-o0 2/8, p1-o0 5/11, p1-o1 2/13, so the assignment takes p1-o0 (5/11 = 0.4545 >
+    2/8 + 2/13 = 0.404) and drops p0-o1 (no overlap). Four objects visible, one pair counted once: 3 ->
+    IoU = (5/11) / 3 = 5/33. (A union without the intersection taken off would prefer p0-o0 + p1-o1: 0.2019.)"""
+    pred = _seg([[0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1, 1, -1, -1, -1, -1]])
+    obs = _seg([[0, 0, -1, 0, 0, 0, 0, 0, 1, 1, -1, -1, 1, 1, 1, 1]])
+    first, full = metrics.segmentation_iou(pred, obs)
+    assert first == pytest.approx(5 / 33) and full == pytest.approx(5 / 33)
+
+
+def test_composition_ignores_order():
+    """The shapes are a multiset: [box, sphere] against [sphere, box] scores 1 on both counts."""
+    box = "- {type: box, size: [0.2, 0.2, 0.2], state: {position: [1, 0, 0.2]}}\n"
+    sphere = "- {type: sphere, radius: 0.2, state: {position: [0, 0, 0.2]}}\n"
+    count, shapes = metrics.composition_accuracy([_scene(box + sphere)], [_scene(sphere + box)])
+    assert count == [1.0] and shapes == [1.0]
+
+
+def test_mean_finite_skips_nan_and_none():
+    """mean of [1, nan, 3] over the finite values: 4 / 2 = 2; None and inf are skipped too; nothing finite: nan."""
+    assert metrics.mean_finite([1.0, float("nan"), 3.0]) == 2.0
+    assert metrics.mean_finite([None, 1.0, float("inf"), 3.0]) == 2.0
+    assert np.isnan(metrics.mean_finite([float("nan")]))
+
+
+def test_iou_named_predicted_object_never_visible():
+    """Names ("a", "b") on both sides; the prediction only draws a (exactly over observed a), its b is nowhere, observed
+    b is visible. No error: a scores 1, b 0 (paired by name, never visible on the predicted side); visible objects:
+    predicted a, observed a and b, the pair counted once -> 2: IoU = 1 / 2."""
+    pred = _seg([[0, 0, -1, -1]])
+    obs = _seg([[0, 0, 1, 1]])
+    first, full = metrics.segmentation_iou(pred, obs, pred_names=("a", "b"), obs_names=("a", "b"))
+    assert first == pytest.approx(0.5) and full == pytest.approx(0.5)
+
+
+def test_state_mae_pairs_chosen_names():
+    """Observed a at x = 0, b at x = 3; predicted a at x = 3, b at x = 0: names pair a-a and b-b, each 3 m off in x
+    -> position MAE (3 + 3) / (2 objects x 3 components) = 1.0 (by position they would pair at 0)."""
+    obj = "- {{type: box, name: {}, size: [0.2, 0.2, 0.2], state: {{position: [{}, 0, 0.1]}}}}\n"
+    obs = _scene(obj.format("a", 0) + obj.format("b", 3))
+    pred = _scene(obj.format("a", 3) + obj.format("b", 0))
+    assert metrics.state_mae(pred, obs) == pytest.approx((1.0, 0.0))

@@ -91,3 +91,40 @@ def test_bad_shapes_and_temperature_are_refused():
         soft_preference_loss(torch.zeros(3), torch.zeros(3), 1.0)
     with pytest.raises(ValueError, match="temperature = -1"):
         soft_preference_loss(torch.zeros(1, 2), torch.zeros(1, 2), -1.0)
+
+
+def test_pro_ranking_with_a_masked_candidate():
+    """ℓ = [0, ln 2, 0], rewards [1, 0.5, 0], the third candidate masked: the ranking is over the first two only,
+    L = -[(0 - ln(1 + 2)) + (ln 2 - ln 2)] = ln 3 (with the masked one in the sums it would be ln 6), finite, with
+    finite gradients and none on the masked candidate."""
+    logps = LOGPS.clone().requires_grad_()
+    rewards = torch.tensor([[1.0, 0.5, 0.0]], dtype=torch.float64)
+    mask = torch.tensor([[True, True, False]])
+    loss = pro_ranking_loss(logps, rewards, mask)
+    assert loss.item() == pytest.approx(LN(3))
+    loss.backward()
+    assert torch.isfinite(logps.grad).all() and logps.grad[0, 2].item() == 0.0
+
+
+def test_hard_targets_leave_a_masked_tie_out():
+    """τ = 0, rewards [1, 0, 1] with the third candidate masked: the masked 1 does not share the top: [1, 0, 0]."""
+    rewards = torch.tensor([[1.0, 0.0, 1.0]], dtype=torch.float64)
+    got = soft_targets(rewards, 0.0, torch.tensor([[True, True, False]]))
+    torch.testing.assert_close(got, torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64))
+
+
+def test_bad_masks_are_refused():
+    """A mask of another shape, or a row with every candidate masked, is a ValueError naming the problem."""
+    rewards = torch.zeros(2, 3)
+    with pytest.raises(ValueError, match=r"mask \(2, 2\): must match rewards \(2, 3\)"):
+        soft_targets(rewards, 1.0, torch.ones(2, 2, dtype=torch.bool))
+    with pytest.raises(ValueError, match="every row needs at least one candidate"):
+        pro_ranking_loss(rewards, rewards, torch.tensor([[True, False, False], [False, False, False]]))
+
+
+def test_sft_on_best_is_a_mean_over_rows():
+    """Two rows; the best candidates' token NLLs: row 0 [-1] -> 1, row 1 [-3, -5] -> 4: mean (1 + 4) / 2 = 2.5."""
+    token_logps = torch.tensor([[[-1.0, -7.0], [-9.0, -9.0]], [[-9.0, -9.0], [-3.0, -5.0]]])
+    token_mask = torch.tensor([[[True, False], [True, True]], [[True, True], [True, True]]])
+    rewards = torch.tensor([[0.9, 0.1], [0.2, 0.8]])
+    assert sft_on_best(token_logps, token_mask, rewards).item() == pytest.approx(2.5)

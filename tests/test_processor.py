@@ -202,6 +202,15 @@ def test_weighted_sft_loss_by_hand():
         sft_loss(logits, labels, torch.ones(1, 2))
 
 
+def test_sft_loss_divides_by_labelled_tokens_only():
+    """Labels [-, -, 1, 0]: after the shift 3 positions, 2 labelled: logits[1] = [0, 0] gives log p(1) = log 1/2,
+    logits[2] = [ln 3, 0] gives log p(0) = log 3/4; loss = (log 2 + log 4/3) / 2 = 0.4904 (not / 3), n = 2."""
+    logits = torch.tensor([[[0.0, 0.0], [0.0, 0.0], [math.log(3.0), 0.0], [5.0, -5.0]]])
+    labels = torch.tensor([[IGNORE_INDEX, IGNORE_INDEX, 1, 0]])
+    loss, n = sft_loss(logits, labels)
+    assert loss.item() == pytest.approx((math.log(2) + math.log(4 / 3)) / 2, abs=1e-6) and n.item() == 2
+
+
 def test_type_tokens_mark_the_type_values(proc):
     response = "<answer>- type: sphere\n  radius: 0.1\n- type: camera\n  fovy: 50.0\n</answer>"
     mask = type_tokens(proc, response)

@@ -551,3 +551,23 @@ def test_refine_recovers_camera_through_the_scorer(truth):
     assert result.after.iou_full > 0.9
     assert abs(result.scene.camera.position[0]) < 0.05 and result.scene.camera.fovy == pytest.approx(50, abs=2)
     assert result.scene.objects == two.objects  # objects not searched
+
+
+def test_trajectory_objective_is_minus_the_mean_centre_distance():
+    """A box at rest on the floor; the candidate is the same box shifted by (0.3, 0.4, 0), also at rest: its centre
+    is sqrt(0.3² + 0.4²) = 0.5 m off in every frame -> -0.5 (Euclidean; not -0.7 summed over axes or -0.25 squared).
+    A candidate that leaves MAX_DISTANCE (1000 m: a sphere flying at 20 m/s without gravity for 60 s reaches
+    1200 m) scores exactly -100, not minus its distance."""
+    from aynamics.scene import parse
+    from aynamics.simulate import SimConfig
+
+    cam = "- type: camera\n  position: [0, -2, 3.5]\n"
+    box = "- {{type: box, size: [0.1, 0.1, 0.1], state: {{position: [{}, {}, 0.1]}}}}\n"
+    objective = trajectory_objective(parse(box.format(0, 0) + cam), nthread=1)
+    assert objective([parse(box.format(0.3, 0.4) + cam)]) == pytest.approx([-0.5])
+
+    sphere = "- {{type: sphere, radius: 0.2, state: {{position: [0, 0, {}], linear_velocity: [{}, 0, 0]}}}}\n"
+    target = parse(sphere.format(0.2, 0) + cam)
+    flying = parse(sphere.format(5, 20) + cam + "- type: gravity\n  gravity: [0, 0, 0]\n")
+    objective = trajectory_objective(target, config=SimConfig(duration=60, fps=2), nthread=1)
+    assert objective([flying, target]) == [-100.0, 0.0]

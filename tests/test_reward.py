@@ -197,6 +197,16 @@ def test_reward_of_hand_worked():
             rw.RewardConfig(**bad)
 
 
+def test_reward_config_bounds():
+    """A span other than full/first is refused by name; mix_weight 0 and 1 are allowed (the ends of [0, 1]):
+    Score IoU 0.6, EPE 5 px at scale 5 -> mix 0 is the EPE reward 1 / (1 + 1) = 0.5, mix 1 the IoU 0.6."""
+    with pytest.raises(ValueError, match="reward span = 'last'"):
+        rw.RewardConfig(span="last")
+    s = Score(0.8, 0.6, 1.0, 5.0, True)
+    assert rw.reward_of(s, rw.RewardConfig("mix", mix_weight=0.0)) == pytest.approx(0.5)
+    assert rw.reward_of(s, rw.RewardConfig("mix", mix_weight=1.0)) == pytest.approx(0.6)
+
+
 def test_evaluation_modes_hand_worked():
     """Video 0: samples IoU 0.2 / 0.8 (rewards pick the 2nd); video 1: 0.5 / 0.1 (rewards pick the 1st).
 
@@ -355,3 +365,12 @@ def test_decoding_ignores_the_checkpoints_sampling_settings(tiny):
     assert again == sampled and len({tuple(c) for c in again[0]}) > 1
     assert rw.decoding(0.0) == {"repetition_penalty": 1.0, "no_repeat_ngram_size": 0, "do_sample": False}
     assert rw.decoding(0.7, 0.9)["top_k"] == 0  # no top-k cut: temperature and nucleus only
+
+
+def test_candidate_and_sampling_arguments_checked_before_any_model_work():
+    """A candidate holding a forbidden (vision) token id, and top_p = 0 (outside (0, 1]), are ValueErrors raised
+    before the prompts, model or processor are touched (stand-ins here)."""
+    with pytest.raises(ValueError, match=r"candidate 0 of prompt 0 holds vision token ids \[7\]: not allowed"):
+        rw.candidate_batch([{}], [[[5, 7]]], 0, forbidden=[7, 8])
+    with pytest.raises(ValueError, match="top_p = 0.0"):
+        rw.sample_completions(None, None, [], num_samples=1, temperature=1.0, top_p=0.0)

@@ -443,3 +443,68 @@ def test_load_reads_model_output_files(tmp_path):
     (tmp_path / "binary").write_bytes(b"- type: box\x00\n")
     with pytest.raises(S.SceneError, match="NUL bytes"):
         S.load(str(tmp_path / "binary"))
+
+
+def test_default_names_skip_every_taken_name():
+    """Chosen names box_1 and box_0, then an unnamed box: box_0 and box_1 are both taken, so it gets box_2."""
+    s = S.parse(
+        OK_BOX.replace("name: b", "name: box_1")
+        + OK_BOX.replace("name: b", "name: box_0")
+        + OK_BOX.replace("  name: b\n", "")
+        + CAMERA
+    )
+    assert s.names == ("box_1", "box_0", "box_2")
+
+
+def test_last_answer_block_is_parsed():
+    """Of two <answer> blocks the last is the scene: an invalid first one (`type: nope`) does not matter."""
+    assert S.parse(f"<answer>- type: nope\n</answer><answer>{OK_BOX}{CAMERA}</answer>") == S.parse(OK_BOX + CAMERA)
+
+
+def test_field_defaults_pinned():
+    """A box with only size and position, a camera with only position: the README's defaults are filled in:
+    friction [0.5, 0] (no rolling resistance), mass 1 kg, damping -4, orientation [1, 0, 0, 0], zero velocities,
+    no extension fields; camera fovy 45 and tilt 45 degrees; gravity [0, 0, -9.81]; no environment item."""
+    s = S.parse("- {type: box, size: [0.2, 0.2, 0.2], state: {position: [0, 0, 0.2]}}\n" + CAMERA)
+    box = s.objects[0]
+    assert box.physics.friction == (0.5, 0.0) and box.physics.mass == 1.0 and box.physics.damping == -4.0
+    assert box.physics.restitution is None and box.physics.magnus is None and box.physics.friction_slope is None
+    assert box.state.orientation == (1.0, 0.0, 0.0, 0.0)
+    assert box.state.linear_velocity == box.state.angular_velocity == (0.0, 0.0, 0.0)
+    assert s.camera.fovy == 45.0 and s.camera.orientation == 45.0
+    assert s.gravity == (0.0, 0.0, -9.81) and s.environment is None
+
+
+def test_object_count_limit_is_32():
+    """MAX_OBJECTS = 32: 32 objects parse, 33 give one problem `objects = 33: at most 32 objects`."""
+    boxes = [OK_BOX.replace("name: b", f"name: b{i}") for i in range(33)]
+    assert len(S.parse("".join(boxes[:32]) + CAMERA).objects) == 32
+    with pytest.raises(S.SceneError, match="objects = 33: at most 32 objects"):
+        S.parse("".join(boxes) + CAMERA)
+
+
+def test_text_length_limit_is_inclusive():
+    """MAX_TEXT_CHARS characters load (a YAML comment: None); one more is refused as too long."""
+    assert S.load_yaml("#" * S.MAX_TEXT_CHARS) is None
+    with pytest.raises(S.SceneError, match="too long"):
+        S.load_yaml("#" * (S.MAX_TEXT_CHARS + 1))
+
+
+def test_dump_at_zero_decimals_reparses():
+    """decimals = 0 is allowed (-1 is not): whole numbers written without a point; friction 0.4 rounds to 0, the
+    gravity -9.81 to -10; the text parses back to those values."""
+    box = "- {type: box, size: [1, 2, 1], state: {position: [0, 1, 2]}, physics: {friction: [0.4, 0]}}\n"
+    s = S.parse(box + CAMERA)
+    text = S.dump(s, decimals=0)
+    assert "  size: [1, 2, 1]" in text and "    friction: [0, 0]" in text
+    back = S.parse(text)
+    assert back.objects[0].size == (1.0, 2.0, 1.0) and back.objects[0].physics.friction == (0.0, 0.0)
+    assert back.gravity == (0.0, 0.0, -10.0)
+    with pytest.raises(ValueError, match="decimals = -1"):
+        S.dump(s, decimals=-1)
+
+
+def test_zero_mass_message():
+    """Mass 0 is refused as not positive (not as out of range): `objects[0].physics.mass = 0: must be > 0`."""
+    with pytest.raises(S.SceneError, match=r"objects\[0\]\.physics\.mass = 0: must be > 0"):
+        S.parse(_box(physics="{mass: 0}"))

@@ -231,3 +231,76 @@ def test_sparse_scores_equal_dense_metrics(observed, empty_frame):
         epe = metrics.flow_epe(flow[k], observed.flow, seg[k], observed.segmentation, observed.occluded)
         assert (s.iou_first, s.iou_full) == pytest.approx(iou, abs=1e-12)
         assert (s.epe_first, s.epe_full) == pytest.approx(tuple(x * 480 / W for x in epe), abs=1e-6)
+
+
+def test_observed_flow_and_occlusion_shapes_are_checked(tmp_path):
+    """30 frames sample 0, 3, ..., 27, whose flow targets need 28 flows: 28 load; 27 (one short) is a ValueError
+    naming flow.npy and its shape; an occlusion.npy not of the flow's (T-1, H, W) shape likewise."""
+    np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.int16))
+    np.save(tmp_path / "flow.npy", np.zeros((28, 8, 8, 2), np.float32))
+    assert scorer.Observation.from_dir(tmp_path, width=8, height=8).flow.shape == (10, 8, 8, 2)
+    np.save(tmp_path / "flow.npy", np.zeros((27, 8, 8, 2), np.float32))
+    with pytest.raises(ValueError, match=re.escape("flow.npy: shape (27, 8, 8, 2), expected (>= 28, 8, 8, 2)")):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    np.save(tmp_path / "flow.npy", np.zeros((29, 8, 8, 2), np.float32))
+    np.save(tmp_path / "occlusion.npy", np.zeros((29, 8, 4), bool))
+    with pytest.raises(ValueError, match=re.escape("occlusion.npy: shape (29, 8, 4), expected (29, 8, 8)")):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+
+
+def test_colour_png_masks(tmp_path):
+    """RGB masks: black is background, each other colour one object in colour-code order (green 0x00FF00 before
+    red 0xFF0000): ids -1, 0, 1. A video without any black pixel has no background: red and green are 1 and 0."""
+    black, red, green = (0, 0, 0), (255, 0, 0), (0, 255, 0)
+    for name, colours in (("bg", (black, red, green)), ("nobg", (red, green, red))):
+        folder = tmp_path / name / "segmentation"
+        folder.mkdir(parents=True)
+        img = np.zeros((8, 8, 3), np.uint8)
+        for k, c in enumerate(colours):
+            img[:, 3 * k :] = c  # columns 0-2, 3-5, 6-7
+        for k in range(30):
+            iio.imwrite(folder / f"{k:03d}.png", img)
+        seg = scorer.Observation.from_dir(tmp_path / name, width=8, height=8).segmentation
+        expected = [-1] * 3 + [1] * 3 + [0] * 2 if name == "bg" else [1] * 3 + [0] * 3 + [1] * 2
+        assert seg.shape == (10, 8, 8) and (seg == np.array(expected)).all()
+
+
+def test_named_observed_object_never_visible_is_not_stolen():
+    """meta names (a, b, c) with c never visible; the candidate draws a exactly and names its sphere c, on top of
+    observed b. c pairs with the invisible c (IoU 0), not with b by overlap: per frame visible are predicted a and
+    c, observed a and b, the a pair counted once -> 3, IoU = 1 / 3 (pairing c with b would give 1)."""
+    import dataclasses
+
+    cam = "- type: camera\n  position: [0, -2, 3.5]\n"
+    box = "- {type: box, name: a, size: [0.15, 0.15, 0.15], state: {position: [-0.5, 1, 0.15]}}\n"
+    sphere = "- {{type: sphere, name: {}, radius: 0.2, state: {{position: [0.5, 1, 0.2]}}}}\n"
+    obs = scorer.Observation.from_scene(scenelib.parse(box + sphere.format("b") + cam), width=48, height=32)
+    assert all(np.unique(m).tolist() == [-1, 0, 1] for m in obs.segmentation)  # both in view, apart, every frame
+    obs = dataclasses.replace(obs, names=("a", "b", "c"))
+    (s,) = scorer.score([scenelib.parse(box + sphere.format("c") + cam)], obs)
+    assert s.iou_first == pytest.approx(1 / 3) and s.iou_full == pytest.approx(1 / 3)
+
+
+def test_epe_first_is_zero_when_frame_0_shows_nothing():
+    """A sphere entering the view from x = -4 (8 m/s observed, 7 m/s predicted): frame 0 shows no object on either
+    side, so its EPE is 0, as `metrics.flow_epe`'s first-frame figure; later frames differ (EPE > 0)."""
+    from aynamics import metrics
+
+    cam = "- type: camera\n  position: [0, -2, 3.5]\n"
+    text = "- {{type: sphere, radius: 0.2, state: {{position: [-4, 1, 0.2], linear_velocity: [{}, 0, 0]}}}}\n" + cam
+    obs = scorer.Observation.from_scene(scenelib.parse(text.format(8)), width=48, height=32)
+    cand = scenelib.parse(text.format(7))
+    cast = raycast.cast_group([cand], cand.structure, obs.frames, 48, 32, obs.config, 1)
+    assert not (obs.segmentation[0] >= 0).any() and not (cast.seg[0, 0] >= 0).any()
+    first, full = metrics.flow_epe(cast.dense_flow[0], obs.flow, cast.seg[0], obs.segmentation, obs.occluded)
+    (s,) = scorer.score([cand], obs)
+    assert s.epe_first == first == 0.0 and s.iou_first == 1.0
+    assert s.epe_full == pytest.approx(full * 480 / 48) and s.epe_full > 0
+
+
+def test_observation_simulates_up_to_its_last_frame():
+    """The rollout covers the last sampled frame and its flow target: frames [0, 40] need 41 frames, 41 / 30 s;
+    frames [0, 3] still simulate the whole 30-frame video (1 s)."""
+    seg = np.zeros((2, 4, 4), np.int16)
+    assert scorer.Observation(seg, np.array([0, 40]), 4, 4).config.duration == pytest.approx(41 / 30)
+    assert scorer.Observation(seg, np.array([0, 3]), 4, 4).config.duration == pytest.approx(1.0)
