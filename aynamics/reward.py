@@ -300,7 +300,7 @@ def sample_completions(
         raise ValueError(f"temperature = 0 (greedy) with num_samples = {num_samples}: greedy gives one response")
     if max_new_tokens < 1:
         raise ValueError(f"max_new_tokens = {max_new_tokens}: must be >= 1")
-    from aynamics.sharding import generation_kwargs
+    from aynamics.sharding import gathered, generation_kwargs
 
     tok = processor.tokenizer
     batch = collate(list(prompts), tok.pad_token_id)
@@ -309,16 +309,17 @@ def sample_completions(
     was_training = model.training
     model.eval()
     try:
-        out = model.generate(
-            **inputs,
-            max_new_tokens=max_new_tokens,
-            min_new_tokens=min_new_tokens,
-            num_return_sequences=num_samples,
-            use_cache=True,
-            suppress_tokens=vision_token_ids(model),  # never sampled: they would count as image slots
-            **decoding(temperature, top_p),
-            **generation_kwargs(model),  # sharded weights (trainer=fsdp): every process generates together
-        )
+        with gathered(model):  # sharded weights (trainer=fsdp): gathered once for the whole response, not per token
+            out = model.generate(
+                **inputs,
+                max_new_tokens=max_new_tokens,
+                min_new_tokens=min_new_tokens,
+                num_return_sequences=num_samples,
+                use_cache=True,
+                suppress_tokens=vision_token_ids(model),  # never sampled: they would count as image slots
+                **decoding(temperature, top_p),
+                **generation_kwargs(model),  # sharded weights (trainer=fsdp): every process generates together
+            )
     finally:
         model.train(was_training)
     gen = out[:, batch["input_ids"].shape[1] :].cpu()  # (B*N, T): rows of prompt b are b*N .. b*N + N - 1
