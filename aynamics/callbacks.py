@@ -191,7 +191,8 @@ class SceneEvaluation(L.Callback):
         self.evaluated = 0  # records in the latest evaluation (num_samples, or fewer if the split is smaller)
         self.last_baseline: dict[str, float] = {}
 
-    def _prepare(self, trainer: L.Trainer) -> None:
+    def _prepare(self, trainer: L.Trainer, baseline: bool = True) -> None:
+        """The evaluation records (and, with `baseline`, the average scene's scores): once per fit."""
         if self._records is not None:
             return
         from aynamics.scorer import Observation, scoring_size
@@ -213,7 +214,7 @@ class SceneEvaluation(L.Callback):
                 )
                 continue
             self._records.append(r)
-        if self.baseline and self._records:
+        if self.baseline and baseline and self._records:
             from aynamics.data import mean_scene_of_split
             from aynamics.scene import dump
 
@@ -241,7 +242,7 @@ class SceneEvaluation(L.Callback):
         if trainer.is_global_zero:
             self.evaluate(trainer, pl_module)
         elif sharding.is_sharded(pl_module.model):  # each forward gathers weights from every rank: generate too
-            self._prepare(trainer)
+            self._prepare(trainer, baseline=False)  # the same records as rank 0; the baseline is rank 0's to score
             self._generate(trainer, pl_module)
 
     def evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:

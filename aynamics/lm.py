@@ -287,11 +287,6 @@ def shifted_visuals(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor] |
     return None
 
 
-def trainable_state_dict(model: torch.nn.Module) -> dict[str, torch.Tensor]:
-    """The parameters that train (the adapter, and the vision tower when it trains), by their module name."""
-    return {k: p.detach() for k, p in model.named_parameters() if p.requires_grad}
-
-
 def save_adapter(
     model: torch.nn.Module,
     out: str | Path,

@@ -138,8 +138,7 @@ class ProModule(L.LightningModule):
 
     def configure_model(self) -> None:
         """Under `trainer=fsdp` (a device mesh is set): shard the policy (`aynamics.sharding`)."""
-        if self.device_mesh is not None and not sharding.is_sharded(self.model):
-            sharding.shard_model(self.model, sharding.data_parallel_mesh(self.device_mesh))
+        sharding.shard_module(self)
 
     def setup(self, stage: str) -> None:
         """Processor and prompt from the data module (the frames it serves are shown the way the prompt says)."""

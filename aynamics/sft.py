@@ -156,8 +156,7 @@ class SFTModule(L.LightningModule):
 
     def configure_model(self) -> None:
         """Under `trainer=fsdp` (a device mesh is set): shard the model and the dense visual head."""
-        if self.device_mesh is not None and not sharding.is_sharded(self.model):
-            sharding.shard_model(self.model, sharding.data_parallel_mesh(self.device_mesh), (self.visual_head,))
+        sharding.shard_module(self, (self.visual_head,))
 
     # ------------------------------------------------------------------ steps
     def _keep_visual_tokens(self, module, args, output) -> None:

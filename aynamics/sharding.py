@@ -26,6 +26,7 @@ Sharded weights change three things elsewhere, all handled through this module:
 from __future__ import annotations
 
 import contextlib
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -123,6 +124,13 @@ def shard_model(
             fully_shard(m, mesh=mesh)
 
 
+def shard_module(module, extra: tuple[torch.nn.Module | None, ...] = ()) -> None:
+    """A LightningModule's `configure_model` under `trainer=fsdp`: shard its `model` (and `extra`) over the
+    strategy's data-parallel processes; nothing without a device mesh (other strategies) or when already done."""
+    if module.device_mesh is not None and not is_sharded(module.model):
+        shard_model(module.model, data_parallel_mesh(module.device_mesh), extra)
+
+
 def hf_model(model: torch.nn.Module) -> torch.nn.Module:
     """The Hugging Face model under a peft wrapper (the model itself when not wrapped)."""
     base = getattr(model, "base_model", None)  # PeftModel -> LoraModel
@@ -163,8 +171,6 @@ class FullyShardedDataParallel(ModelParallelStrategy):
         checkpoint of another model is named before anything loads (Lightning calls `on_load_checkpoint` only
         after loading the weights and optimizer).
         """
-        from pathlib import Path
-
         from lightning.fabric.strategies.model_parallel import _load_raw_module_state
         from torch.distributed.checkpoint.state_dict import StateDictOptions, set_optimizer_state_dict
 
