@@ -12,7 +12,8 @@
 
 and writes `eval/predictions_stepNNNNNN.jsonl` and `eval/stepNNNNNN_sampleK.gif` (observed | predicted rollout,
 side by side) under the run folder, plus the text and a frame strip to TensorBoard. A bad response never
-raises: it is counted invalid with its reason.
+raises: it is counted invalid with its reason. With several processes (trainer=ddp, fsdp) each one generates and
+scores its share of the subset, and rank 0 gathers, logs and writes the results.
 """
 
 from __future__ import annotations
@@ -239,20 +240,27 @@ class SceneEvaluation(L.Callback):
         self.validations += 1
         if self.validations % self.every_n and not ends_training(trainer):
             return
-        if trainer.is_global_zero:
-            self.evaluate(trainer, pl_module)
-        elif sharding.is_sharded(pl_module.model):  # each forward gathers weights from every rank: generate too
-            self._prepare(trainer, baseline=False)  # the same records as rank 0; the baseline is rank 0's to score
-            self._generate(trainer, pl_module)
+        self.evaluate(trainer, pl_module)
 
     def evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:
-        """Generate, score, log and write files; returns the model's summary."""
-        self._prepare(trainer)
+        """Generate, score, log and write files; returns the model's summary (on rank 0; {} on the others).
+
+        With several processes (ddp, fsdp) each generates and scores its share of the records
+        (`records_of_rank`) and rank 0 gathers the results, logs and writes them: the same numbers as one
+        process, in about 1 / world_size of the time. Every process must call this (it gathers)."""
+        rank, world = trainer.global_rank, trainer.world_size
+        self._prepare(trainer, baseline=rank == 0)  # the same records on every rank; the baseline is rank 0's
         records = self._records
         if not records:  # every record left out (warned in _prepare)
             return {}
-        texts = self._generate(trainer, pl_module)
-        per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
+        mine, real = records_of_rank(len(records), rank, world, pad=sharding.is_sharded(pl_module.model))
+        texts = self._generate(trainer, pl_module, [records[i] for i in mine])[:real]
+        mine = mine[:real]
+        per = evaluate_texts(texts, [records[i]["scene"] for i in mine], [records[i]["observation"] for i in mine])
+        parts = _gather_objects((mine, texts, per), world)
+        if rank != 0:
+            return {}
+        texts, per = merge_parts(parts, len(records))
         summary = summarize(per)
         self.last, self.evaluated = summary, len(records)
         self.last_baseline = dict(self._baseline or {})
@@ -263,13 +271,13 @@ class SceneEvaluation(L.Callback):
         self._write(trainer, texts, records, per)
         return summary
 
-    def _generate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> list[str]:
-        """Greedy responses to the evaluation prompts (on every rank when the weights are sharded)."""
+    def _generate(self, trainer: L.Trainer, pl_module: L.LightningModule, records: list[dict]) -> list[str]:
+        """Greedy responses to the records' prompts."""
         processor = trainer.datamodule.processor
         texts: list[str] = []
         with torch.no_grad():
-            for i in range(0, len(self._records), self.batch_size):
-                chunk = [r["prompt"] for r in self._records[i : i + self.batch_size]]
+            for i in range(0, len(records), self.batch_size):
+                chunk = [r["prompt"] for r in records[i : i + self.batch_size]]
                 texts += lm.greedy_texts(pl_module.model, processor, chunk, self.max_new_tokens)
         return texts
 
@@ -301,6 +309,51 @@ class SceneEvaluation(L.Callback):
             if tb is not None:
                 strip = np.concatenate(list(frames[:: max(1, len(frames) // 4)]), axis=0)  # (4H, 2W, 3)
                 tb.add_image(f"val/rollout_{k}", strip, global_step=step, dataformats="HWC")
+
+
+def records_of_rank(n: int, rank: int, world: int, pad: bool = False) -> tuple[list[int], int]:
+    """The evaluation records (indices into n) that process `rank` of `world` generates and scores.
+
+    Every `world`-th record from `rank` on. With `pad` (sharded weights: every process takes part in every
+    `generate` call, so all must make the same calls) the list is filled up to ceil(n / world) with its last
+    record, or record 0 when it has none; those extra responses are generated and dropped.
+
+    Returns:
+        (indices, real): the records to generate for, and how many of them (the first `real`) to score.
+    """
+    if n < 0 or world < 1 or not 0 <= rank < world:
+        raise ValueError(f"n = {n}, rank = {rank}, world = {world}: need n >= 0, world >= 1, 0 <= rank < world")
+    mine = list(range(rank, n, world))
+    real = len(mine)
+    if pad and n:
+        mine += [mine[-1] if mine else 0] * (-(-n // world) - real)
+    return mine, real
+
+
+def merge_parts(parts: Sequence[tuple[list[int], list[str], dict[str, list]]], n: int) -> tuple[list, dict]:
+    """The texts and per-record metrics of all `n` records, in record order, from each process's
+    (indices, texts, per-record metrics) of `records_of_rank`.
+
+    Raises:
+        ValueError: a record is missing or given twice.
+    """
+    order = [i for indices, _, _ in parts for i in indices]
+    if sorted(order) != list(range(n)):
+        raise ValueError(f"the processes' records {sorted(order)} are not each of the {n} records once")
+    where = {i: (p, k) for p, (indices, _, _) in enumerate(parts) for k, i in enumerate(indices)}
+    texts = [parts[where[i][0]][1][where[i][1]] for i in range(n)]
+    keys = parts[0][2].keys() if parts else ()
+    per = {key: [parts[where[i][0]][2][key][where[i][1]] for i in range(n)] for key in keys}
+    return texts, per
+
+
+def _gather_objects(obj, world: int) -> list:
+    """Every process's `obj`, in rank order (the default process group; just [obj] for one process)."""
+    if world == 1:
+        return [obj]
+    out: list = [None] * world
+    torch.distributed.all_gather_object(out, obj)
+    return out
 
 
 def _plain(value):

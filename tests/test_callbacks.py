@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from aynamics.callbacks import METRIC_KEYS, evaluate_texts, format_table, side_by_side, summarize
 from aynamics.collect import collect, to_markdown
@@ -305,12 +306,12 @@ def test_evaluation_baseline_scores_the_average_training_scene(monkeypatch):
     val = [sphere.format(0.5), sphere.format(1)]
     records = [{"index": i, "scene_yaml": t, "size": (64, 48)} for i, t in enumerate(val)]
     dm = SimpleNamespace(eval_records=lambda split, n: [dict(r) for r in records][:n], splits={"train": train}, dir="x")
-    trainer = SimpleNamespace(datamodule=dm, default_root_dir="unused")
+    trainer = SimpleNamespace(datamodule=dm, default_root_dir="unused", global_rank=0, world_size=1)
     cb = SceneEvaluation(num_samples=2, num_animations=0)
-    monkeypatch.setattr(cb, "_generate", lambda trainer, module: ["no scene here"] * 2)
+    monkeypatch.setattr(cb, "_generate", lambda trainer, module, records: ["no scene here"] * len(records))
     monkeypatch.setattr(cb, "_write", lambda *a: None)
     logged = {}
-    module = SimpleNamespace(log=lambda k, v, **kw: logged.__setitem__(k, v))
+    module = SimpleNamespace(log=lambda k, v, **kw: logged.__setitem__(k, v), model=torch.nn.Linear(1, 1))
     summary = cb.evaluate(trainer, module)
 
     avg = mean_scene_of_split(train)
@@ -323,3 +324,70 @@ def test_evaluation_baseline_scores_the_average_training_scene(monkeypatch):
     assert expected["yaml_valid"] == 1.0 and expected["position_mae"] == pytest.approx((0.5 + 0.0) / 3 / 2)
     assert summary["yaml_valid"] == 0.0
     assert logged["val/baseline/position_mae"] == pytest.approx(expected["position_mae"])
+
+
+def test_records_of_rank_split_and_pad():
+    """5 records over 2 processes: [0, 2, 4] and [1, 3]; padded (sharded weights: the same generate calls on
+    every rank) rank 1 repeats its last record, and a rank without records (2 over 4) generates record 0 and
+    scores none; a bad rank is named."""
+    from aynamics.callbacks import records_of_rank
+
+    assert records_of_rank(5, 0, 1) == ([0, 1, 2, 3, 4], 5)
+    assert [records_of_rank(5, r, 2) for r in (0, 1)] == [([0, 2, 4], 3), ([1, 3], 2)]
+    assert [records_of_rank(5, r, 2, pad=True) for r in (0, 1)] == [([0, 2, 4], 3), ([1, 3, 3], 2)]
+    assert records_of_rank(2, 3, 4) == ([], 0) and records_of_rank(2, 3, 4, pad=True) == ([0], 0)
+    with pytest.raises(ValueError, match="rank = 2, world = 2"):
+        records_of_rank(5, 2, 2)
+
+
+def test_merge_parts_restores_record_order():
+    """The processes' parts of `records_of_rank` are put back in record order; a record missing or given twice
+    is named."""
+    from aynamics.callbacks import merge_parts
+
+    parts = [([0, 2], ["a", "c"], {"iou_full": [0.0, 0.2]}), ([1], ["b"], {"iou_full": [0.1]})]
+    assert merge_parts(parts, 3) == (["a", "b", "c"], {"iou_full": [0.0, 0.1, 0.2]})
+    with pytest.raises(ValueError, match=r"\[0, 1, 2, 2\] are not each of the 3 records once"):
+        merge_parts([*parts, ([2], ["c"], {"iou_full": [0.2]})], 3)
+
+
+def test_evaluation_split_over_two_processes_equals_one_process(monkeypatch, truth):
+    """Three records evaluated by two processes (each generating and scoring its share; rank 0 gathers) log
+    and write exactly what one process does: the same per-record rows in record order and the same means; the
+    other rank logs and writes nothing. Responses differ per record (true, slower, none), so order matters."""
+    from types import SimpleNamespace
+
+    import aynamics.callbacks as callbacks
+    from aynamics.callbacks import SceneEvaluation
+
+    scene, _ = truth
+    answers = {0: dump(scene), 1: dump(_moved(scene, "linear_velocity", 0.5)), 2: "no scene here"}
+    records = [{"index": i, "scene_yaml": dump(scene), "size": (96, 64)} for i in range(3)]
+    dm = SimpleNamespace(eval_records=lambda split, n: [dict(r) for r in records][:n], dir="x")
+
+    def run(rank: int, world: int, gather):
+        trainer = SimpleNamespace(datamodule=dm, default_root_dir="unused", global_rank=rank, world_size=world)
+        cb = SceneEvaluation(num_samples=3, num_animations=0, baseline=False)
+        made = []
+
+        def generate(trainer, module, recs):
+            made.extend(r["index"] for r in recs)
+            return [answers[r["index"]] for r in recs]
+
+        monkeypatch.setattr(cb, "_generate", generate)
+        written, logged = [], {}
+        monkeypatch.setattr(cb, "_write", lambda trainer, texts, recs, per: written.append((texts, per)))
+        monkeypatch.setattr(callbacks, "_gather_objects", gather)
+        module = SimpleNamespace(log=lambda k, v, **kw: logged.__setitem__(k, v), model=torch.nn.Linear(1, 1))
+        return cb.evaluate(trainer, module), made, written, logged
+
+    one = run(0, 1, lambda obj, world: [obj])
+    sent = []
+    other = run(1, 2, lambda obj, world: sent.append(obj) or [None, obj])
+    zero = run(0, 2, lambda obj, world: [obj, sent[0]])
+    assert one[1] == [0, 1, 2] and zero[1] == [0, 2] and other[1] == [1]
+    assert other[0] == {} and other[2] == [] and other[3] == {}
+    assert zero[0] == one[0] and zero[3] == one[3] and zero[2] == one[2]
+    texts, per = zero[2][0]
+    assert texts == [answers[i] for i in range(3)] and per["yaml_valid"] == [1.0, 1.0, 0.0]
+    assert per["velocity_mae"][0] == 0.0 and per["velocity_mae"][1] > 0

@@ -466,11 +466,34 @@ def test_multirun_grid_and_collect(tmp_path, dataset_dir, capsys):
 
 @pytest.mark.slow
 def test_ddp_two_processes_on_cpu(tmp_path, dataset_dir):
+    """trainer=ddp on 2 CPU processes trains, writes the adapter, and evaluates its scenes split over the two
+    processes (one prompt each, rank 0 gathers): the predictions file holds both records in order, each the
+    greedy response of the written adapter to that record's prompt, generated here in one process."""
     out = tmp_path / "ddp"
-    _two_processes(out, "trainer=ddp", f"data.dir={dataset_dir}", "trainer.max_steps=2", "trainer.val_check_interval=2")
+    _two_processes(
+        out,
+        "trainer=ddp",
+        f"data.dir={dataset_dir}",
+        "trainer.max_steps=2",
+        "trainer.val_check_interval=2",
+        "callbacks.evaluation.batch_size=1",
+    )
     record = json.loads((out / "metrics.json").read_text())
     assert record["global_step"] == 2 and "val/yaml_valid" in record["metrics"]
-    assert (out / "adapter" / "adapter_model.safetensors").is_file()
+    model, spec, prompt = lm.load_adapter(out / "adapter")
+    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2)
+    dm.setup("fit")
+    assert dm.prompt == prompt
+    records = dm.eval_records("validation", 2)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as in the training processes (OMP_NUM_THREADS=1)
+    try:
+        texts = [lm.greedy_texts(model, dm.processor, [r["prompt"]], 8)[0] for r in records]
+    finally:
+        torch.set_num_threads(threads)
+    rows = [json.loads(x) for x in (out / "eval" / "predictions_step000002.jsonl").read_text().splitlines()]
+    assert [(r["index"], r["prediction"]) for r in rows] == [(r["index"], t) for r, t in zip(records, texts)]
+    assert rows[0]["index"] != rows[1]["index"]
 
 
 def _two_processes(out: Path, *overrides: str) -> subprocess.CompletedProcess:
