@@ -12,8 +12,10 @@ callbacks, loggers, a `Trainer`), fits, writes `OUT/metrics.json` and returns th
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
+import warnings
 from pathlib import Path
 
 import hydra
@@ -70,8 +72,32 @@ def train(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
+class _NoTips(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Tip:" not in str(record.msg)  # Lightning's advertisement of a cloud logger
+
+
+def one_log_stream() -> None:
+    """Each log line once: Lightning's loggers print through their own console handler and again, propagated,
+    through Hydra's (console and `OUT/train.log`); Hydra's is kept. Lines nobody can act on are dropped:
+    Lightning's cloud-logger tip, PyOpenGL's missing accelerator and Lightning's pytree deprecation under
+    this torch."""
+    import lightning  # noqa: F401  (adds Lightning's handlers, removed here)
+
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logger = logging.getLogger(name)
+        for handler in list(logger.handlers):
+            if type(handler) is logging.StreamHandler:
+                logger.removeHandler(handler)
+                logger.propagate = True
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(_NoTips())
+    logging.getLogger("OpenGL").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", category=FutureWarning)
+
+
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
+    one_log_stream()
     metrics = train(cfg)
     return metrics.get("val/iou_full")  # the value a Hydra sweeper would optimise
 

@@ -168,6 +168,9 @@ def test_cli_command_as_written(tmp_path, dataset_dir):
     } <= set(header)
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2
     assert "yaml_valid" in done.stdout  # the validation table
+    console = done.stdout + done.stderr  # each log line once (was Lightning's handler and Hydra's), in the log file
+    assert console.count("Seed set to 0") == 1 and "INFO: " not in console and "Tip:" not in console
+    assert "LeafSpec" not in console and "Seed set to 0" in (out / "train.log").read_text()
 
 
 def _module_and_batch(dataset_dir, **spec_kw):
