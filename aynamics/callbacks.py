@@ -247,7 +247,7 @@ class SceneEvaluation(L.Callback):
 
         With several processes (ddp, fsdp) each generates and scores its share of the records
         (`records_of_rank`) and rank 0 gathers the results, logs and writes them: the same numbers as one
-        process, in about 1 / world_size of the time. Every process must call this (it gathers)."""
+        process, each process doing a world_size-th of the records. Every process must call this (it gathers)."""
         rank, world = trainer.global_rank, trainer.world_size
         self._prepare(trainer, baseline=rank == 0)  # the same records on every rank; the baseline is rank 0's
         records = self._records
