@@ -26,6 +26,7 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 
 from aynamics import lm, metrics, sharding
 from aynamics.scene import Scene, SceneError, parse
@@ -139,9 +140,26 @@ class AdapterExport(L.Callback):
         self.export(trainer, pl_module)
 
 
+class StepCheckpoint(ModelCheckpoint):
+    """Lightning's `ModelCheckpoint`, also saved after the step that ends training when it is off the cadence: a
+    run of 1100 steps with `every_n_train_steps=200` writes `step001100.ckpt`, and its `last.ckpt` holds step
+    1100, not 1000 (Lightning alone saves at the end only when nothing was saved before, and then with the
+    unfinished epoch marked done). `ckpt_path=OUT/checkpoints/last.ckpt` with a larger `trainer.max_steps`
+    continues exactly where the run ended."""
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args, **kwargs) -> None:
+        super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
+        # saved where the periodic ones are (after the step, before the loop counts the batch done), so that
+        # resuming from it continues the epoch; skipped when just saved, in fast_dev_run, outside fit
+        if ends_training(trainer) and not self._should_skip_saving_checkpoint(trainer):
+            candidates = self._monitor_candidates(trainer)
+            self._save_topk_checkpoint(trainer, candidates)
+            self._save_last_checkpoint(trainer, candidates)
+
+
 def ends_training(trainer: L.Trainer) -> bool:
-    """Whether the validation now running is the last of the fit: max_steps reached, or the last batch of the
-    last epoch (max_epochs)."""
+    """Whether the fit ends after the current batch (or the validation now running is its last): max_steps
+    reached, or the last batch of the last epoch (max_epochs)."""
     if trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps:
         return True
     max_epochs = trainer.max_epochs

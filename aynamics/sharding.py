@@ -16,9 +16,10 @@ own dtype. FSDP2 also runs on the CPU (gloo), so this path is tested here (`test
 
 Sharded weights change three things elsewhere, all handled through this module:
 - generation: every forward gathers weights from every process, so all processes generate together
-  (`synced_gpus`, `generation_kwargs`), also for the scene evaluation (each process its share of the prompts, padded to the same calls), with the units
-  kept gathered for the whole call (`gathered`: 2.6x faster for 128 tokens on 2 idle CPU processes,
-  `benchmarks/bench_fsdp_generate.py`; across GPUs each token's gathers would move the whole model);
+  (`synced_gpus`, `generation_kwargs`), also for the scene evaluation (each process its share of the prompts,
+  padded to the same calls), with the units kept gathered for the whole call (`gathered`: 2.6x faster for 128
+  tokens on 2 idle CPU processes, `benchmarks/bench_fsdp_generate.py`; across GPUs each token's gathers would
+  move the whole model);
 - the adapter: its weights are gathered on every process before rank 0 writes it (`trainable_state`);
 - checkpoints: only the trainable weights are gathered (the frozen base is rebuilt from the spec).
 """

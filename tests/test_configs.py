@@ -77,7 +77,7 @@ def test_data_stage_and_callbacks_instantiate(tmp_path):
     factory = hydra.utils.instantiate(cfg.stage.module)
     assert factory.func.__name__ == "SFTModule"
     callbacks = [hydra.utils.instantiate(c) for c in cfg.callbacks.values()]
-    assert {type(c).__name__ for c in callbacks} == {"ModelCheckpoint", "AdapterExport", "SceneEvaluation"}
+    assert {type(c).__name__ for c in callbacks} == {"StepCheckpoint", "AdapterExport", "SceneEvaluation"}
 
 
 def test_experiment_overrides_compose(tmp_path):

@@ -268,6 +268,30 @@ def test_resume_continues_exactly(tmp_path, dataset_dir, vision_aux):
     _exported_checkpoint_is_the_adapter_of_its_step(ckpt, tmp_path / "b" / "adapter", tmp_path / "exported")
 
 
+def test_last_checkpoint_is_the_final_step_and_continues_exactly(tmp_path, dataset_dir):
+    """A 3-step run checkpointing every 2 steps also saves step 3 (step000003.ckpt, and last.ckpt at step 3, not
+    2: Lightning alone saves at the end only when nothing was saved before); resumed from that last.ckpt to step
+    5 it writes steps 4 and 5 with the weights of a straight 5-step run, bit for bit, and no step-3 file."""
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null"]
+    common += ["callbacks.checkpoint.every_n_train_steps=2", "trainer.val_check_interval=null"]
+    common += ["trainer.check_val_every_n_epoch=100", "trainer.enable_progress_bar=false"]
+    train(_cfg(tmp_path / "short", *common, "trainer.max_steps=3"))
+    names = sorted(p.name for p in (tmp_path / "short" / "checkpoints").iterdir())
+    assert names == ["last.ckpt", "step000002.ckpt", "step000003.ckpt"]
+    last = torch.load(tmp_path / "short" / "checkpoints" / "last.ckpt", weights_only=False)
+    assert last["global_step"] == 3
+    train(_cfg(tmp_path / "long", *common, "trainer.max_steps=5"))
+    ckpt = tmp_path / "short" / "checkpoints" / "last.ckpt"
+    train(_cfg(tmp_path / "resumed", *common, "trainer.max_steps=5", f"ckpt_path={ckpt}"))
+    names = sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir())
+    assert names == ["last.ckpt", "step000004.ckpt", "step000005.ckpt"]
+    for step in (4, 5):
+        a = torch.load(tmp_path / "long" / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
+        c = torch.load(tmp_path / "resumed" / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
+        assert a["global_step"] == c["global_step"] == step and a["state_dict"].keys() == c["state_dict"].keys()
+        assert all(torch.equal(a["state_dict"][k], c["state_dict"][k]) for k in a["state_dict"]), step
+
+
 def _exported_checkpoint_is_the_adapter_of_its_step(ckpt: Path, adapter: Path, out: Path) -> None:
     """`aynamics export-adapter` of run b's checkpoint writes the folder run b exported when it ended at that
     step: the same peft tensors and specs, loadable with `PeftModel.from_pretrained`. A file that is no
@@ -575,7 +599,7 @@ def test_fsdp_matches_ddp_and_resumes_exactly(tmp_path, dataset_dir):
     _two_processes(tmp_path / "straight", *three)
     step2 = tmp_path / "straight" / "checkpoints" / "step000002.ckpt"
     _two_processes(tmp_path / "resumed", *three, f"ckpt_path={step2}")
-    # the adapter holds the final (step 3) weights; Lightning's last.ckpt is the step-2 checkpoint here
+    # the adapter holds the final (step 3) weights, as does last.ckpt (callbacks.StepCheckpoint)
     straight = load_file(tmp_path / "straight" / "adapter" / "adapter_model.safetensors")
     resumed = load_file(tmp_path / "resumed" / "adapter" / "adapter_model.safetensors")
     at_step2 = _weights(tmp_path / "straight", step2.name)
