@@ -144,6 +144,8 @@ class ModelSpec:
             scratch, needs its random "embed_tokens" and "lm_head" trainable to learn quickly).
         gradient_checkpointing: Non-reentrant activation checkpointing (less memory, more compute).
         dtype: "float32" or "bfloat16" (pretrained only; the tiny model stays float32).
+        attn_implementation: Attention kernel: "sdpa", "eager", "flash_attention_2" (needs the `flash-attn`
+            package and a GPU; pretrained only) or None for transformers' default (sdpa).
     """
 
     kind: str = "tiny"
@@ -158,6 +160,7 @@ class ModelSpec:
     modules_to_save: tuple[str, ...] = ()
     gradient_checkpointing: bool = False
     dtype: str = "float32"
+    attn_implementation: str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -166,6 +169,12 @@ class ModelSpec:
             raise ValueError("model kind = 'pretrained' needs model.path (a local directory or a hub id)")
         if self.dtype not in ("float32", "bfloat16"):
             raise ValueError(f"model dtype = {self.dtype!r}: must be 'float32' or 'bfloat16'")
+        kernels = ("sdpa", "eager", "flash_attention_2") if self.kind == "pretrained" else ("sdpa", "eager")
+        if self.attn_implementation is not None and self.attn_implementation not in kernels:
+            raise ValueError(
+                f"model attn_implementation = {self.attn_implementation!r}: must be one of {kernels} or null "
+                f"(transformers' default) for kind = {self.kind!r}"
+            )
         object.__setattr__(self, "lora_targets", tuple(self.lora_targets))
         object.__setattr__(self, "modules_to_save", tuple(self.modules_to_save))
         object.__setattr__(self, "tiny", dict(self.tiny))
@@ -182,9 +191,11 @@ def build_base(spec: ModelSpec) -> torch.nn.Module:
     from aynamics import model as modellib
 
     if spec.kind == "tiny":
-        return modellib.build_tiny_model(seed=spec.seed, **spec.tiny)
+        return modellib.build_tiny_model(
+            seed=spec.seed, attn_implementation=spec.attn_implementation or "sdpa", **spec.tiny
+        )
     dtype = torch.bfloat16 if spec.dtype == "bfloat16" else torch.float32
-    return modellib.load_pretrained(spec.path, dtype=dtype)
+    return modellib.load_pretrained(spec.path, dtype=dtype, attn_implementation=spec.attn_implementation)
 
 
 def build_model(spec: ModelSpec) -> torch.nn.Module:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import torch
@@ -213,3 +215,29 @@ def test_completion_logprobs_match_the_sft_loss(proc, frames):
     assert (batch["labels"] != IGNORE_INDEX).sum(-1).tolist() == [
         len(tok(t, add_special_tokens=False)["input_ids"]) for t in texts
     ]
+
+
+def test_attention_kernel_is_chosen_by_the_spec(tmp_path, batches):
+    """model.attn_implementation reaches the built model (tiny and from_pretrained): eager and sdpa give the same
+    logits (on the unpadded positions); flash_attention_2 is refused for the tiny model, an unknown kernel named."""
+    from aynamics import lm
+
+    _, batch = batches["images"]
+    eager = lm.build_base(lm.ModelSpec(attn_implementation="eager"))
+    sdpa = lm.build_base(lm.ModelSpec())
+    assert eager.config._attn_implementation == "eager" and sdpa.config._attn_implementation == "sdpa"
+    real = batch["attention_mask"].bool()  # padded positions attend to nothing: the kernels fill them differently
+    with torch.no_grad():
+        torch.testing.assert_close(
+            eager(**model_inputs(batch)).logits[real], sdpa(**model_inputs(batch)).logits[real], rtol=1e-4, atol=1e-5
+        )
+    sdpa.save_pretrained(tmp_path)
+    shutil.copytree(TINY_ASSET_DIR, tmp_path, dirs_exist_ok=True)
+    spec = lm.ModelSpec(kind="pretrained", path=str(tmp_path), attn_implementation="eager")
+    assert lm.build_base(spec).config._attn_implementation == "eager"
+    with pytest.raises(
+        ValueError, match=r"attn_implementation = 'flash_attention_2': must be one of \('sdpa', 'eager'\)"
+    ):
+        lm.ModelSpec(attn_implementation="flash_attention_2")
+    with pytest.raises(ValueError, match="attn_implementation = 'flash'"):
+        lm.ModelSpec(kind="pretrained", path=str(tmp_path), attn_implementation="flash")
