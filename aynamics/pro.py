@@ -35,7 +35,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from aynamics import lm, sharding
+from aynamics import lm, rng, sharding
 from aynamics import reward as rw
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
@@ -135,6 +135,7 @@ class ProModule(L.LightningModule):
         self.hparams["spec"] = dataclasses.asdict(self.spec)
         self.processor, self.prompt = processor, prompt
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
+        self._rng_to_restore: dict | None = None  # a resumed run's random states, set at its first batch
 
     def configure_model(self) -> None:
         """Under `trainer=fsdp` (a device mesh is set): shard the policy (`aynamics.sharding`)."""
@@ -275,8 +276,19 @@ class ProModule(L.LightningModule):
 
     # ----------------------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Keep only the trainable weights (the adapter) in the checkpoint."""
+        """Keep only the trainable weights (the adapter) in the checkpoint, and every process's random states (the
+        sampled candidates draw from them) for an exact resume."""
         lm.keep_trainable_weights(checkpoint, self)  # all of them under self.model
+        checkpoint["rng"] = rng.gathered_states()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self._rng_to_restore = checkpoint.get("rng")
+
+    def on_train_batch_start(self, batch, batch_idx: int) -> None:
+        # Restored here, not at load: Lightning draws random numbers between loading and the first batch.
+        if self._rng_to_restore is not None:
+            rng.restore(self._rng_to_restore, self.global_rank)
+            self._rng_to_restore = None
 
 
 def _margin(seq: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:

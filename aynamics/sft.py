@@ -14,13 +14,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import random
 
 import lightning as L
-import numpy as np
 import torch
 
-from aynamics import lm, sharding, visual_targets
+from aynamics import lm, rng, sharding, visual_targets
 from aynamics.model import find_visual
 from aynamics.processor import model_inputs
 
@@ -315,15 +313,7 @@ class SFTModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Keep only the trainable weights (the adapter) and record the RNG states for an exact resume."""
         lm.keep_trainable_weights(checkpoint, self)
-        kind, keys, pos, has_gauss, gauss = np.random.get_state()
-        # plain types and tensors only: Lightning loads checkpoints with torch.load(weights_only=True)
-        checkpoint["rng"] = {
-            "torch": torch.get_rng_state(),
-            "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, gauss],
-            "python": random.getstate(),
-        }
-        if torch.cuda.is_available():  # LoRA dropout on a GPU draws from the CUDA generators
-            checkpoint["rng"]["cuda"] = torch.cuda.get_rng_state_all()
+        checkpoint["rng"] = rng.gathered_states()  # every process's (each draws its own dropout masks)
 
     def check_checkpoint(self, checkpoint: dict) -> None:
         """Refuse a checkpoint written for another model or optimizer layout (before anything loads under fsdp)."""
@@ -356,10 +346,5 @@ class SFTModule(L.LightningModule):
     def on_train_batch_start(self, batch, batch_idx: int) -> None:
         # Restored here, not at load: Lightning draws random numbers between loading and the first batch.
         if self._rng_to_restore is not None:
-            torch.set_rng_state(self._rng_to_restore["torch"])
-            kind, keys, pos, has_gauss, gauss = self._rng_to_restore["numpy"]
-            np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))
-            random.setstate(self._rng_to_restore["python"])
-            if "cuda" in self._rng_to_restore and torch.cuda.is_available():
-                torch.cuda.set_rng_state_all(self._rng_to_restore["cuda"])
+            rng.restore(self._rng_to_restore, self.global_rank)
             self._rng_to_restore = None

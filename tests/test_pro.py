@@ -359,6 +359,27 @@ def test_preferences_command_and_offline_training(tmp_path, dataset_dir, capsys)
         train(_cfg(tmp_path / "vocab", *offline, f"stage.preferences_dir={tmp_path / 'handmade'}"))
 
 
+def test_pro_resume_continues_exactly(tmp_path, dataset_dir):
+    """Offline PRO on two stored pairs with LoRA dropout (its masks draw from the random state, as online
+    sampling does): resumed from the step-2 checkpoint, step 3 ends on the straight run's adapter, bit for bit
+    (the random states are in the checkpoint; without them the resumed run drew other masks)."""
+    from safetensors.torch import load_file
+
+    prefs = _handmade_preferences(dataset_dir, tmp_path / "prefs")
+    three = [f"data.dir={dataset_dir}", "stage.mode=offline", f"stage.preferences_dir={prefs}"]
+    three += ["trainer.max_steps=3", "trainer.val_check_interval=3", "callbacks.checkpoint.every_n_train_steps=2"]
+    three += ["model.lora_dropout=0.3"]
+    train(_cfg(tmp_path / "straight", *three))
+    step2 = tmp_path / "straight" / "checkpoints" / "step000002.ckpt"
+    train(_cfg(tmp_path / "resumed", *three, f"ckpt_path={step2}"))
+    straight = load_file(tmp_path / "straight" / "adapter" / "adapter_model.safetensors")
+    resumed = load_file(tmp_path / "resumed" / "adapter" / "adapter_model.safetensors")
+    at_step2 = torch.load(step2, weights_only=True)["state_dict"]
+    b = next(k for k in straight if "lora_B" in k)
+    assert not torch.equal(straight[b], at_step2["model." + b.replace(".weight", ".default.weight")])  # step 3 moved
+    assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
+
+
 def _two_processes(out: Path, trainer: str, *overrides: str) -> dict:
     cmd = [sys.executable, "train.py", "stage=pro", f"trainer={trainer}", "trainer.accelerator=cpu"]
     cmd += ["trainer.devices=2", f"hydra.run.dir={out}", *FAST, "trainer.enable_progress_bar=false", *overrides]

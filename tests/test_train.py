@@ -523,6 +523,23 @@ def test_ddp_two_processes_on_cpu(tmp_path, dataset_dir):
     assert rows[0]["index"] != rows[1]["index"]
 
 
+@pytest.mark.slow
+def test_ddp_resume_continues_exactly_on_every_rank(tmp_path, dataset_dir):
+    """trainer=ddp on 2 CPU processes with LoRA dropout: resumed from the step-2 checkpoint, step 3 ends on the
+    adapter of the straight 3-step run, bit for bit. Each rank's random state is saved and restored (dropout
+    masks draw from it; rank 1 used to be given rank 0's state)."""
+    from safetensors.torch import load_file
+
+    three = [f"data.dir={dataset_dir}", "trainer=ddp", "trainer.max_steps=3", "trainer.val_check_interval=3"]
+    three += ["model.lora_dropout=0.3", "callbacks.checkpoint.every_n_train_steps=2", "callbacks.evaluation=null"]
+    _two_processes(tmp_path / "straight", *three)
+    step2 = tmp_path / "straight" / "checkpoints" / "step000002.ckpt"
+    _two_processes(tmp_path / "resumed", *three, f"ckpt_path={step2}")
+    straight = load_file(tmp_path / "straight" / "adapter" / "adapter_model.safetensors")
+    resumed = load_file(tmp_path / "resumed" / "adapter" / "adapter_model.safetensors")
+    assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
+
+
 def _two_processes(out: Path, *overrides: str) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "train.py", "trainer.accelerator=cpu", "trainer.devices=2", f"hydra.run.dir={out}"]
     cmd += [*FAST, "callbacks.evaluation.num_samples=2", "callbacks.evaluation.max_new_tokens=8"]
@@ -790,3 +807,32 @@ def test_checkpoint_hooks_accept_deepspeed_checkpoints():
     module.on_load_checkpoint(checkpoint)
     with pytest.raises(ValueError, match="checkpoint lacks .* trainable weights"):
         module.on_load_checkpoint({**checkpoint, "state_dict": {}})
+
+
+def test_rng_states_are_restored_per_rank():
+    """`rng.restore` gives rank r the states saved for rank r (torch, NumPy and Python draw what they drew after
+    the save), rank r mod the count for a checkpoint of fewer processes, and reads the older one-set format."""
+    import random
+
+    import numpy as np
+
+    from aynamics import rng
+
+    def draws() -> tuple:
+        return torch.rand(2).tolist(), np.random.rand(), random.random()
+
+    saved = []
+    for seed in (1, 2):
+        torch.manual_seed(seed), np.random.seed(seed), random.seed(seed)
+        saved.append(rng.local_state())
+    expected = []
+    for state in saved:
+        rng.restore({"per_rank": [state]}, 0)
+        expected.append(draws())
+    assert expected[0] != expected[1]
+    both = {"per_rank": saved}
+    for rank, want in ((0, 0), (1, 1), (2, 0), (3, 1)):
+        rng.restore(both, rank)
+        assert draws() == expected[want], rank
+    rng.restore(saved[1], 0)  # a checkpoint written before the states were kept per rank
+    assert draws() == expected[1]
