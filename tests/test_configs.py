@@ -57,6 +57,8 @@ def test_group_composes(tmp_path, group, name):
                 cfg.trainer, accelerator="cpu", devices=2 if name != "cpu" else 1, logger=False
             )
             assert trainer.world_size == (1 if name == "cpu" else 2)
+            if name != "cpu":  # multi-process configs are for GPUs: every visible one, bf16-mixed
+                assert cfg.trainer.devices == -1 and cfg.trainer.precision == "bf16-mixed"
             if name == "fsdp":
                 from aynamics.sharding import FullyShardedDataParallel
 

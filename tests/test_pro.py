@@ -383,6 +383,8 @@ def test_pro_resume_continues_exactly(tmp_path, dataset_dir):
 def _two_processes(out: Path, trainer: str, *overrides: str) -> dict:
     cmd = [sys.executable, "train.py", "stage=pro", f"trainer={trainer}", "trainer.accelerator=cpu"]
     cmd += ["trainer.devices=2", f"hydra.run.dir={out}", *FAST, "trainer.enable_progress_bar=false", *overrides]
+    if trainer == "ddp":  # ddp.yaml is for GPUs (bf16-mixed); float32 on the CPU
+        cmd.append("trainer.precision=32-true")
     env = dict(os.environ, OMP_NUM_THREADS="1")
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
     assert done.returncode == 0, done.stderr[-3000:]

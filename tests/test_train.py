@@ -544,6 +544,8 @@ def _two_processes(out: Path, *overrides: str) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "train.py", "trainer.accelerator=cpu", "trainer.devices=2", f"hydra.run.dir={out}"]
     cmd += [*FAST, "callbacks.evaluation.num_samples=2", "callbacks.evaluation.max_new_tokens=8"]
     cmd += ["trainer.enable_progress_bar=false", *overrides]
+    if "trainer=ddp" in overrides:  # ddp.yaml is for GPUs (bf16-mixed); float32 on the CPU
+        cmd.append("trainer.precision=32-true")
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900, env=_one_thread())
     assert done.returncode == 0, done.stderr[-3000:]
     return done
