@@ -65,19 +65,25 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
 class LLMEditor:
     """A transformers chat model that edits scenes; outputs pass `check_output` before they are returned."""
 
-    def __init__(self, model: str, *, max_new_tokens: int = 2048, device: str = "cpu") -> None:
+    def __init__(self, model: str, *, max_new_tokens: int = 2048, device: str = "auto") -> None:
         """Load the tokenizer and model.
 
         Args:
             model: a local checkpoint directory or a hub name (`from_pretrained`).
             max_new_tokens: generation limit; a scene of a few objects is ~300–600 tokens.
-            device: torch device to run on.
+            device: torch device to run on ("auto": a GPU when there is one, else the CPU).
 
         Raises:
             EditError: the model or tokenizer can't be loaded, or the tokenizer has no chat template.
         """
         from transformers import AutoModelForCausalLM, AutoTokenizer
 
+        from aynamics.lm import inference_device
+
+        try:
+            device = str(inference_device(device))
+        except ValueError as e:
+            raise EditError(f"--llm {model!r}: {e}") from None
         try:
             self.tokenizer = AutoTokenizer.from_pretrained(model)
             self.model = AutoModelForCausalLM.from_pretrained(model).to(device).eval()

@@ -493,8 +493,31 @@ def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     return save_adapter(model, out, spec, prompt)
 
 
-def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, PromptSpec]:
-    """Rebuild the base model of an adapter folder and load the adapter onto it (eval mode).
+def inference_device(name: str | None = None) -> torch.device:
+    """The device to run a model on for inference: `name` ("cpu", "cuda", "cuda:1", ...), or None / "auto" for
+    the first GPU when there is one, else the CPU.
+
+    Raises:
+        ValueError: not a device name, or a GPU that this machine does not have (named).
+    """
+    if name in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"device = {name!r}: not a torch device name (cpu, cuda, cuda:1, auto): {e}") from None
+    if device.type == "cuda" and (not torch.cuda.is_available() or (device.index or 0) >= torch.cuda.device_count()):
+        raise ValueError(f"device = {name!r}: this machine has {torch.cuda.device_count()} CUDA devices")
+    if device.type not in ("cpu", "cuda"):
+        raise ValueError(f"device = {name!r}: only cpu and cuda are supported")
+    return device
+
+
+def load_adapter(
+    adapter_dir: str | Path, device: str | torch.device | None = "cpu"
+) -> tuple[torch.nn.Module, ModelSpec, PromptSpec]:
+    """Rebuild the base model of an adapter folder and load the adapter onto it (eval mode), on `device`
+    (`inference_device`: None or "auto" for a GPU when there is one).
 
     Raises:
         FileNotFoundError: the folder has no `aynamics.json`.
@@ -503,6 +526,7 @@ def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, P
     """
     from peft import PeftModel
 
+    target = inference_device(None if device is None else str(device))  # a bad name before the model loads
     spec, prompt = read_adapter_meta(adapter_dir)
     check_adapter_files(adapter_dir)
     base = build_base(spec)
@@ -516,7 +540,7 @@ def load_adapter(adapter_dir: str | Path) -> tuple[torch.nn.Module, ModelSpec, P
             f"adapter {str(adapter_dir)!r} cannot be loaded (its adapter_config.json, or weights that do not fit the "
             f"base model its aynamics.json names): {type(e).__name__}: {e}"
         ) from None
-    return model.eval(), spec, prompt
+    return model.to(target).eval(), spec, prompt
 
 
 def greedy_texts(model: torch.nn.Module, processor, prompts: Sequence[dict], max_new_tokens: int) -> list[str]:

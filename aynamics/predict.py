@@ -74,12 +74,13 @@ def read_frames(path: str | Path) -> list[np.ndarray]:
     return out
 
 
-def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048) -> dict:
-    """Greedy response of the adapter's model for `frames`: {"response", "reasoning", "yaml", "valid", "problems"}."""
+def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048, device: str = "auto") -> dict:
+    """Greedy response of the adapter's model for `frames`: {"response", "reasoning", "yaml", "valid", "problems"}.
+    `device`: "auto" (a GPU when there is one), "cpu", "cuda", "cuda:1", ..."""
     from aynamics import lm
     from aynamics.scene import SceneError, dump, parse
 
-    model, spec, prompt = lm.load_adapter(adapter)
+    model, spec, prompt = lm.load_adapter(adapter, device)
     processor = lm.load_processor(spec, prompt)
     inputs = lm.prompt_inputs(processor, prompt, frames)
     response = lm.greedy_texts(model, processor, [inputs], max_new_tokens)[0]
@@ -99,6 +100,7 @@ def add_predict_command(sub) -> None:
     p.add_argument("--adapter", required=True, help="adapter folder written by training (OUT/adapter)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    p.add_argument("--device", default="auto", help="auto (a GPU when there is one, default), cpu, cuda, cuda:1, ...")
     p.set_defaults(run=run_predict)
 
 
@@ -111,7 +113,7 @@ def run_predict(args) -> int:
         raise UsageError(f"predict: --adapter {args.adapter!r} is not a folder (give OUT/adapter of a training run)")
     try:
         frames = read_frames(args.input)
-        result = predict(args.adapter, frames, args.max_new_tokens)
+        result = predict(args.adapter, frames, args.max_new_tokens, args.device)
     except FileNotFoundError as e:
         raise UsageError(f"predict: {missing_file_message(e)}") from None
     except ValueError as e:

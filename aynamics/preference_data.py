@@ -237,6 +237,13 @@ def add_preferences_command(sub) -> None:
     p.add_argument("--limit", type=int, default=None, help="use only the first LIMIT videos")
     p.add_argument("--batch-size", type=int, default=1, help="videos sampled together (default 1)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
+    p.add_argument("--device", default="auto", help="auto (a GPU when there is one, default), cpu, cuda, cuda:1, ...")
+    p.add_argument(
+        "--dtype",
+        default=None,
+        choices=("float32", "bfloat16"),
+        help="weights of a --model checkpoint (default: bfloat16 on a GPU, float32 on the CPU; tiny: float32)",
+    )
     p.set_defaults(run=run_preferences)
 
 
@@ -250,7 +257,12 @@ def run_preferences(args) -> int:
         raise UsageError(f"preferences: --limit {args.limit}: must be >= 1")
     try:
         check_out(args.out)  # before hours of sampling, not after
-        spec = lm.ModelSpec(kind="tiny") if args.model == "tiny" else lm.ModelSpec(kind="pretrained", path=args.model)
+        device = lm.inference_device(args.device)
+        if args.model == "tiny":
+            spec = lm.ModelSpec(kind="tiny")
+        else:
+            dtype = args.dtype or ("bfloat16" if device.type == "cuda" else "float32")
+            spec = lm.ModelSpec(kind="pretrained", path=args.model, dtype=dtype)
         prompt = lm.read_adapter_meta(args.adapter)[1] if args.adapter else lm.PromptSpec(modality=args.inputs)
         videos = open_videos(
             args.data, args.split, inputs=prompt.modality, use_flow=args.metric != "iou", limit=args.limit
@@ -266,6 +278,7 @@ def run_preferences(args) -> int:
             reward_span=args.span,
             prompt=prompt,
         )
+        module.to(device)
         torch.manual_seed(args.seed)
         rows, summary = build_preferences(
             module,

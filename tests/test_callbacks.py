@@ -173,6 +173,41 @@ def test_predict_cli_errors_are_clear(tmp_path, capsys):
     assert "holds no frames" in capsys.readouterr().err
 
 
+def test_inference_device_names_a_device_this_machine_lacks(tmp_path, capsys):
+    """ "auto" is the first GPU when there is one, else the CPU; a GPU the machine lacks, or no device name, is
+    refused before a model loads, also by `predict --device` (exit 2, the value named)."""
+    import torch
+
+    from aynamics.cli import main
+    from aynamics.lm import inference_device
+
+    assert (
+        inference_device("auto")
+        == inference_device(None)
+        == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    )
+    assert inference_device("cpu") == torch.device("cpu")
+    gpus = torch.cuda.device_count()
+    with pytest.raises(ValueError, match=rf"device = 'cuda:{gpus}': this machine has {gpus} CUDA devices"):
+        inference_device(f"cuda:{gpus}")
+    with pytest.raises(ValueError, match="device = 'gpu0': not a torch device name"):
+        inference_device("gpu0")
+    with pytest.raises(ValueError, match="device = 'meta': only cpu and cuda"):
+        inference_device("meta")
+    from aynamics import lm
+
+    adapter = tmp_path / "adapter"
+    adapter.mkdir()
+    (adapter / "aynamics.json").write_text(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    import imageio.v3 as iio
+
+    iio.imwrite(frames / "a.png", np.zeros((16, 16, 3), np.uint8))
+    assert main(["predict", "--adapter", str(adapter), str(frames), "--device", f"cuda:{gpus}"]) == 2
+    assert f"predict: device = 'cuda:{gpus}'" in capsys.readouterr().err
+
+
 def test_predict_cli_names_the_broken_file(tmp_path, capsys):
     """A truncated frame, and each broken file of an adapter folder, exit 2 naming the file and the problem (they
     raised OSError, KeyError 'prompt', SafetensorError, or "Expecting value" without a file name). Every check runs
