@@ -184,8 +184,9 @@ class SFTModule(L.LightningModule):
             got = None if tokens is None else tuple(tokens.shape)
             raise ValueError(f"visual tokens {got} do not match visual_targets {tuple(targets.shape)}")
         grid = batch["video_grid_thw"] if "video_grid_thw" in batch else batch["image_grid_thw"]
+        head_dtype = next(self.visual_head.parameters()).dtype  # float32 after a bf16 tower outside autocast
         aux, stats = visual_targets.aux_loss(
-            self.visual_head(tokens),
+            self.visual_head(tokens.to(head_dtype)),
             targets,
             visual_targets.frame_tokens(grid, self._merge_size),
             self.hparams.vision_share_weight,
@@ -228,7 +229,8 @@ class SFTModule(L.LightningModule):
             share_weight=self.hparams.vision_share_weight,
         )
         if self.trainer.world_size > 1:  # every rank ran the same steps; make sure they hold rank 0's weights
-            warmed = {k: v.detach().clone() for k, v in self.state_dict().items() if "visual" in k}
+            # on the CPU: CUDA tensors pickled by the broadcast would unpickle onto rank 0's GPU on every rank
+            warmed = {k: v.detach().cpu() for k, v in self.state_dict().items() if "visual" in k}
             self.load_state_dict(self.trainer.strategy.broadcast(warmed), strict=False)
         for row in history:
             for k, v in row.items():

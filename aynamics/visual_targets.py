@@ -151,7 +151,7 @@ def aux_loss(
         has = count > 0
         stats = {
             "count_acc": (pred == count).float().mean(),
-            "object_recall": (pred[has] > 0).float().mean() if has.any() else torch.tensor(float("nan")),
+            "object_recall": (pred[has] > 0).float().mean() if has.any() else pred.new_tensor(float("nan")).float(),
         }
         if frame_tokens is not None:  # the count the tokens imply: summed shares, or centres when shares are off
             sizes = list(frame_tokens)
@@ -281,7 +281,8 @@ def warm_up(
         tokens = getattr(out, "pooler_output", out)
         merge = getattr(visual, "spatial_merge_size", 2)
         targets = torch.cat(targets).to(device)
-        loss, stats = aux_loss(head(tokens), targets, frame_tokens(grid_thw, merge), share_weight)
+        head_dtype = next(head.parameters()).dtype  # a bf16 tower (pretrained) before a float32 head
+        loss, stats = aux_loss(head(tokens.to(head_dtype)), targets, frame_tokens(grid_thw, merge), share_weight)
         for g in opt.param_groups:
             g["lr"] = lr * min(1.0, (step + 1) / max(1, warmup_steps))
         opt.zero_grad(set_to_none=True)

@@ -195,3 +195,15 @@ def test_warm_up_lowers_the_dense_loss(dataset_dir):
     assert set(history[0]) == {"step", "loss", "count_acc", "object_recall", "frame_count_acc"}
     assert loss() < 0.7 * before
     assert all(torch.equal(v, module.state_dict()[k]) for k, v in state.items())  # the language model is untouched
+
+
+def test_warm_up_of_a_bfloat16_tower(dataset_dir):
+    """A pretrained tower in bfloat16 (model.dtype) before the float32 head: the warm-up runs outside autocast
+    and casts the tokens to the head's dtype (it failed: "mat1 and mat2 must have the same dtype")."""
+    spec = ModelSpec(kind="tiny", train_vision=True)
+    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2, visual_targets=True)
+    dm.setup("fit")
+    module = SFTModule(spec, vision_aux_weight=1.0)
+    visual = find_visual(module.model).to(torch.bfloat16)
+    history = warm_up(visual, module.visual_head, dm.dataset("train"), steps=2, batch_size=2, lr=1e-3, seed=0)
+    assert module.visual_head.weight.dtype == torch.float32 and np.isfinite(history[-1]["loss"])
