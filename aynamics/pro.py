@@ -221,7 +221,10 @@ class ProModule(L.LightningModule):
         pad = self.processor.tokenizer.pad_token_id
         batch = rw.candidate_batch(prompts, completions, pad, forbidden=rw.vision_token_ids(self.model))
         batch = {k: v.to(self.device) for k, v in batch.items()}
-        logits = self.model(**model_inputs(batch)).logits
+        # Rows are left-padded, so every candidate ends at the right edge: only the last (longest + 1) positions'
+        # logits are needed (a 7B vocabulary makes them the largest tensor of the step).
+        keep = max(len(c) for row in completions for c in row) + 1
+        logits = self.model(**model_inputs(batch), logits_to_keep=keep, use_cache=False).logits
         tok_lp, mask = token_logprobs(logits, batch["labels"])  # (B*N, L-1)
         b, n = rewards.shape
         seq = (tok_lp.sum(-1) / mask.sum(-1).clamp(min=1)).view(b, n)

@@ -241,3 +241,32 @@ def test_attention_kernel_is_chosen_by_the_spec(tmp_path, batches):
         lm.ModelSpec(attn_implementation="flash_attention_2")
     with pytest.raises(ValueError, match="attn_implementation = 'flash'"):
         lm.ModelSpec(kind="pretrained", path=str(tmp_path), attn_implementation="flash")
+
+
+def test_token_logprobs_in_chunks_and_of_the_kept_positions():
+    """Above `chunk_entries` the log-probabilities come from checkpointed chunks (x[label] - logsumexp(x)): the
+    same values and gradients as the one-pass log_softmax; logits of only the last K positions (the model's
+    logits_to_keep) give the same result when every label lies in them, and a label outside them is named."""
+    from aynamics.processor import token_logprobs
+
+    torch.manual_seed(0)
+    logits = torch.randn(3, 9, 50, requires_grad=True)
+    labels = torch.full((3, 9), -100)
+    for row, start in enumerate((5, 7, 3)):
+        labels[row, start:] = torch.randint(0, 50, (9 - start,))
+    whole, mask = token_logprobs(logits, labels)
+    (grad,) = torch.autograd.grad(whole.sum(), logits)
+    assert torch.equal(mask, labels[:, 1:] != -100) and whole[~mask].eq(0).all()
+    expected = logits.detach().log_softmax(-1)[:, :-1].gather(-1, labels[:, 1:].clamp(min=0).unsqueeze(-1))[..., 0]
+    torch.testing.assert_close(whole[mask], expected[mask])
+    chunked, mask2 = token_logprobs(logits, labels, chunk_entries=150)  # 3 positions of 50 entries: 3 + 3 + 2
+    (grad2,) = torch.autograd.grad(chunked.sum(), logits)
+    assert torch.equal(mask, mask2)
+    torch.testing.assert_close(chunked, whole)
+    torch.testing.assert_close(grad2, grad)
+    for entries in (10**9, 150, 100):
+        kept, mask3 = token_logprobs(logits[:, -7:], labels, chunk_entries=entries)  # labels from position 3 on
+        assert torch.equal(mask3, mask)
+        torch.testing.assert_close(kept, whole)
+    with pytest.raises(ValueError, match="labelled tokens before the last 6 positions"):
+        token_logprobs(logits[:, -6:], labels)

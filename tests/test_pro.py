@@ -114,7 +114,8 @@ def test_all_tied_rewards_give_a_zero_loss_that_keeps_the_graph(dataset_dir):
 
 def test_sequence_scores_are_length_normalised_per_candidate(dataset_dir):
     """Each candidate's sequence score in the padded B x N batch is its mean token log-probability computed alone
-    (candidates of 7, 13, 13 and 17 tokens here: a sum would differ by their lengths)."""
+    (candidates of 7, 13, 13 and 17 tokens here: a sum would differ by their lengths), from the logits of the
+    last longest + 1 positions only."""
     from aynamics.processor import mean_token_logprob, model_inputs
 
     module = ProModule(SPEC, prompt=PROMPT, num_samples=4).eval()
@@ -122,8 +123,14 @@ def test_sequence_scores_are_length_normalised_per_candidate(dataset_dir):
     prompts, ids, rewards = _fixed_candidates(module, dataset_dir)
     assert len({len(c) for c in ids[0]}) > 2
     pad = module.processor.tokenizer.pad_token_id
+    shapes = []
+    hook = module.model.register_forward_hook(lambda m, args, out: shapes.append(tuple(out.logits.shape)))
     with torch.no_grad():
         _, seq = module.preference_loss(prompts, ids, rewards)
+    hook.remove()
+    longest = max(len(c) for row in ids for c in row)
+    assert shapes[0][:2] == (8, longest + 1)  # only the positions that predict candidate tokens (logits_to_keep)
+    with torch.no_grad():
         for b, n in [(0, 0), (0, 3), (1, 1)]:
             one = rw.candidate_batch([prompts[b]], [[ids[b][n]]], pad, forbidden=rw.vision_token_ids(module.model))
             alone = mean_token_logprob(module.model(**model_inputs(one)).logits, one["labels"])[0]
