@@ -151,7 +151,7 @@ def aux_loss(
         has = count > 0
         stats = {
             "count_acc": (pred == count).float().mean(),
-            "object_recall": (pred[has] > 0).float().mean() if has.any() else pred.new_tensor(float("nan")).float(),
+            "object_recall": (pred[has] > 0).float().mean() if has.any() else count_logits.new_full((), float("nan")),
         }
         if frame_tokens is not None:  # the count the tokens imply: summed shares, or centres when shares are off
             sizes = list(frame_tokens)

@@ -16,7 +16,16 @@ from aynamics.lm import ModelSpec
 from aynamics.model import find_visual
 from aynamics.processor import IMAGE, VIDEO, load_processor, sample_frames
 from aynamics.sft import SFTModule
-from aynamics.visual_targets import NUM_OUTPUTS, NUM_TARGETS, Augment, aux_loss, frame_tokens, token_targets, warm_up
+from aynamics.visual_targets import (
+    MAX_INSTANCES,
+    NUM_OUTPUTS,
+    NUM_TARGETS,
+    Augment,
+    aux_loss,
+    frame_tokens,
+    token_targets,
+    warm_up,
+)
 
 
 def _mask() -> np.ndarray:
@@ -207,3 +216,16 @@ def test_warm_up_of_a_bfloat16_tower(dataset_dir):
     visual = find_visual(module.model).to(torch.bfloat16)
     history = warm_up(visual, module.visual_head, dm.dataset("train"), steps=2, batch_size=2, lr=1e-3, seed=0)
     assert module.visual_head.weight.dtype == torch.float32 and np.isfinite(history[-1]["loss"])
+
+
+def test_aux_loss_without_objects_has_nan_recall():
+    """Tokens without any object centre (an empty batch, frames showing no object): the loss is finite, the
+    count accuracy that of the zero counts, and the object recall NaN (a float on the logits' device; its
+    integer argmax broke it)."""
+    torch.manual_seed(0)
+    logits = torch.randn(6, NUM_OUTPUTS)
+    loss, stats = aux_loss(logits, torch.zeros(6, NUM_TARGETS), [3, 3])
+    assert (
+        torch.isfinite(loss) and torch.isnan(stats["object_recall"]) and stats["object_recall"].dtype == torch.float32
+    )
+    assert stats["count_acc"] == (logits[:, : MAX_INSTANCES + 1].argmax(-1) == 0).float().mean()
