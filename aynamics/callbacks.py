@@ -141,17 +141,20 @@ class AdapterExport(L.Callback):
 
 
 class StepCheckpoint(ModelCheckpoint):
-    """Lightning's `ModelCheckpoint`, also saved after the step that ends training when it is off the cadence: a
-    run of 1100 steps with `every_n_train_steps=200` writes `step001100.ckpt`, and its `last.ckpt` holds step
-    1100, not 1000 (Lightning alone saves at the end only when nothing was saved before, and then with the
-    unfinished epoch marked done). `ckpt_path=OUT/checkpoints/last.ckpt` with a larger `trainer.max_steps`
-    continues exactly where the run ended."""
+    """Lightning's `ModelCheckpoint`, also saved after the step that ends training (max_steps, or the last batch of
+    max_epochs) when it is off the cadence: a run of 1100 steps with `every_n_train_steps=200` writes
+    `step001100.ckpt`, and its `last.ckpt` holds step 1100, not 1000 (Lightning alone saves at the end only when
+    nothing was saved before, and then with the unfinished epoch marked done). `ckpt_path=OUT/checkpoints/last.ckpt`
+    with a larger `trainer.max_steps` continues exactly where the run ended.
+
+    Not with a `monitor` (this save comes before the final validation, which would rank it by the previous
+    one's metric), and not for runs stopped otherwise (`should_stop`, `max_time`): Lightning's behaviour there."""
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args, **kwargs) -> None:
         super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
         # saved where the periodic ones are (after the step, before the loop counts the batch done), so that
         # resuming from it continues the epoch; skipped when just saved, in fast_dev_run, outside fit
-        if ends_training(trainer) and not self._should_skip_saving_checkpoint(trainer):
+        if self.monitor is None and ends_training(trainer) and not self._should_skip_saving_checkpoint(trainer):
             candidates = self._monitor_candidates(trainer)
             self._save_topk_checkpoint(trainer, candidates)
             self._save_last_checkpoint(trainer, candidates)
@@ -264,8 +267,10 @@ class SceneEvaluation(L.Callback):
         """Generate, score, log and write files; returns the model's summary (on rank 0; {} on the others).
 
         With several processes (ddp, fsdp) each generates and scores its share of the records
-        (`records_of_rank`) and rank 0 gathers the results, logs and writes them: the same numbers as one
-        process, each process doing a world_size-th of the records. Every process must call this (it gathers)."""
+        (`records_of_rank`) and rank 0 gathers the results, logs and writes them: the numbers of one process
+        when the responses do not depend on the batching (batch_size 1; in larger batches a prompt's padding
+        partners change with the number of processes). Every process builds the observed videos of all records,
+        once per fit. Every process must call this (it gathers)."""
         rank, world = trainer.global_rank, trainer.world_size
         self._prepare(trainer, baseline=rank == 0)  # the same records on every rank; the baseline is rank 0's
         records = self._records

@@ -458,6 +458,18 @@ def check_resume_checkpoint(path: str | Path) -> None:
         )
 
 
+def runnable_kernel(spec: ModelSpec, device: torch.device) -> ModelSpec:
+    """`spec` with an attention kernel `device` can run, for loading a trained adapter: flash_attention_2 (which
+    does not change the weights) becomes sdpa on the CPU or without the `flash_attn` package."""
+    import importlib.util
+
+    if spec.attn_implementation != "flash_attention_2":
+        return spec
+    if device.type == "cuda" and importlib.util.find_spec("flash_attn") is not None:
+        return spec
+    return dataclasses.replace(spec, attn_implementation="sdpa")
+
+
 def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     """Write the peft adapter folder (what `save_adapter` writes) of a training checkpoint: any step's, while
     `OUT/adapter` holds the latest. The checkpoint keeps the trained weights only (LoRA, `modules_to_save`, a
@@ -479,7 +491,7 @@ def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
             f"{str(checkpoint)!r} holds no 'aynamics_meta': not a checkpoint of `train.py` with the adapter callback"
         )
     spec, prompt = specs_of_meta(ckpt["aynamics_meta"], where=f"'aynamics_meta' of {str(checkpoint)!r}")
-    model = build_model(spec)
+    model = build_model(runnable_kernel(spec, torch.device("cpu")))  # the folder keeps the spec as trained
     params = dict(model.named_parameters())
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
     trainable = {k for k, p in params.items() if p.requires_grad}
@@ -529,7 +541,7 @@ def load_adapter(
     target = inference_device(None if device is None else str(device))  # a bad name before the model loads
     spec, prompt = read_adapter_meta(adapter_dir)
     check_adapter_files(adapter_dir)
-    base = build_base(spec)
+    base = build_base(runnable_kernel(spec, target))
     try:
         model = PeftModel.from_pretrained(base, str(adapter_dir))
     except torch.OutOfMemoryError:

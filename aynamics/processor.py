@@ -530,8 +530,8 @@ def token_logprobs(
             chunk's softmax: memory of one chunk instead of two float32 copies of them all.
 
     Returns:
-        logp (B, L-1) float32, 0 where masked, and mask (B, L-1) bool. log_softmax runs only on labelled
-        positions, so memory scales with response tokens, not the whole sequence.
+        logp (B, L-1) float32, 0 where masked, and mask (B, L-1) bool. The one-pass path normalises only the
+        labelled positions; the chunked one every kept position (the padding of shorter candidates too).
 
     Raises:
         ValueError: shapes that disagree, or a labelled token outside the kept logits.

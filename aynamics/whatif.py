@@ -174,6 +174,7 @@ def add_edit_command(sub) -> None:
     )
     p.add_argument("--llm", metavar="MODEL", help="edit with a transformers chat model (checked against the text)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="generation limit for --llm (default 2048)")
+    p.add_argument("--device", default="auto", help="device of --llm: auto (a GPU when there is one), cpu, cuda, ...")
     p.add_argument("--width", type=int, default=240, help="render width in pixels (default 240)")
     p.add_argument("--height", type=int, default=160, help="render height in pixels (default 160)")
     p.add_argument("--seed", type=int, default=0, help="appearance seed for --render (default 0)")
@@ -199,7 +200,8 @@ def run_edit_command(args) -> int:
         if args.llm:
             from aynamics.edit_llm import LLMEditor
 
-            result = LLMEditor(args.llm, max_new_tokens=args.max_new_tokens).edit(scene, args.instruction)
+            editor = LLMEditor(args.llm, max_new_tokens=args.max_new_tokens, device=args.device)
+            result = editor.edit(scene, args.instruction)
         else:
             result = apply_instruction(scene, args.instruction)
     except EditError as e:

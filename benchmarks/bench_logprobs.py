@@ -66,7 +66,7 @@ def main() -> None:
     assert abs(a["sum"] - b["sum"]) <= 1e-3 * abs(a["sum"]), (a["sum"], b["sum"])
     print(
         f"  chunks / one pass: memory {b['extra_gb'] / a['extra_gb']:.2f}x, time {b['seconds'] / a['seconds']:.2f}x "
-        "(same log-probabilities)"
+        "(the same sum of log-probabilities)"
     )
 
 

@@ -252,6 +252,18 @@ def test_llm_editor_missing_model(tmp_path):
         LLMEditor(str(tmp_path / "nothing"))
 
 
+def test_llm_editor_device_is_checked_before_loading(tmp_path, capsys):
+    """`edit --llm MODEL --device cuda:N` on a machine without that GPU: the device is named, exit 2, before the
+    model path is even looked at."""
+    import torch
+
+    from aynamics.cli import main
+
+    gpus = torch.cuda.device_count()
+    code = main(["edit", str(ASSET), "stop box_0", "--llm", str(tmp_path / "nothing"), "--device", f"cuda:{gpus}"])
+    assert code == 2 and f"device = 'cuda:{gpus}'" in capsys.readouterr().err
+
+
 # --------------------------------------------------------------------------------------------
 # What-if rendering
 # --------------------------------------------------------------------------------------------

@@ -241,6 +241,14 @@ def test_attention_kernel_is_chosen_by_the_spec(tmp_path, batches):
         lm.ModelSpec(attn_implementation="flash_attention_2")
     with pytest.raises(ValueError, match="attn_implementation = 'flash'"):
         lm.ModelSpec(kind="pretrained", path=str(tmp_path), attn_implementation="flash")
+    # an adapter trained with flash attention loads here (CPU, no flash-attn) with sdpa: the weights are the same
+    flash = lm.ModelSpec(kind="pretrained", path=str(tmp_path), attn_implementation="flash_attention_2")
+    assert lm.runnable_kernel(flash, torch.device("cpu")).attn_implementation == "sdpa"
+    lm.save_adapter(
+        lm.build_model(lm.runnable_kernel(flash, torch.device("cpu"))), tmp_path / "adapter", flash, lm.PromptSpec()
+    )
+    model, spec, _ = lm.load_adapter(tmp_path / "adapter", "cpu")
+    assert spec == flash and model.base_model.model.config._attn_implementation == "sdpa"
 
 
 def test_token_logprobs_in_chunks_and_of_the_kept_positions():

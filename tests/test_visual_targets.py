@@ -229,3 +229,19 @@ def test_aux_loss_without_objects_has_nan_recall():
         torch.isfinite(loss) and torch.isnan(stats["object_recall"]) and stats["object_recall"].dtype == torch.float32
     )
     assert stats["count_acc"] == (logits[:, : MAX_INSTANCES + 1].argmax(-1) == 0).float().mean()
+
+
+def test_dense_loss_takes_bfloat16_tokens(dataset_dir):
+    """In a training step the tower's tokens reach the float32 head in the tower's dtype: bfloat16 tokens (a
+    pretrained tower outside autocast) give the float32 tokens' loss, to bfloat16's precision."""
+    spec = ModelSpec(kind="tiny", train_vision=True)
+    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2, visual_targets=True)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    module = SFTModule(spec, vision_aux_weight=1.0)
+    module._loss(batch)  # the forward keeps the tower's tokens
+    tokens = module._visual_tokens
+    full = module._vision_aux(batch, 2, "train")
+    module._visual_tokens = tokens.to(torch.bfloat16)
+    half = module._vision_aux(batch, 2, "train")
+    assert half.dtype == torch.float32 and half.item() == pytest.approx(full.item(), rel=2e-2)
