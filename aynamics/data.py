@@ -296,6 +296,19 @@ class ResumableLoader(DataLoader):
             raise ValueError(f"resumed data set has {self.sampler.n} training examples, the checkpoint's had {state}")
 
 
+def eval_shard(n: int, trainer) -> list[int] | None:
+    """The indices of `n` validation items this process evaluates under ddp / fsdp: every world-th from its
+    rank, the list padded with the first items to ceil(n / world) for each process (as torch's
+    DistributedSampler pads: every process runs the same batches, which sharded weights need, and `sync_dist`
+    then averages equal shares). None (all items, every process) for one process or fewer items than processes.
+    """
+    if trainer is None or trainer.world_size == 1 or n < trainer.world_size:
+        return None
+    world = trainer.world_size
+    padded = list(range(n)) + list(range(math.ceil(n / world) * world - n))
+    return padded[trainer.global_rank :: world]
+
+
 def resumable_loader(
     ds, trainer, *, batch_size: int, seed: int, lengths=None, collate_fn=None, num_workers: int = 0
 ) -> ResumableLoader:
@@ -505,8 +518,15 @@ class SceneDataModule(L.LightningDataModule):
         )
 
     def _eval_loader(self, split: str) -> DataLoader:
+        """This process's share of the split (`eval_shard`: all of it for one process)."""
         ds = self.dataset(split, self.limit_val)
-        return DataLoader(ds, batch_size=self.eval_batch_size, collate_fn=self._collate, num_workers=self.num_workers)
+        return DataLoader(
+            ds,
+            batch_size=self.eval_batch_size,
+            sampler=eval_shard(len(ds), self.trainer),
+            collate_fn=self._collate,
+            num_workers=self.num_workers,
+        )
 
     def val_dataloader(self) -> DataLoader | list:
         """The validation loader; none (Lightning then skips validation, with a warning) when the data set holds no

@@ -406,5 +406,14 @@ class ProDataModule(L.LightningDataModule):
         )
 
     def val_dataloader(self) -> DataLoader:
+        """This process's share of the validation videos (`data.eval_shard`: all of them for one process)."""
+        from aynamics.data import eval_shard
+
         hp = self.hparams
-        return DataLoader(self.val_set, batch_size=hp.batch_size, collate_fn=collate_videos, num_workers=hp.num_workers)
+        return DataLoader(
+            self.val_set,
+            batch_size=hp.batch_size,
+            sampler=eval_shard(len(self.val_set), self.trainer),
+            collate_fn=collate_videos,
+            num_workers=hp.num_workers,
+        )

@@ -351,3 +351,32 @@ def test_warmup_views_misconfigurations_are_named(dataset_dir):
         _dm(dataset_dir, warmup_views=2)
     with pytest.raises(ValueError, match=r"data.warmup_views = 99: must be in \[1, 14\]"):
         _dm(dataset_dir, visual_targets=True, warmup_views=99).warmup_dataset()
+
+
+def test_validation_is_split_over_the_processes(dataset_dir):
+    """5 items over 2 processes: [0, 2, 4] and [1, 3, 0] (padded to equal shares, as DistributedSampler pads),
+    3 over 3 one each, fewer items than processes or one process: all of them. The data module's validation
+    loader serves its process's share under a 2-process trainer."""
+    from types import SimpleNamespace
+
+    from aynamics.data import eval_shard
+
+    def trainer(rank: int, world: int):
+        return SimpleNamespace(global_rank=rank, world_size=world)
+
+    assert [eval_shard(5, trainer(r, 2)) for r in (0, 1)] == [[0, 2, 4], [1, 3, 0]]
+    assert [eval_shard(3, trainer(r, 3)) for r in range(3)] == [[0], [1], [2]]
+    assert eval_shard(2, trainer(1, 3)) is None and eval_shard(5, trainer(0, 1)) is None and eval_shard(5, None) is None
+    dm = _dm(dataset_dir)
+    n = len(dm.dataset("validation"))
+    assert n >= 2
+    shares = []
+    for rank in (0, 1):
+        dm.trainer = trainer(rank, 2)
+        loader = dm.val_dataloader()
+        shares.append(list(loader.sampler))
+        assert sum(len(b["input_ids"]) for b in loader) == -(-n // 2)  # the examples it serves
+    dm.trainer = None
+    assert shares == [eval_shard(n, trainer(r, 2)) for r in (0, 1)] and list(dm.val_dataloader().sampler) == list(
+        range(n)
+    )

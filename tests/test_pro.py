@@ -422,7 +422,7 @@ def test_ddp_two_processes_offline_on_cpu(tmp_path, dataset_dir):
 
 def test_pro_loader_shards_over_the_trainers_ranks(dataset_dir):
     """Under a 2-process trainer each rank samples its own videos (the same loader for every rank did N times the
-    work of one), and a resumed run continues past its first batch."""
+    work of one), and a resumed run continues past its first batch; validation videos are shared out too."""
     from types import SimpleNamespace
 
     from aynamics.pro import ProDataModule
@@ -440,6 +440,12 @@ def test_pro_loader_shards_over_the_trainers_ranks(dataset_dir):
     assert len(r0) == len(r1) == -(-n // 2) and set(r0) | set(r1) == {v.key for v in dm.train_set}
     assert len(set(r0) & set(r1)) <= 1  # at most the one padding video, as DDP pads
     assert keys(0, step=1) == r0[1:] and keys(1, step=1) == r1[1:]
+    from aynamics.data import eval_shard
+
+    n_val = len(dm.val_set)
+    assert n_val >= 2
+    dm.trainer = SimpleNamespace(global_rank=1, world_size=2)  # validation videos: this process's share too
+    assert list(dm.val_dataloader().sampler) == (eval_shard(n_val, dm.trainer) or list(range(n_val)))
 
 
 def _video_folder(root, value: int) -> None:
