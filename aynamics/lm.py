@@ -213,6 +213,7 @@ def build_model(spec: ModelSpec) -> torch.nn.Module:
         gradient_checkpointing=spec.gradient_checkpointing,
         modules_to_save=spec.modules_to_save,
     )
+    modellib.float32_trained_tower(model)
     return model.train()
 
 

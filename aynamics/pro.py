@@ -66,7 +66,10 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
             f"stage.init_adapter = {init_adapter!r} was trained on model kind={adapter_spec.kind!r} "
             f"path={adapter_spec.path!r}, but model is kind={spec.kind!r} path={spec.path!r}"
         )
+    from aynamics.model import float32_trained_tower
+
     model = PeftModel.from_pretrained(lm.build_base(adapter_spec), str(init_adapter), is_trainable=True)
+    float32_trained_tower(model)  # the adapter's tower is loaded in the base dtype: trained in float32, as in SFT
     return model.train(), adapter_spec
 
 
