@@ -137,7 +137,7 @@ class SFTModule(L.LightningModule):
         )
         self.spec = spec
         self.model = lm.build_model(spec)
-        self.visual_head: torch.nn.Linear | None = None
+        self.visual_head: visual_targets.Head | None = None
         self._visual_tokens: torch.Tensor | None = None
         self._merge_size = 2
         if vision_aux_weight > 0:
@@ -147,7 +147,7 @@ class SFTModule(L.LightningModule):
                 )
             visual = find_visual(self.model)
             self._merge_size = visual.spatial_merge_size  # tokens per frame, for the frame-count statistic
-            self.visual_head = torch.nn.Linear(visual.config.out_hidden_size, visual_targets.NUM_OUTPUTS)
+            self.visual_head = visual_targets.Head(visual.config.out_hidden_size)
             visual.register_forward_hook(self._keep_visual_tokens)
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
         self._rng_to_restore: dict | None = None
@@ -184,9 +184,8 @@ class SFTModule(L.LightningModule):
             got = None if tokens is None else tuple(tokens.shape)
             raise ValueError(f"visual tokens {got} do not match visual_targets {tuple(targets.shape)}")
         grid = batch["video_grid_thw"] if "video_grid_thw" in batch else batch["image_grid_thw"]
-        head_dtype = next(self.visual_head.parameters()).dtype  # float32 after a bf16 tower outside autocast
         aux, stats = visual_targets.aux_loss(
-            self.visual_head(tokens.to(head_dtype)),
+            self.visual_head(tokens),
             targets,
             visual_targets.frame_tokens(grid, self._merge_size),
             self.hparams.vision_share_weight,

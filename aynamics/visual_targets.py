@@ -109,6 +109,18 @@ def token_targets(
     return torch.from_numpy(np.concatenate(out)).float()
 
 
+class Head(torch.nn.Linear):
+    """The dense head: one linear map from each visual token to `NUM_OUTPUTS` logits, in the head's own dtype
+    (float32 beside a bfloat16 tower: the tokens are cast on the way in, in training steps and the warm-up,
+    with or without autocast)."""
+
+    def __init__(self, width: int) -> None:
+        super().__init__(width, NUM_OUTPUTS)
+
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        return super().forward(tokens.to(self.weight.dtype))
+
+
 def aux_loss(
     logits: torch.Tensor,
     targets: torch.Tensor,
@@ -250,7 +262,7 @@ def warm_up(
 
     Args:
         visual: The model's vision tower (returns the merged tokens as `pooler_output`).
-        head: Linear map from a merged token to NUM_OUTPUTS logits.
+        head: The dense `Head` (a merged token to NUM_OUTPUTS logits, in its own dtype).
         dataset: Examples holding pixel_values / image_grid_thw (or the video keys) and visual_targets.
     Returns:
         The mean loss / count_acc / object_recall / frame_count_acc of each block of 50 steps (and of the last
@@ -281,8 +293,7 @@ def warm_up(
         tokens = getattr(out, "pooler_output", out)
         merge = getattr(visual, "spatial_merge_size", 2)
         targets = torch.cat(targets).to(device)
-        head_dtype = next(head.parameters()).dtype  # a bf16 tower (pretrained) before a float32 head
-        loss, stats = aux_loss(head(tokens.to(head_dtype)), targets, frame_tokens(grid_thw, merge), share_weight)
+        loss, stats = aux_loss(head(tokens), targets, frame_tokens(grid_thw, merge), share_weight)
         for g in opt.param_groups:
             g["lr"] = lr * min(1.0, (step + 1) / max(1, warmup_steps))
         opt.zero_grad(set_to_none=True)
