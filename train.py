@@ -15,6 +15,9 @@ import json
 import logging
 import math
 import os
+import re
+import sys
+import traceback
 import warnings
 from pathlib import Path
 
@@ -95,10 +98,53 @@ def one_log_stream() -> None:
     warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", category=FutureWarning)
 
 
+def input_error_message(error: BaseException) -> str | None:
+    """The one-paragraph message of an error in the run's input, or None for any other error (a bug, out of
+    memory, a NaN: those keep their traceback). Input errors are the ones the config, the data or a checkpoint
+    cause: a value out of range (ValueError, with the key and the value), a missing or unreadable file or
+    model (OSError), an optional package not installed, an interpolation that cannot resolve, and a
+    constructor refusing its config (Hydra's InstantiationException, whose cause is named with its key)."""
+    from hydra.errors import InstantiationException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(error, InstantiationException):
+        cause = error.__cause__
+        key = re.search(r"full_key: (\S+)", str(error))
+        if cause is None or not isinstance(cause, ValueError | OSError | TypeError | ModuleNotFoundError):
+            return None
+        return f"{cause} (config: {key.group(1)})" if key else str(cause)
+    if isinstance(error, OmegaConfBaseException):  # its text goes on with full_key and object_type lines
+        key = getattr(error, "full_key", None)
+        return f"{str(error).splitlines()[0]} (config: {key})" if key else str(error).splitlines()[0]
+    if isinstance(error, ValueError | OSError | ModuleNotFoundError):
+        return str(error)
+    return None
+
+
+def report_input_error(error: BaseException) -> None:
+    """Write an input error as one paragraph on stderr, its traceback to the run's log files only."""
+    message = " ".join(input_error_message(error).split())
+    files = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
+    detail = "".join(traceback.format_exception(error))
+    for handler in files:
+        handler.stream.write(f"{message}\n{detail}")
+        handler.flush()
+    where = f" (traceback in {files[0].baseFilename})" if files else ""
+    sys.stderr.write(f"train.py: {message}{where}\n")
+
+
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
+    """`python train.py ...`: an input error (see `input_error_message`) ends the run with status 2 and one
+    paragraph naming the key and the value; HYDRA_FULL_ERROR=1 shows Hydra's report with the traceback."""
     one_log_stream()
-    metrics = train(cfg)
+    try:
+        metrics = train(cfg)
+    except Exception as error:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1" or input_error_message(error) is None:
+            raise
+        report_input_error(error)
+        sys.exit(2)
     return metrics.get("val/iou_full")  # the value a Hydra sweeper would optimise
 
 

@@ -769,6 +769,47 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         train(_cfg(tmp_path / "x", f"data.dir={broken}"))
 
 
+def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_path, dataset_dir):
+    """`python train.py` with a wrong data.dir or an out-of-range value exits 2 with one line on stderr naming the
+    key and the value, the traceback in OUT/train.log only (Hydra printed the traceback around the message);
+    HYDRA_FULL_ERROR=1 still gives Hydra's full report. Errors that are not the input's keep their traceback."""
+    from hydra.errors import InstantiationException
+    from omegaconf import OmegaConf
+
+    from train import input_error_message
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "train.py", f"data.dir={tmp_path / 'nope'}", f"hydra.run.dir={out}"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr[-3000:]
+    lines = [line for line in done.stderr.splitlines() if line.startswith("train.py: ")]
+    assert len(lines) == 1 and "Traceback" not in done.stderr + done.stdout
+    assert f"data.dir = '{tmp_path / 'nope'}' holds no data set" in lines[0]
+    assert lines[0].endswith(f"(traceback in {out / 'train.log'})")
+    log = (out / "train.log").read_text()
+    assert "holds no data set" in log and "Traceback (most recent call last)" in log and "load_splits" in log
+    full = subprocess.run(
+        cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "HYDRA_FULL_ERROR": "1"}
+    )
+    assert full.returncode == 1 and "Traceback (most recent call last)" in full.stderr
+
+    wrapped = InstantiationException(
+        "Error in call to target 'aynamics.data.SceneDataModule':\nValueError(..)\nfull_key: data"
+    )
+    wrapped.__cause__ = ValueError("min_pixels = 0: must be >= 784")
+    assert input_error_message(wrapped) == "min_pixels = 0: must be >= 784 (config: data)"
+    try:
+        OmegaConf.create({"model": {"path": "???"}}).model.path
+    except Exception as missing:
+        assert input_error_message(missing) == "Missing mandatory value: model.path (config: model.path)"
+    assert input_error_message(FileNotFoundError("no such checkpoint")) == "no such checkpoint"
+    assert input_error_message(RuntimeError("CUDA out of memory")) is None  # not the input's: traceback kept
+    assert input_error_message(InstantiationException("x")) is None  # no cause to name
+    bug = InstantiationException("y")
+    bug.__cause__ = ZeroDivisionError("division by zero")
+    assert input_error_message(bug) is None
+
+
 def test_data_without_validation_or_with_a_broken_record_still_trains(tmp_path, dataset_dir):
     """A data set with no validation scene trains without validation (it stopped at the first one, after the model
     had loaded); a validation record whose scene_yaml cannot be scored is left out of the scene evaluation with a
