@@ -136,10 +136,18 @@ def report_input_error(error: BaseException) -> None:
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
     """`python train.py ...`: an input error (see `input_error_message`) ends the run with status 2 and one
-    paragraph naming the key and the value; HYDRA_FULL_ERROR=1 shows Hydra's report with the traceback."""
+    paragraph naming the key and the value; HYDRA_FULL_ERROR=1 shows Hydra's report with the traceback. SIGTERM
+    (a preemption) ends it with status 143 after the step under way, saved by `callbacks.StepCheckpoint`."""
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
     one_log_stream()
     try:
         metrics = train(cfg)
+    except SIGTERMException:  # Lightning stopped after the step under way (a SystemExit of status 0)
+        checkpoints = (cfg.get("callbacks") or {}).get("checkpoint") or {}
+        where = f": resume with ckpt_path={Path(checkpoints.dirpath) / 'last.ckpt'}" if "dirpath" in checkpoints else ""
+        logging.getLogger(__name__).warning(f"stopped by SIGTERM{where}")
+        sys.exit(143)  # 128 + SIGTERM, as a shell reports a process the signal ended
     except Exception as error:
         if os.environ.get("HYDRA_FULL_ERROR") == "1" or input_error_message(error) is None:
             raise

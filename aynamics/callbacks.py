@@ -147,17 +147,28 @@ class StepCheckpoint(ModelCheckpoint):
     nothing was saved before, and then with the unfinished epoch marked done). `ckpt_path=OUT/checkpoints/last.ckpt`
     with a larger `trainer.max_steps` continues exactly where the run ended.
 
-    Not with a `monitor` (this save comes before the final validation, which would rank it by the previous
-    one's metric), and not for runs stopped otherwise (`should_stop`, `max_time`): Lightning's behaviour there."""
+    Also saved after the step under way when the process receives SIGTERM (a cluster's preemption, `kill`):
+    Lightning then stops the run before the next step, and `last.ckpt` resumes it exactly instead of from the last
+    periodic save. One process only: under ddp / fsdp Lightning's own SIGTERM handling applies (no save), since
+    the ranks learn of the signal at different times and a save is a collective.
+
+    The final-step save is skipped with a `monitor` (it comes before the final validation, which would rank it by
+    the previous one's metric; the SIGTERM save then writes `last.ckpt` only), and for runs stopped otherwise
+    (`should_stop`, `max_time`): Lightning's behaviour there."""
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args, **kwargs) -> None:
         super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
         # saved where the periodic ones are (after the step, before the loop counts the batch done), so that
         # resuming from it continues the epoch; skipped when just saved, in fast_dev_run, outside fit
-        if self.monitor is None and ends_training(trainer) and not self._should_skip_saving_checkpoint(trainer):
+        if self._should_skip_saving_checkpoint(trainer):
+            return
+        preempted = trainer.received_sigterm and trainer.world_size == 1
+        if self.monitor is None and (ends_training(trainer) or preempted):
             candidates = self._monitor_candidates(trainer)
             self._save_topk_checkpoint(trainer, candidates)
             self._save_last_checkpoint(trainer, candidates)
+        elif preempted:
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
 
 def ends_training(trainer: L.Trainer) -> bool:

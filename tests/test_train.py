@@ -286,9 +286,26 @@ def test_last_checkpoint_is_the_final_step_and_continues_exactly(tmp_path, datas
     train(_cfg(tmp_path / "resumed", *common, "trainer.max_steps=5", f"ckpt_path={ckpt}"))
     names = sorted(p.name for p in (tmp_path / "resumed" / "checkpoints").iterdir())
     assert names == ["last.ckpt", "step000004.ckpt", "step000005.ckpt"]
-    for step in (4, 5):
-        a = torch.load(tmp_path / "long" / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
-        c = torch.load(tmp_path / "resumed" / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
+    _same_steps(tmp_path / "long", tmp_path / "resumed", (4, 5))
+
+    # SIGTERM during step 3 of a 5-step run: step 3 is saved (off the 2-step cadence) and the run stops there;
+    # resumed, it ends on the straight run's weights. Without the save, last.ckpt held step 2.
+    sigterm = ["+callbacks.sigterm._target_=train_fixtures.SigtermAt", "+callbacks.sigterm.step=3"]
+    with pytest.raises(SystemExit):  # Lightning's SIGTERMException
+        train(_cfg(tmp_path / "stopped", *common, "trainer.max_steps=5", *sigterm))
+    names = sorted(p.name for p in (tmp_path / "stopped" / "checkpoints").iterdir())
+    assert names == ["last.ckpt", "step000002.ckpt", "step000003.ckpt"]
+    ckpt = tmp_path / "stopped" / "checkpoints" / "last.ckpt"
+    assert torch.load(ckpt, weights_only=False)["global_step"] == 3
+    train(_cfg(tmp_path / "after_sigterm", *common, "trainer.max_steps=5", f"ckpt_path={ckpt}"))
+    _same_steps(tmp_path / "long", tmp_path / "after_sigterm", (4, 5))
+
+
+def _same_steps(a_dir: Path, b_dir: Path, steps) -> None:
+    """Runs a and b wrote the same weights at these steps' checkpoints, bit for bit."""
+    for step in steps:
+        a = torch.load(a_dir / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
+        c = torch.load(b_dir / "checkpoints" / f"step{step:06d}.ckpt", weights_only=False)
         assert a["global_step"] == c["global_step"] == step and a["state_dict"].keys() == c["state_dict"].keys()
         assert all(torch.equal(a["state_dict"][k], c["state_dict"][k]) for k in a["state_dict"]), step
 
@@ -808,6 +825,23 @@ def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_pa
     bug = InstantiationException("y")
     bug.__cause__ = ZeroDivisionError("division by zero")
     assert input_error_message(bug) is None
+
+
+def test_cli_sigterm_saves_the_step_and_exits_143(tmp_path, dataset_dir):
+    """SIGTERM (a cluster's preemption) during step 2 of `python train.py`: the step is saved as last.ckpt (the
+    cadence is every 100 steps), the run stops with status 143 and the log names the checkpoint to resume from
+    (was: Lightning's silent stop, status 0, the steps since the last periodic save lost)."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "train.py", f"data.dir={dataset_dir}", f"hydra.run.dir={out}", "trainer.max_steps=4"]
+    cmd += [*FAST, "callbacks.evaluation=null", "trainer.val_check_interval=null", "trainer.enable_progress_bar=false"]
+    cmd += ["+callbacks.sigterm._target_=train_fixtures.SigtermAt", "+callbacks.sigterm.step=2"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "tests")}
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 143, done.stderr[-3000:]
+    last = out / "checkpoints" / "last.ckpt"
+    assert f"stopped by SIGTERM: resume with ckpt_path={last}" in done.stdout + done.stderr
+    assert torch.load(last, weights_only=False)["global_step"] == 2
+    assert (out / "adapter" / "adapter_config.json").is_file()
 
 
 def test_data_without_validation_or_with_a_broken_record_still_trains(tmp_path, dataset_dir):

@@ -1,12 +1,16 @@
-"""A tiny generated data set shared by the training tests (one copy per test session, also under xdist).
+"""A tiny generated data set shared by the training tests (one copy per test session, also under xdist), and a
+callback that sends the training process SIGTERM.
 
 Made by the real generator (`aynamics.generate`) at 64×48 pixels: 12 scenes, split 5 / 4 / 3.
 """
 
 from __future__ import annotations
 
+import os
+import signal
 from pathlib import Path
 
+import lightning as L
 from filelock import FileLock
 
 NUM_SCENES = 12
@@ -23,3 +27,15 @@ def tiny_dataset(tmp_path_factory) -> Path:
             config = GenerateConfig(width=64, height=48, workers=0, splits=(0.5, 0.25, 0.25))
             generate_dataset(path, num=NUM_SCENES, seed=0, config=config)
     return path
+
+
+class SigtermAt(L.Callback):
+    """Sends this process SIGTERM at the start of training step `step` (1-based), as a cluster's preemption would
+    (`+callbacks.sigterm._target_=train_fixtures.SigtermAt +callbacks.sigterm.step=N`, tests/ on the path)."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
+        if trainer.global_step == self.step - 1:
+            os.kill(os.getpid(), signal.SIGTERM)
