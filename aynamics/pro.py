@@ -324,7 +324,7 @@ class ProDataModule(L.LightningDataModule):
         batch_size: Videos (online) or preference rows (offline) per step per process.
         limit_train, limit_val: Keep only the first videos of each split (None: all).
         use_flow: Decode the observed flow (needed for EPE rewards and the EPE columns of validation).
-        num_workers: DataLoader workers (0: in the training process).
+        num_workers: DataLoader workers (0: in the training process; None: by device, `data.loader_workers`).
         seed: Shuffling seed.
     """
 
@@ -346,12 +346,12 @@ class ProDataModule(L.LightningDataModule):
         limit_train: int | None = None,
         limit_val: int | None = 4,
         use_flow: bool = True,
-        num_workers: int = 0,
+        num_workers: int | None = None,
         seed: int = 0,
     ) -> None:
         super().__init__()
-        if batch_size < 1 or num_workers < 0:
-            raise ValueError(f"batch_size = {batch_size}, num_workers = {num_workers}: need >= 1 and >= 0")
+        if batch_size < 1 or (num_workers is not None and num_workers < 0):
+            raise ValueError(f"batch_size = {batch_size}, num_workers = {num_workers}: need >= 1 and >= 0 (or null)")
         self.save_hyperparameters()
         self.prompt = lm.PromptSpec(target, modality, as_video, num_frames, min_pixels, max_pixels)  # checks values
         self.processor = None
@@ -410,7 +410,7 @@ class ProDataModule(L.LightningDataModule):
 
     def val_dataloader(self) -> DataLoader:
         """This process's share of the validation videos (`data.eval_shard`: all of them for one process)."""
-        from aynamics.data import eval_shard
+        from aynamics.data import eval_shard, loader_options
 
         hp = self.hparams
         return DataLoader(
@@ -418,5 +418,5 @@ class ProDataModule(L.LightningDataModule):
             batch_size=hp.batch_size,
             sampler=eval_shard(len(self.val_set), self.trainer),
             collate_fn=collate_videos,
-            num_workers=hp.num_workers,
+            **loader_options(hp.num_workers, self.trainer),
         )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 from train_fixtures import tiny_dataset
@@ -380,3 +382,33 @@ def test_validation_is_split_over_the_processes(dataset_dir):
     assert shares == [eval_shard(n, trainer(r, 2)) for r in (0, 1)] and list(dm.val_dataloader().sampler) == list(
         range(n)
     )
+
+
+def test_loader_workers_follow_the_device(dataset_dir, monkeypatch):
+    """data.num_workers null: 0 workers and plain memory on the CPU; on GPUs up to 4 workers per process from the
+    cores this process may use, one left per process (16 cores, 2 GPUs: 4; 6 cores: 2; 2 cores: 0), pinned
+    memory, workers kept between epochs. A number given is used as is."""
+    from types import SimpleNamespace
+
+    from lightning.pytorch.accelerators import CPUAccelerator
+
+    from aynamics.data import loader_options, loader_workers
+
+    cpu = SimpleNamespace(accelerator=CPUAccelerator(), num_devices=2)
+    gpu = SimpleNamespace(accelerator=object(), num_devices=2, global_rank=0, world_size=2, global_step=0)
+    gpu.accumulate_grad_batches = 1
+    assert loader_workers(None, cpu) == loader_workers(None, None) == 0 and loader_workers(3, cpu) == 3
+    for cores, workers in ((16, 4), (6, 2), (2, 0)):
+        monkeypatch.setattr(os, "sched_getaffinity", lambda _, n=cores: set(range(n)), raising=False)
+        assert loader_workers(None, gpu) == workers, cores
+    assert loader_options(None, gpu) == {"num_workers": 0, "persistent_workers": False, "pin_memory": True}
+    assert loader_options(None, cpu) == {"num_workers": 0, "persistent_workers": False, "pin_memory": False}
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(16)), raising=False)
+    dm = SceneDataModule(str(dataset_dir), str(TINY_ASSET_DIR), num_frames=2, batch_size=2)
+    dm.setup("fit")
+    dm.trainer = gpu
+    loaders = [dm.train_dataloader(), dm.val_dataloader()]
+    assert [(d.num_workers, d.pin_memory, d.persistent_workers) for d in loaders] == [(4, True, True)] * 2
+    dm.trainer = SimpleNamespace(**{**vars(gpu), "accelerator": CPUAccelerator()})
+    loaders = [dm.train_dataloader(), dm.val_dataloader()]
+    assert [(d.num_workers, d.pin_memory) for d in loaders] == [(0, False)] * 2
