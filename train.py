@@ -145,8 +145,9 @@ def main(cfg: DictConfig) -> float | None:
         metrics = train(cfg)
     except SIGTERMException:  # Lightning stopped after the step under way (a SystemExit of status 0)
         checkpoints = (cfg.get("callbacks") or {}).get("checkpoint") or {}
-        where = f": resume with ckpt_path={Path(checkpoints.dirpath) / 'last.ckpt'}" if "dirpath" in checkpoints else ""
-        logging.getLogger(__name__).warning(f"stopped by SIGTERM{where}")
+        last = Path(checkpoints.get("dirpath") or "/nonexistent") / "last.ckpt"
+        where = f"resume with ckpt_path={last}" if last.is_file() else "no checkpoint was saved"
+        logging.getLogger(__name__).warning(f"stopped by SIGTERM: {where}")
         sys.exit(143)  # 128 + SIGTERM, as a shell reports a process the signal ended
     except Exception as error:
         if os.environ.get("HYDRA_FULL_ERROR") == "1" or input_error_message(error) is None:
