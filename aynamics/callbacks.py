@@ -19,6 +19,9 @@ scores its share of the subset, and rank 0 gathers, logs and writes the results.
 from __future__ import annotations
 
 import json
+import logging
+import signal
+import threading
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -27,9 +30,12 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from aynamics import lm, metrics, sharding
 from aynamics.scene import Scene, SceneError, parse
+
+log = logging.getLogger(__name__)
 
 METRIC_KEYS = (
     "yaml_valid",
@@ -147,28 +153,48 @@ class StepCheckpoint(ModelCheckpoint):
     nothing was saved before, and then with the unfinished epoch marked done). `ckpt_path=OUT/checkpoints/last.ckpt`
     with a larger `trainer.max_steps` continues exactly where the run ended.
 
-    Also saved after the step under way when the process receives SIGTERM (a cluster's preemption, `kill`):
-    Lightning then stops the run before the next step, and `last.ckpt` resumes it exactly instead of from the last
-    periodic save. One process only: under ddp / fsdp Lightning's own SIGTERM handling applies (no save), since
-    the ranks learn of the signal at different times and a save is a collective.
+    SIGTERM (a cluster's preemption, `kill`) is noted and acted on where the checkpoints are saved: after the step
+    under way, every process saves it and the run stops (Lightning's `SIGTERMException`; train.py exits 143), so
+    `last.ckpt` resumes it exactly instead of from the last periodic save. Under ddp / fsdp the processes agree
+    after each step (one all-reduce of a flag; the signal may reach any one of them): Lightning's own handling
+    there hung on 2 CPU processes (its handler broadcasts from inside the signal). A signal during validation
+    takes effect after the next training step.
 
     The final-step save is skipped with a `monitor` (it comes before the final validation, which would rank it by
     the previous one's metric; the SIGTERM save then writes `last.ckpt` only), and for runs stopped otherwise
     (`should_stop`, `max_time`): Lightning's behaviour there."""
 
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._sigterm = False
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_train_start(trainer, pl_module)
+        # after Lightning registered its handlers, which it restores (the ones before it) when the fit ends
+        self._sigterm = False
+        if threading.current_thread() is threading.main_thread():  # where Python runs signal handlers
+            signal.signal(signal.SIGTERM, self._note_sigterm)
+
+    def _note_sigterm(self, signum: int, frame) -> None:
+        self._sigterm = True  # nothing else here: no collective, no logging, inside a signal handler
+
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args, **kwargs) -> None:
         super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
         # saved where the periodic ones are (after the step, before the loop counts the batch done), so that
         # resuming from it continues the epoch; skipped when just saved, in fast_dev_run, outside fit
-        if self._should_skip_saving_checkpoint(trainer):
-            return
-        preempted = trainer.received_sigterm and trainer.world_size == 1
-        if self.monitor is None and (ends_training(trainer) or preempted):
+        stop = self._sigterm
+        if trainer.world_size > 1:  # every process, after every step: one of them may have the signal
+            stop = trainer.strategy.reduce_boolean_decision(stop, all=False)
+        skip = self._should_skip_saving_checkpoint(trainer)
+        if not skip and (stop or ends_training(trainer)):
             candidates = self._monitor_candidates(trainer)
-            self._save_topk_checkpoint(trainer, candidates)
-            self._save_last_checkpoint(trainer, candidates)
-        elif preempted:
-            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+            if self.monitor is None:
+                self._save_topk_checkpoint(trainer, candidates)
+            if self.monitor is None or stop:
+                self._save_last_checkpoint(trainer, candidates)
+        if stop:
+            log.warning("SIGTERM: the run stops after step %d", trainer.global_step)
+            raise SIGTERMException
 
 
 def ends_training(trainer: L.Trainer) -> bool:

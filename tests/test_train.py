@@ -557,20 +557,30 @@ def test_ddp_resume_continues_exactly_on_every_rank(tmp_path, dataset_dir):
     resumed = load_file(tmp_path / "resumed" / "adapter" / "adapter_model.safetensors")
     assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
 
+    # SIGTERM to rank 1 alone during step 1 (off the 2-step cadence): both processes save step 1 and stop with
+    # status 143 (Lightning's own handling hung here); resumed from it, step 3 ends on the straight run's adapter
+    sigterm = ["+callbacks.sigterm._target_=train_fixtures.SigtermAt", "+callbacks.sigterm.step=1"]
+    _two_processes(tmp_path / "stopped", *three, *sigterm, "+callbacks.sigterm.ranks=[1]", returncode=143)
+    last = tmp_path / "stopped" / "checkpoints" / "last.ckpt"
+    assert sorted(p.name for p in last.parent.iterdir()) == ["last.ckpt", "step000001.ckpt"]
+    _two_processes(tmp_path / "after_sigterm", *three, f"ckpt_path={last}")
+    resumed = load_file(tmp_path / "after_sigterm" / "adapter" / "adapter_model.safetensors")
+    assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
 
-def _two_processes(out: Path, *overrides: str) -> subprocess.CompletedProcess:
+
+def _two_processes(out: Path, *overrides: str, returncode: int = 0) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "train.py", "trainer.accelerator=cpu", "trainer.devices=2", f"hydra.run.dir={out}"]
     cmd += [*FAST, "callbacks.evaluation.num_samples=2", "callbacks.evaluation.max_new_tokens=8"]
     cmd += ["trainer.enable_progress_bar=false", *overrides]
     if "trainer=ddp" in overrides:  # ddp.yaml is for GPUs (bf16-mixed); float32 on the CPU
         cmd.append("trainer.precision=32-true")
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900, env=_one_thread())
-    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.returncode == returncode, done.stderr[-3000:]
     return done
 
 
-def _one_thread() -> dict:
-    return dict(os.environ, OMP_NUM_THREADS="1")
+def _one_thread() -> dict:  # and tests/ on the path, for train_fixtures' callbacks
+    return dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT / "tests"))
 
 
 def _weights(run: Path, name: str = "last.ckpt") -> dict[str, torch.Tensor]:

@@ -30,12 +30,13 @@ def tiny_dataset(tmp_path_factory) -> Path:
 
 
 class SigtermAt(L.Callback):
-    """Sends this process SIGTERM at the start of training step `step` (1-based), as a cluster's preemption would
-    (`+callbacks.sigterm._target_=train_fixtures.SigtermAt +callbacks.sigterm.step=N`, tests/ on the path)."""
+    """Sends SIGTERM to the processes of these ranks (all by default, as a cluster's preemption does) at the start
+    of training step `step` (1-based): `+callbacks.sigterm._target_=train_fixtures.SigtermAt
+    +callbacks.sigterm.step=N [+callbacks.sigterm.ranks=[0]]`, with tests/ on the path."""
 
-    def __init__(self, step: int) -> None:
-        self.step = step
+    def __init__(self, step: int, ranks: list[int] | None = None) -> None:
+        self.step, self.ranks = step, ranks
 
     def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
-        if trainer.global_step == self.step - 1:
+        if trainer.global_step == self.step - 1 and (self.ranks is None or trainer.global_rank in self.ranks):
             os.kill(os.getpid(), signal.SIGTERM)
