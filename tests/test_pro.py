@@ -369,7 +369,8 @@ def test_preferences_command_and_offline_training(tmp_path, dataset_dir, capsys)
 def test_pro_resume_continues_exactly(tmp_path, dataset_dir):
     """Offline PRO on two stored pairs with LoRA dropout (its masks draw from the random state, as online
     sampling does): resumed from the step-2 checkpoint, step 3 ends on the straight run's adapter, bit for bit
-    (the random states are in the checkpoint; without them the resumed run drew other masks)."""
+    (the random states are in the checkpoint; without them the resumed run drew other masks). So does a run
+    stopped by SIGTERM during step 1, resumed from the step-1 checkpoint that the signal saved."""
     from safetensors.torch import load_file
 
     prefs = _handmade_preferences(dataset_dir, tmp_path / "prefs")
@@ -384,6 +385,15 @@ def test_pro_resume_continues_exactly(tmp_path, dataset_dir):
     at_step2 = torch.load(step2, weights_only=True)["state_dict"]
     b = next(k for k in straight if "lora_B" in k)
     assert not torch.equal(straight[b], at_step2["model." + b.replace(".weight", ".default.weight")])  # step 3 moved
+    assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
+    # SIGTERM during step 1 (off the cadence): step 1 is saved and the run stops; resumed, it ends the same
+    sigterm = ["+callbacks.sigterm._target_=train_fixtures.SigtermAt", "+callbacks.sigterm.step=1"]
+    with pytest.raises(SystemExit):  # Lightning's SIGTERMException
+        train(_cfg(tmp_path / "stopped", *three, *sigterm))
+    last = tmp_path / "stopped" / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=False)["global_step"] == 1
+    train(_cfg(tmp_path / "after_sigterm", *three, f"ckpt_path={last}"))
+    resumed = load_file(tmp_path / "after_sigterm" / "adapter" / "adapter_model.safetensors")
     assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
 
 
