@@ -166,12 +166,12 @@ class StepCheckpoint(ModelCheckpoint):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        self._sigterm = False
+        self._sigterm, self._step_seen = False, -1
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_start(trainer, pl_module)
         # after Lightning registered its handlers, which it restores (the ones before it) when the fit ends
-        self._sigterm = False
+        self._sigterm, self._step_seen = False, trainer.global_step
         if threading.current_thread() is threading.main_thread():  # where Python runs signal handlers
             signal.signal(signal.SIGTERM, self._note_sigterm)
 
@@ -182,8 +182,11 @@ class StepCheckpoint(ModelCheckpoint):
         super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
         # saved where the periodic ones are (after the step, before the loop counts the batch done), so that
         # resuming from it continues the epoch; skipped when just saved, in fast_dev_run, outside fit
-        stop = self._sigterm
-        if trainer.world_size > 1:  # every process, after every step: one of them may have the signal
+        # only after a batch that stepped the optimizer: with gradient accumulation a stop inside the window would
+        # save a loop position the resumed batches would not line up with
+        stepped, self._step_seen = trainer.global_step != self._step_seen, trainer.global_step
+        stop = stepped and self._sigterm
+        if stepped and trainer.world_size > 1:  # every process, after every step: one of them may have the signal
             stop = trainer.strategy.reduce_boolean_decision(stop, all=False)
         skip = self._should_skip_saving_checkpoint(trainer)
         if not skip and (stop or ends_training(trainer)):

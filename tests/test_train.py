@@ -301,6 +301,24 @@ def test_last_checkpoint_is_the_final_step_and_continues_exactly(tmp_path, datas
     _same_steps(tmp_path / "long", tmp_path / "after_sigterm", (4, 5))
 
 
+def test_sigterm_with_gradient_accumulation_stops_after_an_optimizer_step(tmp_path, dataset_dir):
+    """Two batches per optimizer step, SIGTERM at the first batch of step 2: the run saves and stops after the
+    second (step 2 done), not inside the window; resumed, step 3 ends on the weights of a straight 3-step run."""
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null"]
+    common += ["trainer.accumulate_grad_batches=2", "trainer.val_check_interval=null"]
+    common += ["trainer.check_val_every_n_epoch=100", "trainer.enable_progress_bar=false", "trainer.max_steps=3"]
+    train(_cfg(tmp_path / "straight", *common))
+    sigterm = ["+callbacks.sigterm._target_=train_fixtures.SigtermAt", "+callbacks.sigterm.step=2"]
+    with pytest.raises(SystemExit):
+        train(_cfg(tmp_path / "stopped", *common, *sigterm))
+    last = tmp_path / "stopped" / "checkpoints" / "last.ckpt"
+    stopped = torch.load(last, weights_only=False)
+    assert stopped["global_step"] == 2
+    assert stopped["loops"]["fit_loop"]["epoch_loop.batch_progress"]["total"]["ready"] == 4  # batches 1-4 done
+    train(_cfg(tmp_path / "resumed", *common, f"ckpt_path={last}"))
+    _same_steps(tmp_path / "straight", tmp_path / "resumed", (3,))
+
+
 def _same_steps(a_dir: Path, b_dir: Path, steps) -> None:
     """Runs a and b wrote the same weights at these steps' checkpoints, bit for bit."""
     for step in steps:
