@@ -11,6 +11,7 @@ callbacks, loggers, a `Trainer`), fits, writes `OUT/metrics.json` and returns th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -57,7 +58,12 @@ def train(cfg: DictConfig) -> dict[str, float]:
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
-    trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    except Exception as error:
+        with contextlib.suppress(AttributeError):
+            error.raised_in_fit = True  # see input_error_message
+        raise
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     metrics = {k: v for k, v in metrics.items() if math.isfinite(v) or k.startswith("val/")}
@@ -103,10 +109,14 @@ def input_error_message(error: BaseException) -> str | None:
     memory, a NaN: those keep their traceback). Input errors are the ones the config, the data or a checkpoint
     cause: a value out of range (ValueError, with the key and the value), a missing or unreadable file or
     model (OSError), an optional package not installed, an interpolation that cannot resolve, and a
-    constructor refusing its config (Hydra's InstantiationException, whose cause is named with its key)."""
+    constructor refusing its config (Hydra's InstantiationException, whose cause is named with its key).
+    Once training has started, only those this project raised (a check of ours, e.g. a checkpoint that does not
+    fit the config): a ValueError from inside torch or a full disk while saving keeps its traceback."""
     from hydra.errors import InstantiationException
     from omegaconf.errors import OmegaConfBaseException
 
+    if getattr(error, "raised_in_fit", False) and not raised_here(error):
+        return None
     if isinstance(error, InstantiationException):
         cause = error.__cause__
         key = re.search(r"full_key: (\S+)", str(error))
@@ -119,6 +129,19 @@ def input_error_message(error: BaseException) -> str | None:
     if isinstance(error, ValueError | OSError | ModuleNotFoundError):
         return str(error)
     return None
+
+
+def raised_here(error: BaseException) -> bool:
+    """Whether the innermost frame of the error's traceback is this project's code (aynamics/ or train.py)."""
+    import aynamics
+
+    tb = error.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    if tb is None:
+        return False
+    path = Path(tb.tb_frame.f_code.co_filename).resolve()
+    return path == Path(__file__).resolve() or Path(aynamics.__file__).resolve().parent in path.parents
 
 
 def report_input_error(error: BaseException) -> None:
@@ -138,21 +161,31 @@ def main(cfg: DictConfig) -> float | None:
     """`python train.py ...`: an input error (see `input_error_message`) ends the run with status 2 and one
     paragraph naming the key and the value; HYDRA_FULL_ERROR=1 shows Hydra's report with the traceback. SIGTERM
     (a preemption) ends it with status 143 after the step under way, saved by `callbacks.StepCheckpoint`."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
     from lightning.pytorch.utilities.exceptions import SIGTERMException
+    from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
     one_log_stream()
     try:
         metrics = train(cfg)
     except SIGTERMException:  # Lightning stopped after the step under way (a SystemExit of status 0)
         checkpoints = (cfg.get("callbacks") or {}).get("checkpoint") or {}
-        last = Path(checkpoints.get("dirpath") or "/nonexistent") / "last.ckpt"
-        where = f"resume with ckpt_path={last}" if last.is_file() else "no checkpoint was saved"
+        folder = Path(checkpoints.get("dirpath") or "/nonexistent")
+        if (folder / "last.ckpt").is_file():
+            where = f"resume with ckpt_path={folder / 'last.ckpt'}"
+        else:
+            where = f"the checkpoints are in {folder}" if folder.is_dir() else "no checkpoint was saved"
         logging.getLogger(__name__).warning(f"stopped by SIGTERM: {where}")
-        sys.exit(143)  # 128 + SIGTERM, as a shell reports a process the signal ended
+        # 128 + SIGTERM, as a shell reports a process the signal ended; rank 0 only: Lightning's launcher kills
+        # every process, rank 0 included, when one of the others exits non-zero
+        sys.exit(143 if getattr(rank_zero_only, "rank", 0) == 0 else 0)
     except Exception as error:
         if os.environ.get("HYDRA_FULL_ERROR") == "1" or input_error_message(error) is None:
             raise
         report_input_error(error)
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            raise  # Hydra records the job as failed and runs the sweep's other jobs
         sys.exit(2)
     return metrics.get("val/iou_full")  # the value a Hydra sweeper would optimise
 

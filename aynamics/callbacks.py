@@ -158,7 +158,10 @@ class StepCheckpoint(ModelCheckpoint):
     `last.ckpt` resumes it exactly instead of from the last periodic save. Under ddp / fsdp the processes agree
     after each step (one all-reduce of a flag; the signal may reach any one of them): Lightning's own handling
     there hung on 2 CPU processes (its handler broadcasts from inside the signal). A signal during validation
-    takes effect after the next training step.
+    takes effect after the next training step, one during the last step lets the run end as planned (final
+    validation included). The stopped step's training metrics are not logged (Lightning logs them after this
+    hook). The save needs `save_last: true` when a `monitor` is set. A step must fit in the cluster's grace time
+    (SLURM's KillWait: 30 s by default).
 
     The final-step save is skipped with a `monitor` (it comes before the final validation, which would rank it by
     the previous one's metric; the SIGTERM save then writes `last.ckpt` only), and for runs stopped otherwise
@@ -168,11 +171,23 @@ class StepCheckpoint(ModelCheckpoint):
         super().__init__(*args, **kwargs)
         self._sigterm, self._step_seen = False, -1
 
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_fit_start(trainer, pl_module)
+        self._sigterm = False
+
+    def on_sanity_check_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_sanity_check_start(trainer, pl_module)
+        self._listen()
+
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_start(trainer, pl_module)
-        # after Lightning registered its handlers, which it restores (the ones before it) when the fit ends
-        self._sigterm, self._step_seen = False, trainer.global_step
-        if threading.current_thread() is threading.main_thread():  # where Python runs signal handlers
+        self._step_seen = trainer.global_step
+        self._listen()
+
+    def _listen(self) -> None:
+        # after Lightning registered its handler (just before the sanity check), which it restores (the one before
+        # it) when the fit ends; signal handlers run in the main thread only
+        if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, self._note_sigterm)
 
     def _note_sigterm(self, signum: int, frame) -> None:
@@ -195,7 +210,7 @@ class StepCheckpoint(ModelCheckpoint):
                 self._save_topk_checkpoint(trainer, candidates)
             if self.monitor is None or stop:
                 self._save_last_checkpoint(trainer, candidates)
-        if stop:
+        if stop and not ends_training(trainer):  # the last step: saved, and the run ends as planned
             log.warning("SIGTERM: the run stops after step %d", trainer.global_step)
             raise SIGTERMException
 

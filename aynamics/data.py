@@ -11,8 +11,10 @@ followed by the response; labels cover only the response (see `aynamics.processo
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+import signal
 import warnings
 from collections import Counter
 from pathlib import Path
@@ -21,6 +23,7 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
+from lightning.fabric.utilities.seed import pl_worker_init_function
 from lightning.pytorch.accelerators import CPUAccelerator
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
@@ -314,25 +317,42 @@ def eval_shard(n: int, trainer) -> list[int] | None:
 MAX_AUTO_WORKERS = 4
 
 
-def loader_workers(num_workers: int | None, trainer) -> int:
+def loader_workers(num_workers: int | None, trainer, cache: bool = False) -> int:
     """DataLoader worker processes: `num_workers`, or for None (`data.num_workers: null`, the default) 0 when the
-    model trains on the CPU (its threads use the cores: loading in the training process was fastest on 2 cores)
-    and on GPUs up to `MAX_AUTO_WORKERS` per process, sharing the cores this process may use among the node's
-    processes (one core each left to them). Building an example at 480×320 with 4 frames (PNG decoding, the
-    processor) took 58 ms on one core here: 0.23 s per batch of 4, in the training process, beside a GPU step."""
+    model trains on the CPU (its threads use the cores: loading in the training process was fastest on 2 cores) or
+    examples are cached (`data.cache`: each worker would hold its own copy of the data set), and on GPUs up to
+    `MAX_AUTO_WORKERS` per process, one core left to the process: from the cores it may use (`sched_getaffinity`)
+    shared among the node's processes, or all of them when SLURM gave each task its own (`SLURM_CPUS_PER_TASK`).
+    A container's CPU quota is not seen: set the number there. Building an example at 480×320 with 4 frames (PNG
+    decoding, the processor) took 58 ms on one core here: 0.23 s per batch of 4 in the training process."""
     if num_workers is not None:
         return num_workers
-    if _on_cpu(trainer):
+    if _on_cpu(trainer) or cache:
         return 0
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(0, min(MAX_AUTO_WORKERS, cores // max(trainer.num_devices, 1) - 1))
+    share = cores if os.environ.get("SLURM_CPUS_PER_TASK") else cores // max(trainer.num_devices, 1)
+    return max(0, min(MAX_AUTO_WORKERS, share - 1))
 
 
-def loader_options(num_workers: int | None, trainer) -> dict[str, Any]:
-    """DataLoader keywords for this trainer: the workers (`loader_workers`), kept between epochs, and pinned
-    host memory when the model is on a GPU (faster, asynchronous copies)."""
-    workers = loader_workers(num_workers, trainer)
-    return {"num_workers": workers, "persistent_workers": workers > 0, "pin_memory": not _on_cpu(trainer)}
+def loader_options(num_workers: int | None, trainer, cache: bool = False) -> dict[str, Any]:
+    """DataLoader keywords for this trainer: the workers (`loader_workers`), kept between epochs and deaf to
+    SIGTERM (the training process saves and stops on it, `callbacks.StepCheckpoint`; a worker running Lightning's
+    handler, inherited at the fork, failed), and pinned host memory when the model is on a GPU."""
+    workers = loader_workers(num_workers, trainer, cache)
+    options = {"num_workers": workers, "persistent_workers": workers > 0, "pin_memory": not _on_cpu(trainer)}
+    if workers:
+        rank, seeded = getattr(trainer, "global_rank", 0), os.environ.get("PL_SEED_WORKERS", "0") == "1"
+        options["worker_init_fn"] = functools.partial(init_worker, rank=rank, seeded=seeded)
+    return options
+
+
+def init_worker(worker_id: int, rank: int, seeded: bool) -> None:
+    """A DataLoader worker's start: SIGTERM ignored (the training process acts on it; the worker ends with it),
+    then Lightning's seeding of the worker when `seed_everything(workers=True)` asked for it (our own
+    `worker_init_fn` replaces Lightning's)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    if seeded:
+        pl_worker_init_function(worker_id, rank=rank)
 
 
 def _on_cpu(trainer) -> bool:
@@ -341,7 +361,15 @@ def _on_cpu(trainer) -> bool:
 
 
 def resumable_loader(
-    ds, trainer, *, batch_size: int, seed: int, lengths=None, collate_fn=None, num_workers: int | None = 0
+    ds,
+    trainer,
+    *,
+    batch_size: int,
+    seed: int,
+    lengths=None,
+    collate_fn=None,
+    num_workers: int | None = 0,
+    cache: bool = False,
 ) -> ResumableLoader:
     """The training loader of `ds` for this process: its shard of every epoch's order (`ResumableSampler`), and
     after a resume (`trainer.global_step` is restored before loaders are built) past what was trained on.
@@ -370,7 +398,7 @@ def resumable_loader(
         sampler=sampler,
         collate_fn=collate_fn,
         generator=torch.Generator().manual_seed(seed),  # worker seeds: not from the global RNG
-        **loader_options(num_workers, trainer),
+        **loader_options(num_workers, trainer, cache),
     )
 
 
@@ -546,6 +574,7 @@ class SceneDataModule(L.LightningDataModule):
             lengths=lengths,
             collate_fn=self._collate,
             num_workers=self.num_workers,
+            cache=self.cache,
         )
 
     def _eval_loader(self, split: str) -> DataLoader:
@@ -556,7 +585,7 @@ class SceneDataModule(L.LightningDataModule):
             batch_size=self.eval_batch_size,
             sampler=eval_shard(len(ds), self.trainer),
             collate_fn=self._collate,
-            **loader_options(self.num_workers, self.trainer),
+            **loader_options(self.num_workers, self.trainer, self.cache),
         )
 
     def val_dataloader(self) -> DataLoader | list:

@@ -385,30 +385,48 @@ def test_validation_is_split_over_the_processes(dataset_dir):
 
 
 def test_loader_workers_follow_the_device(dataset_dir, monkeypatch):
-    """data.num_workers null: 0 workers and plain memory on the CPU; on GPUs up to 4 workers per process from the
-    cores this process may use, one left per process (16 cores, 2 GPUs: 4; 6 cores: 2; 2 cores: 0), pinned
-    memory, workers kept between epochs. A number given is used as is."""
+    """data.num_workers null: 0 workers and plain memory on the CPU or with cached examples; on GPUs up to 4
+    workers per process from the cores this process may use, one left per process (16 cores, 2 GPUs: 4; 6 cores:
+    2; 2 cores: 0; under SLURM the cores are the task's own: 3 of them give 2), pinned memory, workers kept between
+    epochs and started deaf to SIGTERM. A number given is used as is."""
+    import signal
     from types import SimpleNamespace
 
     from lightning.pytorch.accelerators import CPUAccelerator
 
-    from aynamics.data import loader_options, loader_workers
+    from aynamics.data import init_worker, loader_options, loader_workers
 
     cpu = SimpleNamespace(accelerator=CPUAccelerator(), num_devices=2)
-    gpu = SimpleNamespace(accelerator=object(), num_devices=2, global_rank=0, world_size=2, global_step=0)
+    gpu = SimpleNamespace(accelerator=object(), num_devices=2, global_rank=1, world_size=2, global_step=0)
     gpu.accumulate_grad_batches = 1
     assert loader_workers(None, cpu) == loader_workers(None, None) == 0 and loader_workers(3, cpu) == 3
+    monkeypatch.delenv("SLURM_CPUS_PER_TASK", raising=False)
     for cores, workers in ((16, 4), (6, 2), (2, 0)):
         monkeypatch.setattr(os, "sched_getaffinity", lambda _, n=cores: set(range(n)), raising=False)
         assert loader_workers(None, gpu) == workers, cores
-    assert loader_options(None, gpu) == {"num_workers": 0, "persistent_workers": False, "pin_memory": True}
+    monkeypatch.setenv("SLURM_CPUS_PER_TASK", "3")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(3)), raising=False)
+    assert loader_workers(None, gpu) == 2 and loader_workers(None, gpu, cache=True) == 0
+    monkeypatch.delenv("SLURM_CPUS_PER_TASK")
     assert loader_options(None, cpu) == {"num_workers": 0, "persistent_workers": False, "pin_memory": False}
     monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(16)), raising=False)
+    options = loader_options(None, gpu)
+    init = options.pop("worker_init_fn")
+    assert options == {"num_workers": 4, "persistent_workers": True, "pin_memory": True}
+    assert init.func is init_worker and init.keywords["rank"] == 1
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        init(0)
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, before)
     dm = SceneDataModule(str(dataset_dir), str(TINY_ASSET_DIR), num_frames=2, batch_size=2)
     dm.setup("fit")
     dm.trainer = gpu
     loaders = [dm.train_dataloader(), dm.val_dataloader()]
     assert [(d.num_workers, d.pin_memory, d.persistent_workers) for d in loaders] == [(4, True, True)] * 2
-    dm.trainer = SimpleNamespace(**{**vars(gpu), "accelerator": CPUAccelerator()})
+    dm.cache = True
+    assert [d.num_workers for d in (dm.train_dataloader(), dm.val_dataloader())] == [0, 0]
+    dm.cache, dm.trainer = False, SimpleNamespace(**{**vars(gpu), "accelerator": CPUAccelerator()})
     loaders = [dm.train_dataloader(), dm.val_dataloader()]
     assert [(d.num_workers, d.pin_memory) for d in loaders] == [(0, False)] * 2

@@ -299,6 +299,10 @@ def test_last_checkpoint_is_the_final_step_and_continues_exactly(tmp_path, datas
     assert torch.load(ckpt, weights_only=False)["global_step"] == 3
     train(_cfg(tmp_path / "after_sigterm", *common, "trainer.max_steps=5", f"ckpt_path={ckpt}"))
     _same_steps(tmp_path / "long", tmp_path / "after_sigterm", (4, 5))
+    # SIGTERM during the last step: saved, and the run ends as planned (its metrics written)
+    train(_cfg(tmp_path / "last_step", *common, "trainer.max_steps=3", *sigterm))
+    assert json.loads((tmp_path / "last_step" / "metrics.json").read_text())["global_step"] == 3
+    _same_steps(tmp_path / "short", tmp_path / "last_step", (3,))
 
 
 def test_sigterm_with_gradient_accumulation_stops_after_an_optimizer_step(tmp_path, dataset_dir):
@@ -833,6 +837,17 @@ def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_pa
     assert lines[0].endswith(f"(traceback in {out / 'train.log'})")
     log = (out / "train.log").read_text()
     assert "holds no data set" in log and "Traceback (most recent call last)" in log and "load_splits" in log
+    sweep = [sys.executable, "train.py", "-m", f"data.dir={tmp_path / 'a'},{tmp_path / 'b'}"]
+    multirun = subprocess.run(
+        [*sweep, f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=ROOT, capture_output=True, text=True
+    )
+    said = [line for line in multirun.stderr.splitlines() if line.startswith("train.py: ")]
+    assert (
+        multirun.returncode != 0
+        and len(said) == 2
+        and f"{tmp_path / 'a'}' holds no" in said[0]
+        and f"{tmp_path / 'b'}' holds" in said[1]
+    )
     full = subprocess.run(
         cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env={**os.environ, "HYDRA_FULL_ERROR": "1"}
     )
@@ -848,6 +863,18 @@ def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_pa
     except Exception as missing:
         assert input_error_message(missing) == "Missing mandatory value: model.path (config: model.path)"
     assert input_error_message(FileNotFoundError("no such checkpoint")) == "no such checkpoint"
+    # once training has started, only the errors this project raises: a ValueError from numpy keeps its traceback
+    from aynamics.scene import SceneError, parse
+
+    for raise_it, ours in (
+        (lambda: parse("- type: box\n  size: [-1, 1, 1]"), True),
+        (lambda: np.ones(2) + np.ones(3), False),
+    ):
+        try:
+            raise_it()
+        except ValueError as error:
+            error.raised_in_fit = True
+            assert (input_error_message(error) is not None) == ours and isinstance(error, SceneError) == ours
     assert input_error_message(RuntimeError("CUDA out of memory")) is None  # not the input's: traceback kept
     assert input_error_message(InstantiationException("x")) is None  # no cause to name
     bug = InstantiationException("y")
