@@ -51,6 +51,35 @@ def training_steps(trainer: L.Trainer) -> int:
     return int(total)
 
 
+def check_gradients(module: L.LightningModule, optimizer: torch.optim.Optimizer) -> None:
+    """Log the gradient norm before clipping (`train/grad_norm`) and stop the run when it is not finite.
+
+    A NaN or inf gradient (a diverged step) would be written into the weights by the optimizer step that follows,
+    then into the next checkpoint, `last.ckpt` and the adapter folder: stopped here, with the step named, every
+    file written so far keeps finite weights. Every process stops together: under ddp the gradients are the same
+    on every process after the all-reduce, under fsdp the norm is global. Not under fp16 loss scaling (an inf
+    gradient is the scaler's cue to skip the step) nor DeepSpeed (it keeps the gradients itself).
+
+    Raises:
+        FloatingPointError: the gradient norm is NaN or inf.
+    """
+    if getattr(module.trainer.precision_plugin, "scaler", None) is not None:
+        return
+    grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+    if not grads:
+        return
+    norm = torch.nn.utils.get_total_norm(grads)
+    if hasattr(norm, "full_tensor"):  # fsdp: each process holds a shard; the norm of all of them
+        norm = norm.full_tensor()
+    module.log("train/grad_norm", norm.detach().float(), on_step=True, on_epoch=False, batch_size=1)
+    if not torch.isfinite(norm):
+        raise FloatingPointError(
+            f"the gradient norm is {norm.item()} at step {module.trainer.global_step + 1}: training diverged (the step "
+            "was not taken; the checkpoints written so far hold finite weights). Resume from the last one with a lower "
+            "stage.module.lr, or check the data of this step"
+        )
+
+
 class SFTModule(L.LightningModule):
     """Supervised fine-tuning on (frames, response) pairs.
 
@@ -335,6 +364,12 @@ class SFTModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
         self._rng_to_restore = checkpoint.get("rng")
+
+    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None) -> None:
+        check_gradients(self, optimizer)  # after on_before_optimizer_step, so without the groups it dropped
+        self.clip_gradients(
+            optimizer, gradient_clip_val=gradient_clip_val, gradient_clip_algorithm=gradient_clip_algorithm
+        )
 
     def on_before_optimizer_step(self, optimizer) -> None:
         # Before clipping: a group at lr 0 (vision_lr_scale = 0) is fixed, so its gradients must not count in the

@@ -395,6 +395,10 @@ def test_pro_resume_continues_exactly(tmp_path, dataset_dir):
     train(_cfg(tmp_path / "after_sigterm", *three, f"ckpt_path={last}"))
     resumed = load_file(tmp_path / "after_sigterm" / "adapter" / "adapter_model.safetensors")
     assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
+    # a NaN gradient in step 2 stops the run there, before the optimizer writes it into the weights
+    nan = ["+callbacks.nan._target_=train_fixtures.NanGradientAt", "+callbacks.nan.step=2"]
+    with pytest.raises(FloatingPointError, match="the gradient norm is nan at step 2"):
+        train(_cfg(tmp_path / "nan", *three, *nan))
 
 
 def _two_processes(out: Path, trainer: str, *overrides: str) -> dict:

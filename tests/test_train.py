@@ -166,6 +166,7 @@ def test_cli_command_as_written(tmp_path, dataset_dir):
         "val/yaml_valid",
         "val/iou_full",
         "val/baseline/iou_full",
+        "train/grad_norm",
     } <= set(header)
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2
     assert "yaml_valid" in done.stdout  # the validation table
@@ -321,6 +322,28 @@ def test_sigterm_with_gradient_accumulation_stops_after_an_optimizer_step(tmp_pa
     assert stopped["loops"]["fit_loop"]["epoch_loop.batch_progress"]["total"]["ready"] == 4  # batches 1-4 done
     train(_cfg(tmp_path / "resumed", *common, f"ckpt_path={last}"))
     _same_steps(tmp_path / "straight", tmp_path / "resumed", (3,))
+
+
+def test_a_nan_gradient_stops_the_run_before_it_reaches_the_weights(tmp_path, dataset_dir):
+    """A NaN gradient in step 3 of 5 (checkpoints every step): the run stops there naming the step, and every file
+    it wrote holds finite weights: step 1, step 2, last.ckpt (step 2) and the adapter. Without the check AdamW
+    wrote NaN into the weights, and the next saves into last.ckpt and the adapter."""
+    from safetensors.torch import load_file
+
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null", "trainer.max_steps=5"]
+    common += ["callbacks.checkpoint.every_n_train_steps=1", "trainer.val_check_interval=null"]
+    common += ["trainer.check_val_every_n_epoch=100", "trainer.enable_progress_bar=false"]
+    nan = ["+callbacks.nan._target_=train_fixtures.NanGradientAt", "+callbacks.nan.step=3"]
+    with pytest.raises(FloatingPointError, match=r"the gradient norm is nan at step 3: training diverged"):
+        train(_cfg(tmp_path / "run", *common, *nan))
+    folder = tmp_path / "run" / "checkpoints"
+    assert sorted(p.name for p in folder.iterdir()) == ["last.ckpt", "step000001.ckpt", "step000002.ckpt"]
+    assert torch.load(folder / "last.ckpt", weights_only=False)["global_step"] == 2
+    for name in ("last.ckpt", "step000001.ckpt", "step000002.ckpt"):
+        state = torch.load(folder / name, weights_only=False)["state_dict"]
+        assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point()), name
+    adapter = load_file(tmp_path / "run" / "adapter" / "adapter_model.safetensors")
+    assert all(torch.isfinite(v).all() for v in adapter.values())
 
 
 def _same_steps(a_dir: Path, b_dir: Path, steps) -> None:

@@ -40,3 +40,16 @@ class SigtermAt(L.Callback):
     def on_train_batch_start(self, trainer: L.Trainer, *args) -> None:
         if trainer.global_step == self.step - 1 and (self.ranks is None or trainer.global_rank in self.ranks):
             os.kill(os.getpid(), signal.SIGTERM)
+
+
+class NanGradientAt(L.Callback):
+    """Makes the gradient of the first trainable parameter NaN in training step `step` (1-based), as a diverged
+    step would: `+callbacks.nan._target_=train_fixtures.NanGradientAt +callbacks.nan.step=N`."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_after_backward(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.global_step == self.step - 1:
+            grad = next(p for p in pl_module.parameters() if p.grad is not None).grad
+            grad.view(-1)[0] = float("nan")
