@@ -11,6 +11,7 @@ import signal
 from pathlib import Path
 
 import lightning as L
+import torch
 from filelock import FileLock
 
 NUM_SCENES = 12
@@ -53,3 +54,19 @@ class NanGradientAt(L.Callback):
         if trainer.global_step == self.step - 1:
             grad = next(p for p in pl_module.parameters() if p.grad is not None).grad
             grad.view(-1)[0] = float("nan")
+
+
+class NanWeightAt(L.Callback):
+    """Makes the first trainable weight NaN at the start of training step `step` on the processes of these ranks,
+    so that their loss and gradients are NaN, as a diverging step is: under ddp the gradient all-reduce then
+    carries the NaN to every process. `+callbacks.nan._target_=train_fixtures.NanWeightAt +callbacks.nan.step=N
+    +callbacks.nan.ranks=[1]`."""
+
+    def __init__(self, step: int, ranks: list[int]) -> None:
+        self.step, self.ranks = step, ranks
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
+        if trainer.global_step == self.step - 1 and trainer.global_rank in self.ranks:
+            weight = next(p for p in pl_module.parameters() if p.requires_grad)
+            with torch.no_grad():
+                weight.view(-1)[0] = float("nan")
