@@ -132,7 +132,11 @@ def input_error_message(error: BaseException) -> str | None:
 
 
 def raised_here(error: BaseException) -> bool:
-    """Whether the innermost frame of the error's traceback is this project's code (aynamics/ or train.py)."""
+    """Whether a check of this project raised the error: the innermost frame of its traceback is a `raise`
+    statement in aynamics/ or train.py (a builtin failing there, `open` on a full disk or an unpacking, adds no
+    frame of its own and is not a `raise`)."""
+    import linecache
+
     import aynamics
 
     tb = error.__traceback__
@@ -140,8 +144,10 @@ def raised_here(error: BaseException) -> bool:
         tb = tb.tb_next
     if tb is None:
         return False
-    path = Path(tb.tb_frame.f_code.co_filename).resolve()
-    return path == Path(__file__).resolve() or Path(aynamics.__file__).resolve().parent in path.parents
+    filename = tb.tb_frame.f_code.co_filename
+    path = Path(filename).resolve()
+    ours = path == Path(__file__).resolve() or Path(aynamics.__file__).resolve().parent in path.parents
+    return ours and linecache.getline(filename, tb.tb_lineno).lstrip().startswith("raise")
 
 
 def report_input_error(error: BaseException) -> None:

@@ -322,7 +322,8 @@ def loader_workers(num_workers: int | None, trainer, cache: bool = False) -> int
     model trains on the CPU (its threads use the cores: loading in the training process was fastest on 2 cores) or
     examples are cached (`data.cache`: each worker would hold its own copy of the data set), and on GPUs up to
     `MAX_AUTO_WORKERS` per process, one core left to the process: from the cores it may use (`sched_getaffinity`)
-    shared among the node's processes, or all of them when SLURM gave each task its own (`SLURM_CPUS_PER_TASK`).
+    shared among the node's processes, or all of them when srun started each process as a task with its own
+    (`SLURM_CPUS_PER_TASK`, and the processes created outside Lightning).
     A container's CPU quota is not seen: set the number there. Building an example at 480×320 with 4 frames (PNG
     decoding, the processor) took 58 ms on one core here: 0.23 s per batch of 4 in the training process."""
     if num_workers is not None:
@@ -330,7 +331,9 @@ def loader_workers(num_workers: int | None, trainer, cache: bool = False) -> int
     if _on_cpu(trainer) or cache:
         return 0
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    share = cores if os.environ.get("SLURM_CPUS_PER_TASK") else cores // max(trainer.num_devices, 1)
+    environment = getattr(getattr(trainer, "strategy", None), "cluster_environment", None)
+    own = bool(os.environ.get("SLURM_CPUS_PER_TASK")) and getattr(environment, "creates_processes_externally", False)
+    share = cores if own else cores // max(trainer.num_devices, 1)  # srun's task per GPU has its own cores
     return max(0, min(MAX_AUTO_WORKERS, share - 1))
 
 

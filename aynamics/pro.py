@@ -274,13 +274,10 @@ class ProModule(L.LightningModule):
     def on_train_start(self) -> None:
         self.model.train()  # the tiny model is built in eval mode; sampling switches modes itself
 
-    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None) -> None:
+    def on_before_optimizer_step(self, optimizer) -> None:
         from aynamics.sft import check_gradients
 
         check_gradients(self, optimizer)  # a NaN gradient stops the run before it reaches the weights
-        self.clip_gradients(
-            optimizer, gradient_clip_val=gradient_clip_val, gradient_clip_algorithm=gradient_clip_algorithm
-        )
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         params = [p for p in self.model.parameters() if p.requires_grad]

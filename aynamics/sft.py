@@ -52,18 +52,22 @@ def training_steps(trainer: L.Trainer) -> int:
 
 
 def check_gradients(module: L.LightningModule, optimizer: torch.optim.Optimizer) -> None:
-    """Log the gradient norm before clipping (`train/grad_norm`) and stop the run when it is not finite.
+    """Log the gradient norm before clipping (`train/grad_norm`) and stop the run when it is not finite; called
+    from `on_before_optimizer_step` (after fp16's unscaling, before clipping).
 
     A NaN or inf gradient (a diverged step) would be written into the weights by the optimizer step that follows,
     then into the next checkpoint, `last.ckpt` and the adapter folder: stopped here, with the step named, every
     file written so far keeps finite weights. Every process stops together: under ddp the gradients are the same
-    on every process after the all-reduce, under fsdp the norm is global. Not under fp16 loss scaling (an inf
-    gradient is the scaler's cue to skip the step) nor DeepSpeed (it keeps the gradients itself).
+    on every process after the all-reduce, under fsdp the norm is global. Under fp16 loss scaling the norm is
+    logged but an inf is the scaler's cue to skip the step, not an error; under DeepSpeed (which keeps the
+    gradients itself) nothing is checked.
 
     Raises:
         FloatingPointError: the gradient norm is NaN or inf.
     """
-    if getattr(module.trainer.precision_plugin, "scaler", None) is not None:
+    from lightning.pytorch.strategies import DeepSpeedStrategy
+
+    if isinstance(module.trainer.strategy, DeepSpeedStrategy):
         return
     grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
     if not grads:
@@ -72,7 +76,7 @@ def check_gradients(module: L.LightningModule, optimizer: torch.optim.Optimizer)
     if hasattr(norm, "full_tensor"):  # fsdp: each process holds a shard; the norm of all of them
         norm = norm.full_tensor()
     module.log("train/grad_norm", norm.detach().float(), on_step=True, on_epoch=False, batch_size=1)
-    if not torch.isfinite(norm):
+    if not torch.isfinite(norm) and getattr(module.trainer.precision_plugin, "scaler", None) is None:
         raise FloatingPointError(
             f"the gradient norm is {norm.item()} at step {module.trainer.global_step + 1}: training diverged (the step "
             "was not taken; the checkpoints written so far hold finite weights). Resume from the last one with a lower "
@@ -365,12 +369,6 @@ class SFTModule(L.LightningModule):
         self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
         self._rng_to_restore = checkpoint.get("rng")
 
-    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None) -> None:
-        check_gradients(self, optimizer)  # after on_before_optimizer_step, so without the groups it dropped
-        self.clip_gradients(
-            optimizer, gradient_clip_val=gradient_clip_val, gradient_clip_algorithm=gradient_clip_algorithm
-        )
-
     def on_before_optimizer_step(self, optimizer) -> None:
         # Before clipping: a group at lr 0 (vision_lr_scale = 0) is fixed, so its gradients must not count in the
         # clipped norm (they would shrink the adapter's steps), nor reach AdamW (which skips a None gradient).
@@ -378,6 +376,7 @@ class SFTModule(L.LightningModule):
             if group.get("initial_lr", group["lr"]) == 0:  # its base rate (schedulers keep it as initial_lr)
                 for p in group["params"]:
                     p.grad = None
+        check_gradients(self, optimizer)  # without the groups dropped here
 
     def on_train_batch_start(self, batch, batch_idx: int) -> None:
         # Restored here, not at load: Lightning draws random numbers between loading and the first batch.

@@ -169,6 +169,9 @@ def test_cli_command_as_written(tmp_path, dataset_dir):
         "train/grad_norm",
     } <= set(header)
     assert json.loads((out / "metrics.json").read_text())["global_step"] == 2
+    with open(out / "csv" / "metrics.csv") as f:
+        norms = [float(row["train/grad_norm"]) for row in csv.DictReader(f) if row.get("train/grad_norm")]
+    assert len(norms) == 2 and max(norms) > 1.0  # logged before clipping (trainer.gradient_clip_val = 1)
     assert "yaml_valid" in done.stdout  # the validation table
     console = done.stdout + done.stderr  # each log line once (was Lightning's handler and Hydra's), in the log file
     assert console.count("Seed set to 0") == 1 and "INFO: " not in console and "Tip:" not in console
@@ -344,6 +347,35 @@ def test_a_nan_gradient_stops_the_run_before_it_reaches_the_weights(tmp_path, da
         assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point()), name
     adapter = load_file(tmp_path / "run" / "adapter" / "adapter_model.safetensors")
     assert all(torch.isfinite(v).all() for v in adapter.values())
+
+
+def test_gradient_check_under_loss_scaling_and_deepspeed():
+    """check_gradients by hand: a gradient of norm 5 (3-4-5) is logged; a NaN one raises naming the step, but not
+    under fp16 loss scaling (the scaler skips that step), where it is still logged; under DeepSpeed nothing runs."""
+    from types import SimpleNamespace
+
+    from lightning.pytorch.strategies import DeepSpeedStrategy
+
+    from aynamics.sft import check_gradients
+
+    weight = torch.nn.Parameter(torch.zeros(2))
+    optimizer = torch.optim.SGD([weight], lr=0.1)
+    logged: list = []
+
+    def module(scaler=None, strategy=None):
+        trainer = SimpleNamespace(strategy=strategy, precision_plugin=SimpleNamespace(scaler=scaler), global_step=6)
+        return SimpleNamespace(trainer=trainer, log=lambda name, value, **kw: logged.append((name, float(value))))
+
+    weight.grad = torch.tensor([3.0, 4.0])
+    check_gradients(module(), optimizer)
+    assert logged == [("train/grad_norm", 5.0)]
+    weight.grad = torch.tensor([float("nan"), 1.0])
+    with pytest.raises(FloatingPointError, match="the gradient norm is nan at step 7: training diverged"):
+        check_gradients(module(), optimizer)
+    check_gradients(module(scaler=object()), optimizer)
+    assert len(logged) == 3 and math.isnan(logged[-1][1])
+    check_gradients(module(strategy=DeepSpeedStrategy.__new__(DeepSpeedStrategy)), optimizer)
+    assert len(logged) == 3
 
 
 def _same_steps(a_dir: Path, b_dir: Path, steps) -> None:
@@ -903,11 +935,19 @@ def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_pa
         assert input_error_message(missing) == "Missing mandatory value: model.path (config: model.path)"
     assert input_error_message(FileNotFoundError("no such checkpoint")) == "no such checkpoint"
     # once training has started, only the errors this project raises: a ValueError from numpy keeps its traceback
+    # and a builtin failing inside our code (an unpacking, `open` on a full disk) is no check of ours either
+    import aynamics
     from aynamics.scene import SceneError, parse
 
+    namespace: dict = {}
+    exec(
+        compile("def unpack():\n    a, b = (1, 2, 3)\n", str(Path(aynamics.__file__).parent / "x.py"), "exec"),
+        namespace,
+    )
     for raise_it, ours in (
         (lambda: parse("- type: box\n  size: [-1, 1, 1]"), True),
         (lambda: np.ones(2) + np.ones(3), False),
+        (namespace["unpack"], False),
     ):
         try:
             raise_it()
