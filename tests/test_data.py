@@ -387,7 +387,7 @@ def test_validation_is_split_over_the_processes(dataset_dir):
 def test_loader_workers_follow_the_device(dataset_dir, monkeypatch):
     """data.num_workers null: 0 workers and plain memory on the CPU or with cached examples; on GPUs up to 4
     workers per process from the cores this process may use, one left per process (16 cores, 2 GPUs: 4; 6 cores:
-    2; 2 cores: 0; under SLURM the cores are the task's own: 3 of them give 2), pinned memory, workers kept between
+    2; 2 cores: 0; when srun started each process as a task, its 3 cores give 2), pinned memory, workers kept between
     epochs and started deaf to SIGTERM. A number given is used as is."""
     import signal
     from types import SimpleNamespace
@@ -406,7 +406,10 @@ def test_loader_workers_follow_the_device(dataset_dir, monkeypatch):
         assert loader_workers(None, gpu) == workers, cores
     monkeypatch.setenv("SLURM_CPUS_PER_TASK", "3")
     monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(3)), raising=False)
-    assert loader_workers(None, gpu) == 2 and loader_workers(None, gpu, cache=True) == 0
+    assert loader_workers(None, gpu) == 0  # one SLURM task per node, Lightning starting the processes: shared
+    srun = SimpleNamespace(**vars(gpu), strategy=SimpleNamespace(cluster_environment=SimpleNamespace()))
+    srun.strategy.cluster_environment.creates_processes_externally = True  # a task per process: its own cores
+    assert loader_workers(None, srun) == 2 and loader_workers(None, srun, cache=True) == 0
     monkeypatch.delenv("SLURM_CPUS_PER_TASK")
     assert loader_options(None, cpu) == {"num_workers": 0, "persistent_workers": False, "pin_memory": False}
     monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(16)), raising=False)
