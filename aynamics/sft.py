@@ -67,7 +67,11 @@ def check_gradients(module: L.LightningModule, optimizer: torch.optim.Optimizer)
     """
     from lightning.pytorch.strategies import DeepSpeedStrategy
 
-    if isinstance(module.trainer.strategy, DeepSpeedStrategy):
+    try:
+        trainer = module.trainer
+    except RuntimeError:  # a module not attached to a Trainer, stepped by hand: nothing to log to or stop
+        return
+    if isinstance(trainer.strategy, DeepSpeedStrategy):
         return
     grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
     if not grads:
@@ -76,9 +80,9 @@ def check_gradients(module: L.LightningModule, optimizer: torch.optim.Optimizer)
     if hasattr(norm, "full_tensor"):  # fsdp: each process holds a shard; the norm of all of them
         norm = norm.full_tensor()
     module.log("train/grad_norm", norm.detach().float(), on_step=True, on_epoch=False, batch_size=1)
-    if not torch.isfinite(norm) and getattr(module.trainer.precision_plugin, "scaler", None) is None:
+    if not torch.isfinite(norm) and getattr(trainer.precision_plugin, "scaler", None) is None:
         raise FloatingPointError(
-            f"the gradient norm is {norm.item()} at step {module.trainer.global_step + 1}: training diverged (the step "
+            f"the gradient norm is {norm.item()} at step {trainer.global_step + 1}: training diverged (the step "
             "was not taken; the checkpoints written so far hold finite weights). Resume from the last one with a lower "
             "stage.module.lr, or check the data of this step"
         )
