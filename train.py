@@ -150,9 +150,10 @@ def raised_here(error: BaseException) -> bool:
     return ours and linecache.getline(filename, tb.tb_lineno).lstrip().startswith("raise")
 
 
-def report_input_error(error: BaseException) -> None:
-    """Write an input error as one paragraph on stderr, its traceback to the run's log files only."""
-    message = " ".join(input_error_message(error).split())
+def report_input_error(error: BaseException, message: str) -> None:
+    """Write an input error's message (`input_error_message`) as one paragraph on stderr, its traceback to the
+    run's log files only."""
+    message = " ".join(message.split())
     files = [h for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
     detail = "".join(traceback.format_exception(error))
     for handler in files:
@@ -187,9 +188,10 @@ def main(cfg: DictConfig) -> float | None:
         # every process, rank 0 included, when one of the others exits non-zero
         sys.exit(143 if getattr(rank_zero_only, "rank", 0) == 0 else 0)
     except Exception as error:
-        if os.environ.get("HYDRA_FULL_ERROR") == "1" or input_error_message(error) is None:
+        message = input_error_message(error)
+        if os.environ.get("HYDRA_FULL_ERROR") == "1" or message is None:
             raise
-        report_input_error(error)
+        report_input_error(error, message)
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             raise  # Hydra records the job as failed and runs the sweep's other jobs
         sys.exit(2)

@@ -203,14 +203,14 @@ class StepCheckpoint(ModelCheckpoint):
         stop = stepped and self._sigterm
         if stepped and trainer.world_size > 1:  # every process, after every step: one of them may have the signal
             stop = trainer.strategy.reduce_boolean_decision(stop, all=False)
-        skip = self._should_skip_saving_checkpoint(trainer)
-        if not skip and (stop or ends_training(trainer)):
+        ending = ends_training(trainer)
+        if not self._should_skip_saving_checkpoint(trainer) and (stop or ending):
             candidates = self._monitor_candidates(trainer)
             if self.monitor is None:
                 self._save_topk_checkpoint(trainer, candidates)
             if self.monitor is None or stop:
                 self._save_last_checkpoint(trainer, candidates)
-        if stop and not ends_training(trainer):  # the last step: saved, and the run ends as planned
+        if stop and not ending:  # the last step: saved, and the run ends as planned
             log.warning("SIGTERM: the run stops after step %d", trainer.global_step)
             raise SIGTERMException
 

@@ -58,6 +58,12 @@ def check_out_folder(
             )
 
 
+def add_device_option(p: argparse.ArgumentParser, what: str = "the model") -> None:
+    """The `--device` option of the commands that run a model (`lm.inference_device` reads it)."""
+    choices = "auto (a GPU when there is one, default), cpu, cuda, cuda:1, ..."
+    p.add_argument("--device", default="auto", help=f"device of {what}: {choices}")
+
+
 def _print_json(obj) -> None:
     json.dump(obj, sys.stdout, indent=None)
     sys.stdout.write("\n")

@@ -95,12 +95,14 @@ def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int =
 
 def add_predict_command(sub) -> None:
     """Register `aynamics predict` on the CLI's subparsers."""
+    from aynamics.cli import add_device_option
+
     p = sub.add_parser("predict", help="write the scene YAML (and reasoning) of a video with a trained adapter")
     p.add_argument("input", help="a video file or a folder of frames (PNG/JPEG, name order)")
     p.add_argument("--adapter", required=True, help="adapter folder written by training (OUT/adapter)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    p.add_argument("--device", default="auto", help="auto (a GPU when there is one, default), cpu, cuda, cuda:1, ...")
+    add_device_option(p)
     p.set_defaults(run=run_predict)
 
 

@@ -218,6 +218,8 @@ def load_preferences(path: str | Path):
 # CLI: aynamics preferences
 # --------------------------------------------------------------------------------------------
 def add_preferences_command(sub) -> None:
+    from aynamics.cli import add_device_option
+
     p = sub.add_parser("preferences", help="sample, score and store a PRO preference data set (offline mode)")
     p.add_argument("--data", required=True, help="unlabeled videos: a generated data set or a folder of videos")
     p.add_argument("--out", required=True, help="folder to write the preference data set to")
@@ -237,7 +239,7 @@ def add_preferences_command(sub) -> None:
     p.add_argument("--limit", type=int, default=None, help="use only the first LIMIT videos")
     p.add_argument("--batch-size", type=int, default=1, help="videos sampled together (default 1)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
-    p.add_argument("--device", default="auto", help="auto (a GPU when there is one, default), cpu, cuda, cuda:1, ...")
+    add_device_option(p)
     p.add_argument(
         "--dtype",
         default=None,

@@ -39,6 +39,7 @@ from aynamics import lm, rng, sharding
 from aynamics import reward as rw
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
+from aynamics.sft import check_gradients
 from aynamics.unlabeled import UnlabeledVideo, collate_videos, is_generated, open_videos
 
 LOSSES = ("soft", "ranking")
@@ -275,8 +276,6 @@ class ProModule(L.LightningModule):
         self.model.train()  # the tiny model is built in eval mode; sampling switches modes itself
 
     def on_before_optimizer_step(self, optimizer) -> None:
-        from aynamics.sft import check_gradients
-
         check_gradients(self, optimizer)  # a NaN gradient stops the run before it reaches the weights
 
     def configure_optimizers(self) -> torch.optim.Optimizer:

@@ -162,6 +162,8 @@ def render_what_if(
 # --------------------------------------------------------------------------------------------
 def add_edit_command(sub) -> None:
     """Register `aynamics edit`."""
+    from aynamics.cli import add_device_option
+
     p = sub.add_parser("edit", help="edit a scene with an instruction ('reduce the x-velocity of box_0 by 80%%')")
     p.add_argument("scene", help="scene YAML file")
     p.add_argument("instruction", help="the edit, e.g. 'decrease gravity by 50%%; move box_0 0.5 m left'")
@@ -174,7 +176,7 @@ def add_edit_command(sub) -> None:
     )
     p.add_argument("--llm", metavar="MODEL", help="edit with a transformers chat model (checked against the text)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="generation limit for --llm (default 2048)")
-    p.add_argument("--device", default="auto", help="device of --llm: auto (a GPU when there is one), cpu, cuda, ...")
+    add_device_option(p, "--llm")
     p.add_argument("--width", type=int, default=240, help="render width in pixels (default 240)")
     p.add_argument("--height", type=int, default=160, help="render height in pixels (default 160)")
     p.add_argument("--seed", type=int, default=0, help="appearance seed for --render (default 0)")
