@@ -272,38 +272,13 @@ class SceneEvaluation(L.Callback):
         """The evaluation records (and, with `baseline`, the average scene's scores): once per fit."""
         if self._records is not None:
             return
-        from aynamics.scorer import Observation, scoring_size
-
         dm = trainer.datamodule
-        self._records = []
-        for r in dm.eval_records("validation", self.num_samples):
-            try:
-                r["scene"] = parse(r["scene_yaml"])
-                # The video's aspect ratio: the camera's field of view is vertical, so at another width the scene
-                # would be scored in a wider or narrower view than the model saw.
-                width, height = scoring_size(*r["size"])
-                r["observation"] = Observation.from_scene(r["scene"], width=width, height=height)
-            except (SceneError, ValueError) as e:  # a hand-edited or corrupted record: never stop the training run
-                warnings.warn(
-                    f"scene evaluation: validation record {r['index']} of data.dir = {getattr(dm, 'dir', '?')!r} "
-                    f"is left out: its scene_yaml cannot be scored ({e})",
-                    stacklevel=2,
-                )
-                continue
-            self._records.append(r)
+        source = f"data.dir = {getattr(dm, 'dir', '?')!r}"
+        self._records = scorable_records(
+            dm.eval_records("validation", self.num_samples), f"validation records of {source}"
+        )
         if self.baseline and baseline and self._records:
-            from aynamics.data import mean_scene_of_split
-            from aynamics.scene import dump
-
-            try:
-                avg = mean_scene_of_split(dm.splits["train"])
-            except ValueError as e:  # no training scene parses
-                warnings.warn(f"scene evaluation: no average-scene baseline ({e})", stacklevel=2)
-                return
-
-            texts = [dump(avg)] * len(self._records)
-            per = evaluate_texts(texts, [r["scene"] for r in self._records], [r["observation"] for r in self._records])
-            self._baseline = summarize(per)
+            self._baseline = baseline_summary(dm.splits["train"], self._records)
 
     def _out(self, trainer: L.Trainer) -> Path:
         out = Path(self.out_dir) if self.out_dir else Path(trainer.default_root_dir) / "eval"
@@ -362,11 +337,7 @@ class SceneEvaluation(L.Callback):
     def _write(self, trainer: L.Trainer, texts: list[str], records: list[dict], per: dict[str, list]) -> None:
         out = self._out(trainer)
         step = trainer.global_step
-        with open(out / f"predictions_step{step:06d}.jsonl", "w") as f:
-            for k, (text, r) in enumerate(zip(texts, records, strict=True)):
-                row = {"index": int(r["index"]), "prediction": text, "target": r["scene_yaml"]}
-                row |= {m: per[m][k] for m in (*METRIC_KEYS, "reason")}
-                f.write(json.dumps(row) + "\n")
+        write_predictions(out / f"predictions_step{step:06d}.jsonl", texts, records, per)
         tb = _tensorboard(trainer)
         if tb is not None:
             for k, text in enumerate(texts[:4]):
@@ -387,6 +358,57 @@ class SceneEvaluation(L.Callback):
             if tb is not None:
                 strip = np.concatenate(list(frames[:: max(1, len(frames) // 4)]), axis=0)  # (4H, 2W, 3)
                 tb.add_image(f"val/rollout_{k}", strip, global_step=step, dataformats="HWC")
+
+
+def write_predictions(path: Path, texts: Sequence[str], records: Sequence[dict], per: dict[str, list]) -> None:
+    """One JSON line per record: its `index`, the `prediction`, the `target` scene and its metrics and `reason`
+    (`evaluate_texts`; every key of `per`, in its order)."""
+    with open(path, "w") as f:
+        for k, (text, r) in enumerate(zip(texts, records, strict=True)):
+            row = {"index": int(r["index"]), "prediction": text, "target": r["scene_yaml"]}
+            row |= {m: v[k] for m, v in per.items()}
+            f.write(json.dumps(row) + "\n")
+
+
+def scorable_records(records: Sequence[dict], where: str = "records") -> list[dict]:
+    """The records (`data.eval_record`) that can be scored, each with its parsed `scene` and the `observation` of
+    it in the video's view; a record whose `scene_yaml` cannot be scored (hand-edited, corrupted) is left out with a
+    warning naming its index among `where` (e.g. "validation records of data.dir = 'DIR'"): it never stops a
+    training run or an evaluation."""
+    from aynamics.scorer import Observation, scoring_size
+
+    out = []
+    for r in records:
+        try:
+            scene = parse(r["scene_yaml"])
+            # The video's aspect ratio: the camera's field of view is vertical, so at another width the scene
+            # would be scored in a wider or narrower view than the model saw.
+            width, height = scoring_size(*r["size"])
+            observation = Observation.from_scene(scene, width=width, height=height)
+        except (SceneError, ValueError) as e:
+            warnings.warn(
+                f"scene evaluation: record {r['index']} of the {where} is left out: its scene_yaml cannot be "
+                f"scored ({e})",
+                stacklevel=2,
+            )
+            continue
+        out.append(r | {"scene": scene, "observation": observation})
+    return out
+
+
+def baseline_summary(train_split, records: Sequence[dict]) -> dict[str, float] | None:
+    """The metrics of the constant "average scene" (`data.mean_scene` of the training split) on `records` (with
+    `scene` and `observation`, from `scorable_records`); None, with a warning, when no training scene parses."""
+    from aynamics.data import mean_scene_of_split
+    from aynamics.scene import dump
+
+    try:
+        avg = mean_scene_of_split(train_split)
+    except ValueError as e:
+        warnings.warn(f"scene evaluation: no average-scene baseline ({e})", stacklevel=2)
+        return None
+    texts = [dump(avg)] * len(records)
+    return summarize(evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records]))
 
 
 def records_of_rank(n: int, rank: int, world: int, pad: bool = False) -> tuple[list[int], int]:

@@ -149,6 +149,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "edit": ("aynamics.whatif", "add_edit_command", "edit a scene by instruction, re-simulate, show the what-if"),
     "audit": ("aynamics.audit", "add_audit", "audit the simulation against measured trajectories"),
     "predict": ("aynamics.predict", "add_predict_command", "write the scene YAML for a video with a trained adapter"),
+    "evaluate": (
+        "aynamics.evaluate",
+        "add_evaluate_command",
+        "score a trained adapter on a data-set split by simulation",
+    ),
     "export-adapter": ("aynamics.predict", "add_export_command", "write the peft adapter folder of a checkpoint"),
     "preferences": ("aynamics.preference_data", "add_preferences_command", "sample, score, store PRO preferences"),
     "collect": ("aynamics.collect", "add_collect_command", "collect a multirun folder into one metrics table"),

@@ -36,15 +36,16 @@ from aynamics.visual_targets import token_targets
 SPLITS = ("train", "validation", "test")
 
 
-def load_splits(path: str | Path):
-    """`datasets.load_from_disk(path)` with a clear error for a missing or wrong folder."""
+def load_splits(path: str | Path, what: str = "data.dir"):
+    """`datasets.load_from_disk(path)` with a clear error for a missing or wrong folder, naming it as `what` (the
+    config key or command-line option that gave it)."""
     from datasets import DatasetDict, load_from_disk
 
     path = Path(path)
     if not (path / "dataset_dict.json").is_file():
         raise FileNotFoundError(
-            f"data.dir = {str(path)!r} holds no data set (no dataset_dict.json); make one with "
-            f"`aynamics generate --num 12 --out {path} width=64 height=48`, or point data.dir at one "
+            f"{what} = {str(path)!r} holds no data set (no dataset_dict.json); make one with "
+            f"`aynamics generate --num 12 --out {path} width=64 height=48`, or point {what} at one "
             "(`make train` writes data/generated/make_train_plain)"
         )
     try:
@@ -52,10 +53,10 @@ def load_splits(path: str | Path):
     except (OSError, ValueError) as e:  # truncated or foreign .arrow files, a broken dataset_info.json, ...
         hint = "" if isinstance(e, PermissionError) else "; generate it again"
         raise ValueError(
-            f"data.dir = {str(path)!r}: the data set cannot be read ({type(e).__name__}: {e}){hint}"
+            f"{what} = {str(path)!r}: the data set cannot be read ({type(e).__name__}: {e}){hint}"
         ) from None
     if not isinstance(dd, DatasetDict) or "train" not in dd:
-        raise ValueError(f"data.dir = {str(path)!r}: expected a DatasetDict with a 'train' split, got {type(dd)}")
+        raise ValueError(f"{what} = {str(path)!r}: expected a DatasetDict with a 'train' split, got {type(dd)}")
     return dd
 
 
@@ -610,20 +611,20 @@ class SceneDataModule(L.LightningDataModule):
         """A fixed subset for generation: the first `n` records' prompt (unbatched), scene text and the frames'
         (width, height) in pixels (`size`: the view the scene is scored in)."""
         ds = self.splits[split]
-        out = []
-        for i in range(min(n, len(ds))):
-            record = ds[i]
-            frames = frames_of(record, self.prompt.modality)
-            prompt = lm.prompt_inputs(self.processor, self.prompt, frames)
-            out.append(
-                {
-                    "index": record.get("index", i),
-                    "prompt": prompt,
-                    "scene_yaml": record["scene_yaml"],
-                    "size": tuple(frames[0].size),
-                }
-            )
-        return out
+        return [eval_record(ds[i], self.processor, self.prompt, i) for i in range(min(n, len(ds)))]
+
+
+def eval_record(record: dict[str, Any], processor, prompt: lm.PromptSpec, position: int = 0) -> dict[str, Any]:
+    """What generating for and scoring one data-set record needs: its `index` (`position` in the split when the
+    record has none), the unbatched `prompt`, the `scene_yaml` and the frames' (width, height) `size` in pixels
+    (the view the scene is scored in)."""
+    frames = frames_of(record, prompt.modality)
+    return {
+        "index": record.get("index", position),
+        "prompt": lm.prompt_inputs(processor, prompt, frames),
+        "scene_yaml": record["scene_yaml"],
+        "size": tuple(frames[0].size),
+    }
 
 
 # --------------------------------------------------------------------------------------------

@@ -426,3 +426,54 @@ def test_evaluation_split_over_two_processes_equals_one_process(monkeypatch, tru
     texts, per = zero[2][0]
     assert texts == [answers[i] for i in range(3)] and per["yaml_valid"] == [1.0, 1.0, 0.0]
     assert per["velocity_mae"][0] == 0.0 and per["velocity_mae"][1] > 0
+
+
+def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
+    """`aynamics evaluate` names a missing data set, a split it lacks (with the ones it has), bad counts and an output
+    folder of other files, each with exit 2 before any model loads."""
+    from train_fixtures import tiny_dataset
+
+    from aynamics.cli import main
+
+    data = tiny_dataset(tmp_path_factory)
+    adapter = tmp_path / "adapter"
+    adapter.mkdir()
+    base = ["evaluate", "--adapter", str(adapter), "--quiet"]
+    cases = [
+        (["--data", str(tmp_path / "nothing")], "--data = '" + str(tmp_path / "nothing") + "' holds no data set"),
+        (["--data", str(data), "--split", "dev"], "--split 'dev': the data set"),
+        (["--data", str(data), "--num", "0"], "num = 0, batch_size = 4"),
+        (["--data", str(data), "--refine-seconds", "nan"], "--refine-seconds = nan"),
+        (["--adapter", str(tmp_path / "none"), "--data", str(data)], "is not a folder"),
+    ]
+    for extra, message in cases:
+        assert main(base + extra) == 2, extra
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+    capsys.readouterr()
+    assert main([*base, "--data", str(data), "--split", "dev"]) == 2
+    assert "(splits: {'train': " in capsys.readouterr().err  # the ones it has
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "notes.txt").write_text("mine")
+    assert main([*base, "--data", str(data), "--out", str(tmp_path / "taken")]) == 2
+    assert "holds other files ('notes.txt'" in capsys.readouterr().err
+    assert (tmp_path / "taken" / "notes.txt").read_text() == "mine"
+
+
+def test_refine_texts_refines_valid_scenes_and_keeps_the_rest(truth):
+    """Test-time refinement in `aynamics evaluate --refine`: a prediction with its cylinder 0.3 m off in x is refined to a higher
+    full IoU with the same objects; a response without a scene is kept as it is (scored invalid again)."""
+    from aynamics.evaluate import refine_texts
+    from aynamics.scene import from_items, parse, to_items
+    from aynamics.scorer import score
+
+    scene, obs = truth
+    items = to_items(scene)
+    items[1]["state"]["position"][0] += 0.3  # the cylinder, in view
+    off = dump(from_items(items))
+    before = score([parse(off)], obs)[0].iou_full
+    refined = refine_texts([off, "no scene"], [{"observation": obs}] * 2, budget=60, seconds=30)
+    assert refined[1] == "no scene"
+    after = parse(refined[0])
+    assert after.structure == scene.structure and before < 0.6  # 0.47 measured
+    assert score([after], obs)[0].iou_full > 0.9  # 0.98 measured

@@ -69,6 +69,29 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video):
     rows = [json.loads(x) for x in (tmp_path / "eval" / "predictions_step000001.jsonl").read_text().splitlines()]
     assert len(rows) == 2 and all(r["reason"] for r in rows)
     _predict_gives_the_evaluation_response(cfg, tmp_path / "adapter", rows[0])
+    _evaluate_gives_the_training_evaluation(tmp_path, dataset_dir, metrics, rows)
+
+
+def _evaluate_gives_the_training_evaluation(run: Path, dataset_dir: Path, metrics: dict, rows: list[dict]) -> None:
+    """`aynamics evaluate` of the run's adapter on the first 2 validation scenes, at the evaluation's batch size and
+    token limit: the same responses, the same per-scene rows and the same table (model and average scene) as the
+    evaluation during training; the files it writes hold them."""
+    from aynamics.callbacks import METRIC_KEYS
+    from aynamics.cli import main
+
+    out = run / "evaluated"
+    args = ["evaluate", "--adapter", str(run / "adapter"), "--data", str(dataset_dir), "--split", "validation"]
+    args += ["--num", "2", "--batch-size", "8", "--max-new-tokens", "16", "--out", str(out), "--json", "--quiet"]
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        assert main([*args, "--device", "cpu"]) == 0
+    table = json.loads(stdout.getvalue())["table"]
+    for key in METRIC_KEYS:
+        assert table["model"][key] == pytest.approx(metrics[f"val/{key}"]), key
+        assert table["average scene"][key] == pytest.approx(metrics[f"val/baseline/{key}"]), key
+    assert [json.loads(x) for x in (out / "predictions.jsonl").read_text().splitlines()] == rows
+    written = json.loads((out / "metrics.json").read_text())
+    assert written["table"] == table and written["scenes"] == 2 and written["settings"]["split"] == "validation"
 
 
 def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> None:
@@ -1003,7 +1026,7 @@ def test_data_without_validation_or_with_a_broken_record_still_trains(tmp_path, 
         lambda r: {"scene_yaml": "- type: box\n  size: -1\n" if r["index"] == first else r["scene_yaml"]}
     )
     DatasetDict({"train": dd["train"], "validation": bad, "test": dd["test"]}).save_to_disk(str(broken))
-    with pytest.warns(UserWarning, match=rf"validation record {first} of data.dir = .* is left out"):
+    with pytest.warns(UserWarning, match=rf"record {first} of the validation records of data.dir = .* is left out"):
         metrics = train(_cfg(tmp_path / "b", f"data.dir={broken}", *run))
     assert 0 <= metrics["val/yaml_valid"] <= 1  # the other record was evaluated
 

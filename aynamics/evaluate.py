@@ -1,0 +1,255 @@
+"""`aynamics evaluate`: the simulated-scene table of a trained adapter on a split of a data set (held-out numbers).
+
+    aynamics evaluate --adapter OUT/adapter --data DIR                          # every scene of the test split
+    aynamics evaluate --adapter OUT/adapter --data DIR --split validation --num 32 --out EVAL/
+    aynamics evaluate --adapter OUT/adapter --data DIR --refine 300             # + CMA-ES test-time refinement
+
+Training scores a fixed validation subset while it runs (`callbacks.SceneEvaluation`); this scores any split of
+any data set afterwards (the test split that training never looks at, or data of your own made by `aynamics
+generate`), with the same functions: YAML and simulation validity, object-count and composition accuracy,
+segmentation IoU and flow EPE (first frame and full), position and velocity MAE — beside the constant "average
+scene" of the data set's training split. The prompt is rebuilt from the adapter folder as `aynamics predict` does
+(modality, frames, pixels, in-context examples), so at training's batch size the responses are the training
+evaluation's. With `--refine N` every valid prediction is also refined by CMA-ES against its video (`aynamics.refine`,
+N simulations and at most `--refine-seconds` each) and scored again: the paper's test-time refinement column.
+
+`--out DIR` writes `predictions.jsonl` (per scene: the response, the target and each metric; with `--refine` the
+refined scene and its metrics) and `metrics.json` (the table, the split, the counts, the settings).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from aynamics.callbacks import (
+    baseline_summary,
+    evaluate_texts,
+    format_table,
+    scorable_records,
+    summarize,
+    write_predictions,
+)
+
+MODEL, BASELINE, REFINED = "model", "average scene", "model + refine"
+OUT_FILES = ("predictions.jsonl", "metrics.json")
+
+
+@dataclass
+class Evaluation:
+    """An adapter scored on a split.
+
+    Attributes:
+        table: column name ("model", "average scene", "model + refine") -> metric -> mean.
+        records: the scored records (`scorable_records`: index, scene_yaml, scene, observation; no prompt).
+        texts: the model's response to each record.
+        per_item: each record's metrics and reason (`evaluate_texts`).
+        refined: with refinement, each record's refined scene as YAML (the response when it holds no valid scene).
+        refined_per_item: the metrics of the refined scenes.
+        left_out: records of the split that could not be scored (warned).
+    """
+
+    table: dict[str, dict[str, float]]
+    records: list[dict]
+    texts: list[str]
+    per_item: dict[str, list]
+    refined: list[str] = field(default_factory=list)
+    refined_per_item: dict[str, list] = field(default_factory=dict)
+    left_out: int = 0
+
+
+def evaluate_adapter(
+    adapter: str | Path,
+    data_dir: str | Path,
+    *,
+    split: str = "test",
+    num: int | None = None,
+    batch_size: int = 4,
+    max_new_tokens: int = 2048,
+    device: str = "auto",
+    refine_budget: int = 0,
+    refine_seconds: float = 60.0,
+    baseline: bool = True,
+    progress: bool = False,
+) -> Evaluation:
+    """Generate greedily for the first `num` records of `split` (all when None), score the responses by
+    simulation, and the average scene beside them.
+
+    Raises:
+        FileNotFoundError: no data set at `data_dir`, or no adapter folder.
+        ValueError: a split the data set lacks or an empty one, bad counts, an adapter that cannot be loaded, or a
+            data set without the adapter's modality.
+    """
+    from tqdm.auto import tqdm
+
+    from aynamics import data, lm
+
+    if num is not None and num < 1 or batch_size < 1 or max_new_tokens < 1 or refine_budget < 0:
+        raise ValueError(
+            f"num = {num}, batch_size = {batch_size}, max_new_tokens = {max_new_tokens}, refine_budget = "
+            f"{refine_budget}: counts must be >= 1 (num may be None: all; refine_budget >= 0)"
+        )
+    if not refine_seconds > 0:
+        raise ValueError(f"refine_seconds = {refine_seconds}: must be > 0")
+    splits = data.load_splits(data_dir, what="--data")
+    if split not in splits or len(splits[split]) == 0:
+        raise ValueError(
+            f"--split {split!r}: the data set {str(data_dir)!r} has no {split!r} scenes "
+            f"(splits: {dict(splits.num_rows)})"
+        )
+    rows = data.used_columns(splits[split], ("index", "scene_yaml", "rgb", "flow"))
+    n = len(rows) if num is None else min(num, len(rows))
+    model, spec, prompt = lm.load_adapter(adapter, device)
+    processor = lm.load_processor(spec, prompt)
+    where = f"{split} records of --data {str(data_dir)!r}"
+    records: list[dict] = []
+    texts: list[str] = []
+    bar = tqdm(total=n, unit="scene", desc=f"evaluate {split}", disable=not progress)
+    with bar:
+        for start in range(0, n, batch_size):
+            batch = [data.eval_record(rows[i], processor, prompt, i) for i in range(start, min(start + batch_size, n))]
+            batch = scorable_records(batch, where)
+            if batch:
+                texts += lm.greedy_texts(model, processor, [r["prompt"] for r in batch], max_new_tokens)
+                records += [{k: v for k, v in r.items() if k != "prompt"} for r in batch]
+            bar.update(min(batch_size, n - start))
+    if not records:
+        raise ValueError(f"no scene of the {where} can be scored (each one was named in a warning)")
+    per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
+    result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=n - len(records))
+    if baseline:
+        summary = baseline_summary(splits["train"], records)
+        if summary is not None:
+            result.table[BASELINE] = summary
+    if refine_budget:
+        result.refined = refine_texts(texts, records, refine_budget, refine_seconds, progress)
+        result.refined_per_item = evaluate_texts(
+            result.refined, [r["scene"] for r in records], [r["observation"] for r in records]
+        )
+        result.table[REFINED] = summarize(result.refined_per_item)
+    return result
+
+
+def refine_texts(
+    texts: list[str], records: list[dict], budget: int, seconds: float, progress: bool = False
+) -> list[str]:
+    """Each response's scene refined by CMA-ES against its record's observation (`aynamics.refine`, seed 0); a
+    response without a valid scene is kept as it is (it scores as invalid again)."""
+    from tqdm.auto import tqdm
+
+    from aynamics.refine import refine
+    from aynamics.scene import SceneError, parse
+
+    out = []
+    for text, r in tqdm(list(zip(texts, records, strict=True)), unit="scene", desc="refine", disable=not progress):
+        try:
+            start = parse(text)
+        except SceneError:
+            out.append(text)
+            continue
+        out.append(refine(start, r["observation"], budget=budget, seconds=seconds).yaml)
+    return out
+
+
+def write_evaluation(out: str | Path, result: Evaluation, settings: dict) -> Path:
+    """`predictions.jsonl` and `metrics.json` of `result` in the folder `out` (made if needed)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    per = dict(result.per_item)
+    if result.refined:
+        per["refined"] = result.refined
+        per |= {f"refined_{k}": v for k, v in result.refined_per_item.items()}
+    write_predictions(out / "predictions.jsonl", result.texts, result.records, per)
+    meta = {"table": result.table, "scenes": len(result.records), "left_out": result.left_out, "settings": settings}
+    (out / "metrics.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Command line: aynamics evaluate
+# --------------------------------------------------------------------------------------------
+def add_evaluate_command(sub) -> None:
+    """Register `aynamics evaluate` on the CLI's subparsers."""
+    from aynamics.cli import add_device_option
+
+    p = sub.add_parser(
+        "evaluate", help="score a trained adapter's scenes on a data-set split by simulation (IoU, EPE, ...)"
+    )
+    p.add_argument("--adapter", required=True, help="adapter folder written by training (OUT/adapter)")
+    p.add_argument("--data", required=True, help="data set folder (aynamics generate --out)")
+    p.add_argument("--split", default="test", help="train, validation or test (default test)")
+    p.add_argument("--num", type=int, help="score the split's first NUM scenes (default: all)")
+    p.add_argument("--batch-size", type=int, default=4, help="prompts generated at once (default 4)")
+    p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
+    p.add_argument(
+        "--refine", type=int, default=0, metavar="N", help="also refine each valid scene with N CMA-ES simulations"
+    )
+    p.add_argument("--refine-seconds", type=float, default=60.0, help="time limit of each refinement (default 60)")
+    p.add_argument("--no-baseline", action="store_true", help="leave out the average scene")
+    p.add_argument("--out", help="folder for predictions.jsonl and metrics.json")
+    p.add_argument("--json", action="store_true", help="print metrics.json's content instead of the table")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_device_option(p)
+    p.set_defaults(run=run_evaluate)
+
+
+def run_evaluate(args) -> int:
+    import math
+
+    from aynamics.cli import UsageError, check_out_folder, missing_file_message
+
+    if args.out is not None:
+        check_out_folder("evaluate", args.out, writes=OUT_FILES)
+    if not math.isfinite(args.refine_seconds):
+        raise UsageError(f"evaluate: --refine-seconds = {args.refine_seconds}: must be a finite number > 0")
+    if not Path(args.adapter).is_dir():
+        raise UsageError(f"evaluate: --adapter {args.adapter!r} is not a folder (give OUT/adapter of a training run)")
+    settings = {
+        "adapter": str(args.adapter),
+        "data": str(args.data),
+        "split": args.split,
+        "num": args.num,
+        "batch_size": args.batch_size,
+        "max_new_tokens": args.max_new_tokens,
+        "refine": args.refine,
+        "refine_seconds": args.refine_seconds,
+    }
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", UserWarning)
+            result = evaluate_adapter(
+                args.adapter,
+                args.data,
+                split=args.split,
+                num=args.num,
+                batch_size=args.batch_size,
+                max_new_tokens=args.max_new_tokens,
+                device=args.device,
+                refine_budget=args.refine,
+                refine_seconds=args.refine_seconds,
+                baseline=not args.no_baseline,
+                progress=not args.quiet,
+            )
+    except FileNotFoundError as e:
+        raise UsageError(f"evaluate: {missing_file_message(e)}") from None
+    except ValueError as e:
+        raise UsageError(f"evaluate: {e}") from None
+    for w in caught:  # ours (a record left out, no baseline) on stderr, one line each
+        if str(w.message).startswith("scene evaluation:"):
+            sys.stderr.write(f"evaluate: {w.message}\n")
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    if args.out is not None:
+        write_evaluation(args.out, result, settings)
+    if args.json:
+        json.dump({"table": result.table, "scenes": len(result.records), "left_out": result.left_out}, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(
+            f"{args.split}: {len(result.records)} scenes" + (f" ({result.left_out} left out)" * bool(result.left_out))
+        )
+        print(format_table(result.table))
+    return 0
