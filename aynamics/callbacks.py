@@ -278,7 +278,9 @@ class SceneEvaluation(L.Callback):
             dm.eval_records("validation", self.num_samples), f"validation records of {source}"
         )
         if self.baseline and baseline and self._records:
-            self._baseline = baseline_summary(dm.splits["train"], self._records)
+            average = average_scene_text(dm.splits["train"])
+            if average is not None:
+                self._baseline = baseline_summary(average, self._records)
 
     def _out(self, trainer: L.Trainer) -> Path:
         out = Path(self.out_dir) if self.out_dir else Path(trainer.default_root_dir) / "eval"
@@ -396,18 +398,23 @@ def scorable_records(records: Sequence[dict], where: str = "records") -> list[di
     return out
 
 
-def baseline_summary(train_split, records: Sequence[dict]) -> dict[str, float] | None:
-    """The metrics of the constant "average scene" (`data.mean_scene` of the training split) on `records` (with
-    `scene` and `observation`, from `scorable_records`); None, with a warning, when no training scene parses."""
+def average_scene_text(train_split) -> str | None:
+    """The constant "average scene" (`data.mean_scene` of a training split's scenes) as YAML; None, with a warning,
+    when no training scene parses."""
     from aynamics.data import mean_scene_of_split
     from aynamics.scene import dump
 
     try:
-        avg = mean_scene_of_split(train_split)
+        return dump(mean_scene_of_split(train_split))
     except ValueError as e:
         warnings.warn(f"scene evaluation: no average-scene baseline ({e})", stacklevel=2)
         return None
-    texts = [dump(avg)] * len(records)
+
+
+def baseline_summary(text: str, records: Sequence[dict]) -> dict[str, float]:
+    """The metrics of one constant prediction `text` (the average scene) on every record of `records` (with `scene`
+    and `observation`, from `scorable_records`)."""
+    texts = [text] * len(records)
     return summarize(evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records]))
 
 

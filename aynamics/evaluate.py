@@ -11,7 +11,8 @@ segmentation IoU and flow EPE (first frame and full), position and velocity MAE 
 scene" of the data set's training split. The prompt is rebuilt from the adapter folder as `aynamics predict` does
 (modality, frames, pixels, in-context examples), so at training's batch size the responses are the training
 evaluation's. With `--refine N` every valid prediction is also refined by CMA-ES against its video (`aynamics.refine`,
-N simulations and at most `--refine-seconds` each) and scored again: the paper's test-time refinement column.
+N simulations and at most `--refine-seconds` each) and scored again: the paper's test-time refinement column; the
+average scene is refined the same way beside it, so the table shows what the model's start adds to the search.
 
 `--out DIR` writes `predictions.jsonl` (per scene: the response, the target and each metric; with `--refine` the
 refined scene and its metrics) and `metrics.json` (the table, the split, the counts, the settings).
@@ -26,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from aynamics.callbacks import (
+    average_scene_text,
     baseline_summary,
     evaluate_texts,
     format_table,
@@ -34,7 +36,8 @@ from aynamics.callbacks import (
     write_predictions,
 )
 
-MODEL, BASELINE, REFINED = "model", "average scene", "model + refine"
+MODEL, BASELINE = "model", "average scene"
+REFINED, BASELINE_REFINED = f"{MODEL} + refine", f"{BASELINE} + refine"
 OUT_FILES = ("predictions.jsonl", "metrics.json")
 
 
@@ -43,7 +46,8 @@ class Evaluation:
     """An adapter scored on a split.
 
     Attributes:
-        table: column name ("model", "average scene", "model + refine") -> metric -> mean.
+        table: column name ("model", "average scene", and with refinement "model + refine", "average scene +
+            refine") -> metric -> mean.
         records: the scored records (`scorable_records`: index, scene_yaml, scene, observation; no prompt).
         texts: the model's response to each record.
         per_item: each record's metrics and reason (`evaluate_texts`).
@@ -100,10 +104,10 @@ def evaluate_adapter(
             f"--split {split!r}: the data set {str(data_dir)!r} has no {split!r} scenes "
             f"(splits: {dict(splits.num_rows)})"
         )
-    rows = data.used_columns(splits[split], ("index", "scene_yaml", "rgb", "flow"))
-    n = len(rows) if num is None else min(num, len(rows))
     model, spec, prompt = lm.load_adapter(adapter, device)
     processor = lm.load_processor(spec, prompt)
+    rows = data.used_columns(splits[split], ("index", "scene_yaml", prompt.modality))  # decode only these
+    n = len(rows) if num is None else min(num, len(rows))
     where = f"{split} records of --data {str(data_dir)!r}"
     records: list[dict] = []
     texts: list[str] = []
@@ -120,16 +124,21 @@ def evaluate_adapter(
         raise ValueError(f"no scene of the {where} can be scored (each one was named in a warning)")
     per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
     result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=n - len(records))
-    if baseline:
-        summary = baseline_summary(splits["train"], records)
-        if summary is not None:
-            result.table[BASELINE] = summary
+    average = average_scene_text(splits["train"]) if baseline else None
+    if average is not None:
+        result.table[BASELINE] = baseline_summary(average, records)
     if refine_budget:
         result.refined = refine_texts(texts, records, refine_budget, refine_seconds, progress)
         result.refined_per_item = evaluate_texts(
             result.refined, [r["scene"] for r in records], [r["observation"] for r in records]
         )
         result.table[REFINED] = summarize(result.refined_per_item)
+        if average is not None:  # the same search from the average scene: what the model's start adds
+            from_average = refine_texts([average] * len(records), records, refine_budget, refine_seconds, progress)
+            per_average = evaluate_texts(
+                from_average, [r["scene"] for r in records], [r["observation"] for r in records]
+            )
+            result.table[BASELINE_REFINED] = summarize(per_average)
     return result
 
 

@@ -1,6 +1,7 @@
 """Synthetic training data: sampled scenes, simulated, rendered, described, stored as a Hugging Face data set.
 
     aynamics generate --num 1000 --out data/synth --seed 0 [--shard k --num-shards n] [--config FILE] [key=value ...]
+    aynamics generate --scenes my_scenes/ --out data/mine [key=value ...]    # your own scene files instead
     path = generate_dataset("data/tiny", num=8, seed=0, config=GenerateConfig(width=96, height=64))
     ds = datasets.load_from_disk(path)   # DatasetDict: train / validation / test
 
@@ -12,6 +13,11 @@ renamed to `chunks/NNNNNN`), so a killed run started again skips finished chunks
 all shards writing into the same folder, or folders joined with `assemble(out, sources)`) the chunks are
 concatenated in index order and split by a hash of (seed, index) into the DatasetDict at `out` (storage:
 `dataset_store.py`).
+
+With `--scenes` (`scene_files`, `generate(scenes=...)`) record i is made from the i-th of your scene files instead
+of a sampled scene (`attempt` 0): a file in a folder named train, validation or test is in that split, the others
+take the hash split; every file is validated and simulated before anything is written, and the run's manifest
+holds each file's hash, so a changed file is refused as another run instead of being mixed in.
 
 Per record the only OpenGL work is one pass over the F sampled frames (RGB, segmentation, depth: `render_sampled`);
 the flow of frame f to f + 1 comes from that depth and the poses at f and f + 1, so frames f + 1 are never drawn.
@@ -41,10 +47,11 @@ Columns (one row per scene; T = 31 states at 30 FPS, F = 10 sampled frames, N ob
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
 import multiprocessing as mp
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -67,7 +74,7 @@ from aynamics.dataset_store import (  # noqa: F401 - re-exported: the storage ha
     write_manifest,
 )
 from aynamics.png_encode import png_bytes
-from aynamics.scene import Scene, dump
+from aynamics.scene import Scene, SceneError, dump, parse
 from aynamics.simulate import Rollout, SimConfig, simulate
 
 if TYPE_CHECKING:  # rendering is imported inside the workers only
@@ -259,6 +266,91 @@ def split_of(seed: int, index: int, shares: tuple[float, float, float] = (0.8, 0
     return SPLITS[0] if u < shares[0] else SPLITS[1] if u < shares[0] + shares[1] else SPLITS[2]
 
 
+@dataclass(frozen=True)
+class SceneFile:
+    """One of your own scenes for `generate(scenes=...)` (`aynamics generate --scenes`).
+
+    Attributes:
+        path: the file, as found (named in messages and in the run's manifest).
+        text: its scene in canonical YAML (`scene.dump`).
+        split: "train", "validation" or "test" when its folder has that name; None: the hash split (`split_of`).
+    """
+
+    path: str
+    text: str
+    split: str | None = None
+
+    @property
+    def sha256(self) -> str:
+        return hashlib.sha256(self.text.encode()).hexdigest()
+
+
+SCENE_SUFFIXES = (".yaml", ".yml")
+MAX_LISTED = 10  # problems of scene files named in one error
+
+
+def _scene_paths(paths: Sequence[str | os.PathLike]) -> list[Path]:
+    """The files of `paths`: a file as given; a folder's *.yaml / *.yml files and those of its train/, validation/
+    and test/ subfolders, each sorted by name."""
+    found: list[Path] = []
+    for given in paths:
+        path = Path(given)
+        if not path.exists():
+            raise FileNotFoundError(errno.ENOENT, f"--scenes {str(path)!r} does not exist", str(path))
+        if path.is_file():
+            found.append(path)
+            continue
+        inside = [d for d in (path, *(path / s for s in SPLITS)) if d.is_dir()]
+        files = [f for d in inside for f in sorted(d.iterdir()) if f.is_file() and f.suffix.lower() in SCENE_SUFFIXES]
+        if not files:
+            raise ValueError(
+                f"--scenes {str(path)!r} holds no scene files (*.yaml, *.yml; also looked in its "
+                f"{', '.join(s + '/' for s in SPLITS)} subfolders)"
+            )
+        found += files
+    seen: set[Path] = set()
+    twice = [str(p) for p in found if p.resolve() in seen or seen.add(p.resolve())]
+    if twice:
+        raise ValueError(f"--scenes names {twice[0]!r} twice: each scene once")
+    return found
+
+
+def scene_files(paths: Sequence[str | os.PathLike], config: GenerateConfig | None = None) -> list[SceneFile]:
+    """Your own scenes for a data set: each path a scene YAML file or a folder of them (its *.yaml / *.yml files,
+    then those of its train/, validation/ and test/ subfolders, which set the split; others take the hash split).
+
+    Every file is read, validated and simulated (`config`'s timing) before anything is written, so a bad one
+    cannot stop a run half-way.
+
+    Raises:
+        FileNotFoundError: a path does not exist.
+        ValueError: no scene file, a file named twice, or files that do not load or whose rollout is invalid
+            (diverged, objects starting inside each other): up to `MAX_LISTED` named at once, each with the field,
+            value and what is allowed, or the rollout's reason.
+    """
+    config = config or GenerateConfig()
+    from aynamics.scene import load
+
+    out: list[SceneFile] = []
+    problems: list[str] = []
+    for path in _scene_paths(paths):
+        try:
+            scene = load(str(path))
+        except SceneError as e:
+            problems.append(f"{path}: {e}")
+            continue
+        rollout = simulate(scene, config.sim)
+        if not rollout.valid:
+            problems.append(f"{path}: the rollout is invalid: {rollout.reason}")
+            continue
+        split = path.parent.name if path.parent.name in SPLITS else None
+        out.append(SceneFile(str(path), dump(scene), split))
+    if problems:
+        more = f" (and {len(problems) - MAX_LISTED} more)" if len(problems) > MAX_LISTED else ""
+        raise ValueError(f"{len(problems)} scene file(s) cannot be used{more}: " + "; ".join(problems[:MAX_LISTED]))
+    return out
+
+
 def sample_simulated(index: int, seed: int, config: GenerateConfig) -> tuple[Scene, Rollout, int]:
     """Scene `index` and its rollout; resampled (attempt 1, 2, ...) when placement fails or the simulation diverges.
 
@@ -347,9 +439,18 @@ def render_record_frames(scene: Scene, rollout: Rollout, renderer: Renderer, con
     }
 
 
-def make_record(index: int, seed: int, config: GenerateConfig, renderer) -> dict:
-    """The full record of scene `index` (images PNG-encoded, ready for `datasets`)."""
-    scene, rollout, attempt = sample_simulated(index, seed, config)
+def make_record(index: int, seed: int, config: GenerateConfig, renderer, given: SceneFile | None = None) -> dict:
+    """The full record of scene `index` (images PNG-encoded, ready for `datasets`): sampled, or the `given` scene
+    file's (`scene_files`; its folder's split, else the hash split)."""
+    if given is None:
+        scene, rollout, attempt = sample_simulated(index, seed, config)
+        split = split_of(seed, index, config.splits)
+    else:
+        scene, attempt = parse(given.text), 0
+        rollout = simulate(scene, config.sim)
+        if not rollout.valid:  # checked by scene_files before anything was written
+            raise RuntimeError(f"{given.path}: the rollout is invalid: {rollout.reason}")
+        split = given.split or split_of(seed, index, config.splits)
     scene_seed = appearance_seed(seed, index, attempt)
     fr = render_record_frames(scene, rollout, renderer, config, scene_seed)
     n = len(scene.objects)
@@ -362,7 +463,7 @@ def make_record(index: int, seed: int, config: GenerateConfig, renderer) -> dict
         "index": index,
         "seed": seed,
         "attempt": attempt,
-        "split": split_of(seed, index, config.splits),
+        "split": split,
         "scene_yaml": yaml_text,
         "reasoning": text,
         "target_answer": rs.answer_target(yaml_text),
@@ -411,12 +512,12 @@ def _worker_init(config: GenerateConfig) -> None:
     _WORKER["config"] = config
 
 
-def _worker_record(job: tuple[int, int]) -> dict:
-    index, seed = job
-    return make_record(index, seed, _WORKER["config"], _WORKER["renderer"])
+def _worker_record(job: tuple[int, int, SceneFile | None]) -> dict:
+    index, seed, given = job
+    return make_record(index, seed, _WORKER["config"], _WORKER["renderer"], given)
 
 
-def _records(jobs: list[tuple[int, int]], config: GenerateConfig) -> Iterator[dict]:
+def _records(jobs: list[tuple[int, int, SceneFile | None]], config: GenerateConfig) -> Iterator[dict]:
     """Records of the jobs in order, made in `config.workers` processes (or here when 0)."""
     if not jobs:
         return
@@ -440,8 +541,12 @@ def generate(
     shard: int = 0,
     num_shards: int = 1,
     progress: bool = True,
+    scenes: Sequence[SceneFile] | None = None,
 ) -> Path | None:
     """Make this shard's missing chunks of a run; assemble the DatasetDict when every chunk is on disk.
+
+    With `scenes` (`scene_files`: your own scenes) record i is made from scenes[i] instead of a sampled scene, and
+    `num` must be their number.
 
     Returns:
         The data set folder (`datasets.load_from_disk(path)`), or None while other shards' chunks are missing.
@@ -451,16 +556,21 @@ def generate(
     config = config or GenerateConfig()
     if num < 1 or seed < 0:
         raise ValueError(f"num = {num}, seed = {seed}: need num >= 1 and seed >= 0")
+    if scenes is not None and len(scenes) != num:
+        raise ValueError(f"num = {num} with {len(scenes)} scene files: must be their number")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file, not a folder")
     mine = shard_chunks(num, config.chunk_size, shard, num_shards)  # checked before anything is written
-    write_manifest(out, {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": config.to_json()})
+    settings = config.to_json()
+    if scenes is not None:  # the files decide the records: a changed or reordered one is another run
+        settings["scenes"] = {f.path: {"index": i, "sha256": f.sha256, "split": f.split} for i, f in enumerate(scenes)}
+    write_manifest(out, {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": settings})
     (out / "chunks").mkdir(exist_ok=True)
     ranges = chunk_ranges(num, config.chunk_size)
     remove_partial_chunks(out, mine)  # leftovers of a killed run of this shard
     todo = [c for c in mine if not chunk_dir(out, c).exists()]
-    jobs = [(i, seed) for c in todo for i in ranges[c]]
+    jobs = [(i, seed, None if scenes is None else scenes[i]) for c in todo for i in ranges[c]]
     bar = tqdm(
         total=sum(len(ranges[c]) for c in mine),
         initial=sum(len(ranges[c]) for c in mine) - len(jobs),
@@ -502,7 +612,15 @@ def add_generate_parser(sub) -> None:
         "generate",
         help="generate the synthetic data set (scenes, frames, flow, masks, states, reasoning) with HF datasets",
     )
-    p.add_argument("--num", type=int, required=True, help="number of scenes of the whole run (all shards)")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--num", type=int, help="number of sampled scenes of the whole run (all shards)")
+    what.add_argument(
+        "--scenes",
+        nargs="+",
+        metavar="PATH",
+        help="your own scenes instead: YAML files or folders of them (a folder's train/, validation/, test/ "
+        "subfolders set the split; other files take the hash split)",
+    )
     p.add_argument("--out", required=True, help="output folder (chunks, then the DatasetDict for load_from_disk)")
     p.add_argument("--seed", type=int, default=0, help="global seed; scene i depends only on (seed, i) (default 0)")
     p.add_argument("--shard", type=int, default=0, help="this shard's number k in [0, n) (default 0)")
@@ -518,26 +636,31 @@ def add_generate_parser(sub) -> None:
 
 def run_generate(args) -> int:
     """Run `aynamics generate` (errors become `UsageError`: exit 2 with one message)."""
-    from aynamics.cli import UsageError
+    from aynamics.cli import UsageError, missing_file_message
 
     try:
         config = load_config(args.config) if args.config else GenerateConfig()
         config = apply_overrides(config, args.overrides)
         if args.workers is not None:
             config = dataclasses.replace(config, workers=args.workers)
+        scenes = None if args.scenes is None else scene_files(args.scenes, config)
+        num = len(scenes) if scenes is not None else args.num
         if args.assemble is not None:
             path = assemble(args.out, args.assemble or None)
         else:
-            path = generate(args.out, args.num, args.seed, config, args.shard, args.num_shards, not args.quiet)
+            path = generate(args.out, num, args.seed, config, args.shard, args.num_shards, not args.quiet, scenes)
         if path is None:
+            which = f"--num {args.num}" if scenes is None else "--scenes " + " ".join(args.scenes)
             print(f"shard {args.shard}/{args.num_shards} done; the data set is assembled by the last shard to finish")
-            print(f"(or run: aynamics generate --num {args.num} --out {args.out} --assemble)")
+            print(f"(or run: aynamics generate {which} --out {args.out} --assemble)")
             return 0
         if args.in_context:
             from aynamics.incontext import write_in_context
 
             print(f"in-context examples: {write_in_context(path)}")
         print(f"data set: {path} (datasets.load_from_disk)")
-    except (ValueError, FileNotFoundError, RuntimeError) as e:
+    except FileNotFoundError as e:
+        raise UsageError(f"generate: {missing_file_message(e)}") from None
+    except (ValueError, RuntimeError) as e:
         raise UsageError(f"generate: {e}") from None
     return 0

@@ -461,8 +461,9 @@ def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
 
 
 def test_refine_texts_refines_valid_scenes_and_keeps_the_rest(truth):
-    """Test-time refinement in `aynamics evaluate --refine`: a prediction with its cylinder 0.3 m off in x is refined to a higher
-    full IoU with the same objects; a response without a scene is kept as it is (scored invalid again)."""
+    """Test-time refinement in `aynamics evaluate --refine`: a prediction with its cylinder 0.3 m off in x is
+    refined to a higher full IoU with the same objects; a response without a scene is kept as it is (scored invalid
+    again)."""
     from aynamics.evaluate import refine_texts
     from aynamics.scene import from_items, parse, to_items
     from aynamics.scorer import score

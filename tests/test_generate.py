@@ -91,11 +91,11 @@ def test_resume_after_interruption(reference, tmp_path, monkeypatch):
     made: list[int] = []
     real = gen.make_record
 
-    def dying(index, seed, config, renderer):
+    def dying(index, seed, config, renderer, given):
         if index == 2:
             raise KeyboardInterrupt
         made.append(index)
-        return real(index, seed, config, renderer)
+        return real(index, seed, config, renderer, given)
 
     monkeypatch.setattr(gen, "make_record", dying)
     with pytest.raises(KeyboardInterrupt):
@@ -268,3 +268,55 @@ def test_record_flow_equals_flow_of_the_full_video():
     np.testing.assert_array_equal(record["rgb"], video.rgb[record["frames"]])
     np.testing.assert_array_equal(record["segmentation"], video.segmentation[record["frames"]])
     assert (record["flow_color"] != 255).any()  # something moves in view: the comparison means something
+
+
+@needs_gl
+def test_own_scene_files_make_a_data_set(tmp_path, capsys):
+    """`generate --scenes FOLDER`: one record per scene file, in file order (the folder's files, then its test/
+    subfolder's, whose split is test; the others take the hash split), each the file's scene; a rerun resumes, a
+    changed file is refused as another run, bad files are all named before anything is written."""
+    from aynamics.scene import dump, from_items, to_items
+
+    folder = tmp_path / "scenes"
+    (folder / "test").mkdir(parents=True)
+    scenes = [gen.sample_simulated(i, SEED, CFG)[0] for i in range(3)]
+    paths = [folder / "a.yaml", folder / "b.yml", folder / "test" / "c.yaml"]
+    for scene, path in zip(scenes, paths, strict=True):
+        path.write_text(dump(scene))
+    (folder / "notes.txt").write_text("not a scene")
+    out = tmp_path / "own"
+    argv = ["generate", "--scenes", str(folder), "--out", str(out), "--workers", "0", "--quiet"]
+    argv += ["width=64", "height=48", "chunk_size=2"]
+    assert main(argv) == 0
+    rows = sorted((r for split in datasets.load_from_disk(str(out)).values() for r in split), key=lambda r: r["index"])
+    assert [r["index"] for r in rows] == [0, 1, 2]
+    assert [r["scene_yaml"] for r in rows] == [dump(s) for s in scenes]
+    assert [r["split"] for r in rows] == [gen.split_of(0, 0), gen.split_of(0, 1), "test"]
+    assert rows[0]["rgb"][0].size == (64, 48) and len(rows[0]["rgb"]) == 10
+    before = _rows(out)
+    assert main(argv) == 0 and _rows(out) == before  # resumed: every chunk was there
+    items = to_items(scenes[1])
+    items[0]["physics"]["mass"] *= 2
+    paths[1].write_text(dump(from_items(items)))
+    capsys.readouterr()
+    assert main(argv) == 2
+    assert f"config scenes.{paths[1]}.sha256 = " in capsys.readouterr().err and _rows(out) == before
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "mass.yaml").write_text(dump(scenes[0]).replace("mass: ", "mass: -", 1))
+    items = to_items(scenes[0])
+    items[0]["state"]["position"][2] = 0.0  # half inside the floor: an overlapping start
+    (bad / "floor.yaml").write_text(dump(from_items(items)))
+    new = tmp_path / "never"
+    assert main(["generate", "--scenes", str(bad), "--out", str(new), "--workers", "0", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert (
+        "2 scene file(s) cannot be used" in err
+        and "mass.yaml: invalid scene (1 problem): objects[0].physics.mass = -" in err
+    )
+    assert "floor.yaml: the rollout is invalid: overlapping start" in err and not new.exists()
+    assert main(["generate", "--scenes", str(tmp_path / "none"), "--out", str(new)]) == 2
+    assert f"--scenes {str(tmp_path / 'none')!r} does not exist" in capsys.readouterr().err
+    assert main(["generate", "--scenes", str(folder), "--num", "3", "--out", str(new)]) == 2
+    assert "not allowed with argument" in capsys.readouterr().err

@@ -75,7 +75,8 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video):
 def _evaluate_gives_the_training_evaluation(run: Path, dataset_dir: Path, metrics: dict, rows: list[dict]) -> None:
     """`aynamics evaluate` of the run's adapter on the first 2 validation scenes, at the evaluation's batch size and
     token limit: the same responses, the same per-scene rows and the same table (model and average scene) as the
-    evaluation during training; the files it writes hold them."""
+    evaluation during training; the files it writes hold them. With `--refine`, the responses (no scene in 16
+    tokens) stay as they are and the average scene refined gains IoU."""
     from aynamics.callbacks import METRIC_KEYS
     from aynamics.cli import main
 
@@ -84,12 +85,16 @@ def _evaluate_gives_the_training_evaluation(run: Path, dataset_dir: Path, metric
     args += ["--num", "2", "--batch-size", "8", "--max-new-tokens", "16", "--out", str(out), "--json", "--quiet"]
     stdout = io.StringIO()
     with contextlib.redirect_stdout(stdout):
-        assert main([*args, "--device", "cpu"]) == 0
+        assert main([*args, "--device", "cpu", "--refine", "30"]) == 0
     table = json.loads(stdout.getvalue())["table"]
     for key in METRIC_KEYS:
         assert table["model"][key] == pytest.approx(metrics[f"val/{key}"]), key
         assert table["average scene"][key] == pytest.approx(metrics[f"val/baseline/{key}"]), key
-    assert [json.loads(x) for x in (out / "predictions.jsonl").read_text().splitlines()] == rows
+        assert table["model + refine"][key] == table["model"][key]  # 16 tokens hold no scene: nothing to refine
+    assert table["average scene + refine"]["iou_full"] > table["average scene"]["iou_full"]
+    predicted = [json.loads(x) for x in (out / "predictions.jsonl").read_text().splitlines()]
+    assert [{k: v for k, v in p.items() if not k.startswith("refined")} for p in predicted] == rows
+    assert [p["refined"] for p in predicted] == [r["prediction"] for r in rows]
     written = json.loads((out / "metrics.json").read_text())
     assert written["table"] == table and written["scenes"] == 2 and written["settings"]["split"] == "validation"
 
