@@ -78,6 +78,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 rows["average scene"] = evaluation.last_baseline
             print(f"\nValidation ({evaluation.evaluated} held-out scenes, step {trainer.global_step}):")
             print(format_table(rows))
+            adapter = cfg.get("callbacks", {}).get("adapter", {}).get("dirpath")
+            if adapter and cfg.get("data", {}).get("dir"):  # the split training never read
+                print(f"The test split's table: aynamics evaluate --adapter {adapter} --data {cfg.data.dir}")
     return metrics
 
 

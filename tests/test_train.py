@@ -51,8 +51,9 @@ def _cfg(out: Path, *overrides: str):
         pytest.param("answer", "flow", True, marks=pytest.mark.slow),
     ],
 )
-def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video):
-    """One batch of training and validation, then the scene evaluation on 2 records (16 tokens: invalid)."""
+def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys):
+    """One batch of training and validation, then the scene evaluation on 2 records (16 tokens: invalid), its
+    table printed with the command that scores the test split."""
     cfg = _cfg(
         tmp_path,
         "debug=fast_dev_run",
@@ -62,6 +63,11 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video):
         f"data.as_video={as_video}",
     )
     metrics = train(cfg)
+    printed = capsys.readouterr().out
+    assert "Validation (2 held-out scenes, step 1):" in printed and "average scene" in printed
+    assert (
+        f"The test split's table: aynamics evaluate --adapter {tmp_path / 'adapter'} --data {dataset_dir}\n" in printed
+    )
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
     assert metrics["val/yaml_valid"] == 0.0 and metrics["val/iou_full"] == 0.0  # 16 tokens cannot hold a scene
     assert metrics["val/baseline/yaml_valid"] == 1.0  # the average scene is a valid scene
