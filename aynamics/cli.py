@@ -4,11 +4,12 @@
     aynamics ranges [--markdown]
     aynamics render SCENE.yaml --out DIR
     aynamics score PRED.yaml [PRED2.yaml ...] --observed SCENE.yaml|DIR --json
-    aynamics generate --num N --out DIR --seed S [--shard k --num-shards n]
+    aynamics generate --num N --out DIR --seed S [--shard k --num-shards n]   (or --scenes PATH ...)
     aynamics refine PRED.yaml --observed SCENE.yaml|DIR [--budget N] [--params ...] --json
     aynamics edit SCENE.yaml "INSTRUCTION" [--out EDITED.yaml] [--render DIR]
     aynamics audit --measured M.csv --scene S.yaml --out DIR [--json]
     aynamics predict --adapter DIR VIDEO_OR_FRAMES_DIR
+    aynamics evaluate --adapter DIR --data DIR [--split test] [--refine N]
     aynamics preferences --data DIR --out DIR
     aynamics collect MULTIRUN_DIR
 
@@ -18,6 +19,7 @@ Usage errors and invalid input exit with status 2 and a one-paragraph message on
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import importlib
 import json
@@ -56,6 +58,25 @@ def check_out_folder(
                 f"{command}: {flag} {str(path)!r} holds other files ({other[0]!r}, ...): give a new or empty "
                 f"folder, or one an earlier {command} wrote"
             )
+
+
+@contextlib.contextmanager
+def warnings_as_lines(command: str, prefix: str):
+    """Within the block, a warning whose text starts with `prefix` (this project's own, about the user's input)
+    is written at once to stderr as one line, `command: text` without the prefix; other warnings as usual."""
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message)
+        if text.startswith(prefix):
+            sys.stderr.write(f"{command}: {text[len(prefix) :]}\n")
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    with warnings.catch_warnings():
+        shown = warnings.showwarning
+        warnings.showwarning = show
+        yield
 
 
 def add_device_option(p: argparse.ArgumentParser, what: str = "the model") -> None:

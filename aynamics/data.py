@@ -36,9 +36,9 @@ from aynamics.visual_targets import token_targets
 SPLITS = ("train", "validation", "test")
 
 
-def load_splits(path: str | Path, what: str = "data.dir"):
+def load_splits(path: str | Path, what: str = "data.dir", require_train: bool = True):
     """`datasets.load_from_disk(path)` with a clear error for a missing or wrong folder, naming it as `what` (the
-    config key or command-line option that gave it)."""
+    config key or command-line option that gave it); with `require_train`, it must have a train split."""
     from datasets import DatasetDict, load_from_disk
 
     path = Path(path)
@@ -50,13 +50,16 @@ def load_splits(path: str | Path, what: str = "data.dir"):
         )
     try:
         dd = load_from_disk(str(path))
-    except (OSError, ValueError) as e:  # truncated or foreign .arrow files, a broken dataset_info.json, ...
+    except (OSError, ValueError, IndexError) as e:  # truncated or foreign .arrow files, a broken dataset_info.json,
+        # a split saved with no shard at all (IndexError), ...
         hint = "" if isinstance(e, PermissionError) else "; generate it again"
         raise ValueError(
             f"{what} = {str(path)!r}: the data set cannot be read ({type(e).__name__}: {e}){hint}"
         ) from None
-    if not isinstance(dd, DatasetDict) or "train" not in dd:
-        raise ValueError(f"{what} = {str(path)!r}: expected a DatasetDict with a 'train' split, got {type(dd)}")
+    if not isinstance(dd, DatasetDict):
+        raise ValueError(f"{what} = {str(path)!r}: expected a DatasetDict of splits, got a {type(dd).__name__}")
+    if require_train and "train" not in dd:
+        raise ValueError(f"{what} = {str(path)!r}: the data set has no 'train' split (splits: {list(dd)})")
     return dd
 
 

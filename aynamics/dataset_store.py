@@ -141,7 +141,17 @@ def first_difference(a, b, prefix: str = "") -> str | None:
             if d:
                 return d
         return None
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return next((d for i, (x, y) in enumerate(zip(a, b)) if (d := first_difference(x, y, f"{prefix}[{i}]"))), None)
     return None if a == b else f"{prefix} = {a!r} (this run: {b!r})"
+
+
+INFO_KEYS = ("scene_files",)  # manifest entries for the reader only: the paths of --scenes as typed on each machine
+
+
+def _compared(manifest: dict) -> dict:
+    """The entries of a manifest that decide the records (two runs agree on these)."""
+    return {k: v for k, v in manifest.items() if k not in INFO_KEYS}
 
 
 def write_manifest(out: Path, manifest: dict) -> None:
@@ -196,7 +206,7 @@ def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None
             raise ValueError(f"{str(folder)!r}: no {MANIFEST}: not a `aynamics generate` output folder")
         manifests.append(json.loads(path.read_text()))
     for folder, m in zip(folders[1:], manifests[1:], strict=True):
-        diff = first_difference(manifests[0], m)
+        diff = first_difference(_compared(manifests[0]), _compared(m))
         if diff:
             raise ValueError(f"{str(folder)!r} belongs to a different run than {str(folders[0])!r}: {diff}")
     manifest = manifests[0]

@@ -54,6 +54,9 @@ class Evaluation:
         refined: with refinement, each record's refined scene as YAML (the response when it holds no valid scene).
         refined_per_item: the metrics of the refined scenes.
         left_out: records of the split that could not be scored (warned).
+        split_size: records in the split (more than were read with `num`).
+        refine_timed_out: refinements (of the model's and the average scene) stopped by the time limit before
+            their budget of simulations: their results depend on the machine's speed.
     """
 
     table: dict[str, dict[str, float]]
@@ -63,6 +66,8 @@ class Evaluation:
     refined: list[str] = field(default_factory=list)
     refined_per_item: dict[str, list] = field(default_factory=dict)
     left_out: int = 0
+    refine_timed_out: int = 0
+    split_size: int = 0
 
 
 def evaluate_adapter(
@@ -98,43 +103,59 @@ def evaluate_adapter(
         )
     if not refine_seconds > 0:
         raise ValueError(f"refine_seconds = {refine_seconds}: must be > 0")
-    splits = data.load_splits(data_dir, what="--data")
+    splits = data.load_splits(data_dir, what="--data", require_train=False)
     if split not in splits or len(splits[split]) == 0:
         raise ValueError(
             f"--split {split!r}: the data set {str(data_dir)!r} has no {split!r} scenes "
             f"(splits: {dict(splits.num_rows)})"
         )
     model, spec, prompt = lm.load_adapter(adapter, device)
+    if prompt.modality not in splits[split].column_names:
+        raise ValueError(
+            f"--data {str(data_dir)!r}: its {split!r} split has no {prompt.modality!r} frames, which the adapter "
+            f"(trained with data.modality = {prompt.modality!r}) reads"
+        )
     processor = lm.load_processor(spec, prompt)
     rows = data.used_columns(splits[split], ("index", "scene_yaml", prompt.modality))  # decode only these
     n = len(rows) if num is None else min(num, len(rows))
     where = f"{split} records of --data {str(data_dir)!r}"
     records: list[dict] = []
     texts: list[str] = []
-    bar = tqdm(total=n, unit="scene", desc=f"evaluate {split}", disable=not progress)
-    with bar:
-        for start in range(0, n, batch_size):
-            batch = [data.eval_record(rows[i], processor, prompt, i) for i in range(start, min(start + batch_size, n))]
-            batch = scorable_records(batch, where)
-            if batch:
-                texts += lm.greedy_texts(model, processor, [r["prompt"] for r in batch], max_new_tokens)
-                records += [{k: v for k, v in r.items() if k != "prompt"} for r in batch]
-            bar.update(min(batch_size, n - start))
+    pending: list[dict] = []  # scorable records not generated for yet: batches as the training evaluation's
+
+    def flush() -> None:
+        texts.extend(lm.greedy_texts(model, processor, [r["prompt"] for r in pending], max_new_tokens))
+        records.extend({k: v for k, v in r.items() if k != "prompt"} for r in pending)
+        pending.clear()
+
+    with tqdm(total=n, unit="scene", desc=f"evaluate {split}", disable=not progress) as bar:
+        for i in range(n):
+            pending += scorable_records([data.eval_record(rows[i], processor, prompt, i)], where)
+            if len(pending) == batch_size or (i == n - 1 and pending):
+                flush()
+            bar.update(1)
     if not records:
-        raise ValueError(f"no scene of the {where} can be scored (each one was named in a warning)")
+        raise ValueError(f"no scene of the {where} can be scored (each one was named above)")
     per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
-    result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=n - len(records))
-    average = average_scene_text(splits["train"]) if baseline else None
+    result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=n - len(records), split_size=len(rows))
+    average = None
+    if baseline and "train" in splits:
+        average = average_scene_text(splits["train"])
+    elif baseline:
+        warnings.warn(f"scene evaluation: no average-scene baseline: --data {str(data_dir)!r} has no train split")
     if average is not None:
         result.table[BASELINE] = baseline_summary(average, records)
     if refine_budget:
-        result.refined = refine_texts(texts, records, refine_budget, refine_seconds, progress)
+        result.refined, result.refine_timed_out = refine_texts(texts, records, refine_budget, refine_seconds, progress)
         result.refined_per_item = evaluate_texts(
             result.refined, [r["scene"] for r in records], [r["observation"] for r in records]
         )
         result.table[REFINED] = summarize(result.refined_per_item)
         if average is not None:  # the same search from the average scene: what the model's start adds
-            from_average = refine_texts([average] * len(records), records, refine_budget, refine_seconds, progress)
+            from_average, timed_out = refine_texts(
+                [average] * len(records), records, refine_budget, refine_seconds, progress
+            )
+            result.refine_timed_out += timed_out
             per_average = evaluate_texts(
                 from_average, [r["scene"] for r in records], [r["observation"] for r in records]
             )
@@ -144,23 +165,30 @@ def evaluate_adapter(
 
 def refine_texts(
     texts: list[str], records: list[dict], budget: int, seconds: float, progress: bool = False
-) -> list[str]:
-    """Each response's scene refined by CMA-ES against its record's observation (`aynamics.refine`, seed 0); a
-    response without a valid scene is kept as it is (it scores as invalid again)."""
+) -> tuple[list[str], int]:
+    """Each response's scene refined by CMA-ES against its record's observation (`aynamics.refine`, seed 0: the
+    same result for a budget of simulations unless the time limit `seconds` stops it first); a response without a
+    valid scene is kept as it is (it scores as invalid again).
+
+    Returns:
+        The refined texts, and how many refinements the time limit stopped before their budget.
+    """
     from tqdm.auto import tqdm
 
     from aynamics.refine import refine
     from aynamics.scene import SceneError, parse
 
-    out = []
+    out, timed_out = [], 0
     for text, r in tqdm(list(zip(texts, records, strict=True)), unit="scene", desc="refine", disable=not progress):
         try:
             start = parse(text)
         except SceneError:
             out.append(text)
             continue
-        out.append(refine(start, r["observation"], budget=budget, seconds=seconds).yaml)
-    return out
+        result = refine(start, r["observation"], budget=budget, seconds=seconds)
+        timed_out += result.simulations < budget and result.seconds >= seconds
+        out.append(result.yaml)
+    return out, timed_out
 
 
 def write_evaluation(out: str | Path, result: Evaluation, settings: dict) -> Path:
@@ -172,7 +200,7 @@ def write_evaluation(out: str | Path, result: Evaluation, settings: dict) -> Pat
         per["refined"] = result.refined
         per |= {f"refined_{k}": v for k, v in result.refined_per_item.items()}
     write_predictions(out / "predictions.jsonl", result.texts, result.records, per)
-    meta = {"table": result.table, "scenes": len(result.records), "left_out": result.left_out, "settings": settings}
+    meta = summary(result) | {"settings": settings}
     (out / "metrics.json").write_text(json.dumps(meta, indent=2) + "\n")
     return out
 
@@ -194,12 +222,18 @@ def add_evaluate_command(sub) -> None:
     p.add_argument("--batch-size", type=int, default=4, help="prompts generated at once (default 4)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
     p.add_argument(
-        "--refine", type=int, default=0, metavar="N", help="also refine each valid scene with N CMA-ES simulations"
+        "--refine",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also refine each valid scene, and the average scene, with N CMA-ES simulations each",
     )
     p.add_argument("--refine-seconds", type=float, default=60.0, help="time limit of each refinement (default 60)")
     p.add_argument("--no-baseline", action="store_true", help="leave out the average scene")
     p.add_argument("--out", help="folder for predictions.jsonl and metrics.json")
-    p.add_argument("--json", action="store_true", help="print metrics.json's content instead of the table")
+    p.add_argument(
+        "--json", action="store_true", help="print the table and counts as JSON (metrics.json less settings)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_device_option(p)
     p.set_defaults(run=run_evaluate)
@@ -208,11 +242,19 @@ def add_evaluate_command(sub) -> None:
 def run_evaluate(args) -> int:
     import math
 
-    from aynamics.cli import UsageError, check_out_folder, missing_file_message
+    from aynamics.cli import UsageError, check_out_folder, missing_file_message, warnings_as_lines
 
     if args.out is not None:
         check_out_folder("evaluate", args.out, writes=OUT_FILES)
-    if not math.isfinite(args.refine_seconds):
+    for option, value, least in (
+        ("--num", args.num, 1),
+        ("--batch-size", args.batch_size, 1),
+        ("--max-new-tokens", args.max_new_tokens, 1),
+        ("--refine", args.refine, 0),
+    ):
+        if value is not None and value < least:
+            raise UsageError(f"evaluate: {option} = {value}: must be >= {least}")
+    if not (math.isfinite(args.refine_seconds) and args.refine_seconds > 0):
         raise UsageError(f"evaluate: --refine-seconds = {args.refine_seconds}: must be a finite number > 0")
     if not Path(args.adapter).is_dir():
         raise UsageError(f"evaluate: --adapter {args.adapter!r} is not a folder (give OUT/adapter of a training run)")
@@ -227,8 +269,7 @@ def run_evaluate(args) -> int:
         "refine_seconds": args.refine_seconds,
     }
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", UserWarning)
+        with warnings_as_lines("evaluate", "scene evaluation: "):  # records left out: named as they are found
             result = evaluate_adapter(
                 args.adapter,
                 args.data,
@@ -246,19 +287,36 @@ def run_evaluate(args) -> int:
         raise UsageError(f"evaluate: {missing_file_message(e)}") from None
     except ValueError as e:
         raise UsageError(f"evaluate: {e}") from None
-    for w in caught:  # ours (a record left out, no baseline) on stderr, one line each
-        if str(w.message).startswith("scene evaluation:"):
-            sys.stderr.write(f"evaluate: {w.message}\n")
-        else:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     if args.out is not None:
         write_evaluation(args.out, result, settings)
     if args.json:
-        json.dump({"table": result.table, "scenes": len(result.records), "left_out": result.left_out}, sys.stdout)
+        json.dump(summary(result), sys.stdout)
         sys.stdout.write("\n")
     else:
-        print(
-            f"{args.split}: {len(result.records)} scenes" + (f" ({result.left_out} left out)" * bool(result.left_out))
-        )
+        print(describe(result, args.split))
         print(format_table(result.table))
     return 0
+
+
+def summary(result: Evaluation) -> dict:
+    """What `metrics.json` and `--json` report besides the settings."""
+    return {
+        "table": result.table,
+        "scenes": len(result.records),
+        "left_out": result.left_out,
+        "split_size": result.split_size,
+        "refine_timed_out": result.refine_timed_out,
+    }
+
+
+def describe(result: Evaluation, split: str) -> str:
+    """The line above the table: how many scenes of the split were scored, left out, cut short."""
+    n = len(result.records)
+    line = f"{split}: {n} scene{'s' * (n != 1)}"
+    if n + result.left_out < result.split_size:
+        line += f" of {result.split_size} (--num)"
+    if result.left_out:
+        line += f", {result.left_out} left out (named above)"
+    if result.refine_timed_out:
+        line += f", {result.refine_timed_out} refinements stopped by --refine-seconds before their budget"
+    return line

@@ -15,9 +15,11 @@ concatenated in index order and split by a hash of (seed, index) into the Datase
 `dataset_store.py`).
 
 With `--scenes` (`scene_files`, `generate(scenes=...)`) record i is made from the i-th of your scene files instead
-of a sampled scene (`attempt` 0): a file in a folder named train, validation or test is in that split, the others
+of a sampled scene (`attempt` 0; the sampler's settings play no part): a file in a folder named train, validation
+or test (any case) is in that split, the others
 take the hash split; every file is validated and simulated before anything is written, and the run's manifest
-holds each file's hash, so a changed file is refused as another run instead of being mixed in.
+holds each scene's hash and split by position (paths only for the reader), so a changed scene is refused as
+another run instead of being mixed in, while the same files typed another way, or on another machine, resume.
 
 Per record the only OpenGL work is one pass over the F sampled frames (RGB, segmentation, depth: `render_sampled`);
 the flow of frame f to f + 1 comes from that depth and the poses at f and f + 1, so frames f + 1 are never drawn.
@@ -49,8 +51,11 @@ from __future__ import annotations
 import dataclasses
 import errno
 import hashlib
+import json
 import multiprocessing as mp
 import os
+import shlex
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -271,9 +276,10 @@ class SceneFile:
     """One of your own scenes for `generate(scenes=...)` (`aynamics generate --scenes`).
 
     Attributes:
-        path: the file, as found (named in messages and in the run's manifest).
+        path: the file, as found (named in messages).
         text: its scene in canonical YAML (`scene.dump`).
-        split: "train", "validation" or "test" when its folder has that name; None: the hash split (`split_of`).
+        split: "train", "validation" or "test" when the file's folder has that name (in any case); None: the hash
+            split (`split_of`).
     """
 
     path: str
@@ -282,6 +288,7 @@ class SceneFile:
 
     @property
     def sha256(self) -> str:
+        """The hash of the scene (its canonical YAML: comments and formatting of the file aside)."""
         return hashlib.sha256(self.text.encode()).hexdigest()
 
 
@@ -289,9 +296,21 @@ SCENE_SUFFIXES = (".yaml", ".yml")
 MAX_LISTED = 10  # problems of scene files named in one error
 
 
+def _is_scene_file(path: Path) -> bool:
+    return path.is_file() and path.suffix.lower() in SCENE_SUFFIXES and not path.name.startswith(".")
+
+
+def split_of_folder(path: Path) -> str | None:
+    """The split a scene file's folder names ("train", "validation", "test", in any case), else None. The folder
+    is taken from the absolute path, so `c.yaml` typed inside `test/` and `scenes/test/c.yaml` agree."""
+    name = Path(os.path.abspath(path)).parent.name.lower()
+    return name if name in SPLITS else None
+
+
 def _scene_paths(paths: Sequence[str | os.PathLike]) -> list[Path]:
-    """The files of `paths`: a file as given; a folder's *.yaml / *.yml files and those of its train/, validation/
-    and test/ subfolders, each sorted by name."""
+    """The files of `paths`: a file as given; a folder's scene files (*.yaml / *.yml, not hidden) and those of its
+    train/, validation/ and test/ subfolders (any case), each sorted by name. A scene file in any other subfolder
+    is refused rather than left out unseen."""
     found: list[Path] = []
     for given in paths:
         path = Path(given)
@@ -300,33 +319,44 @@ def _scene_paths(paths: Sequence[str | os.PathLike]) -> list[Path]:
         if path.is_file():
             found.append(path)
             continue
-        inside = [d for d in (path, *(path / s for s in SPLITS)) if d.is_dir()]
-        files = [f for d in inside for f in sorted(d.iterdir()) if f.is_file() and f.suffix.lower() in SCENE_SUFFIXES]
+        subfolders = sorted(d for d in path.iterdir() if d.is_dir() and d.name.lower() in SPLITS)
+        files = [f for d in (path, *subfolders) for f in sorted(d.iterdir()) if _is_scene_file(f)]
+        read = {f.resolve() for f in files}
+        unread = sorted(
+            f for f in path.rglob("*") if _is_scene_file(f) and f.resolve() not in read and ".git" not in f.parts
+        )
+        if unread:
+            raise ValueError(
+                f"--scenes {str(path)!r}: {str(unread[0])!r} is in a subfolder that is not train/, validation/ or "
+                f"test/ ({len(unread)} such file(s)); move them, or give their folder as a --scenes path of its own"
+            )
         if not files:
             raise ValueError(
                 f"--scenes {str(path)!r} holds no scene files (*.yaml, *.yml; also looked in its "
                 f"{', '.join(s + '/' for s in SPLITS)} subfolders)"
             )
         found += files
-    seen: set[Path] = set()
-    twice = [str(p) for p in found if p.resolve() in seen or seen.add(p.resolve())]
-    if twice:
-        raise ValueError(f"--scenes names {twice[0]!r} twice: each scene once")
+    first: dict[Path, Path] = {}
+    for p in found:
+        other = first.setdefault(p.resolve(), p)
+        if other is not p:
+            raise ValueError(f"--scenes lists the file {str(p)!r} twice (as {str(other)!r} too): each scene once")
     return found
 
 
 def scene_files(paths: Sequence[str | os.PathLike], config: GenerateConfig | None = None) -> list[SceneFile]:
     """Your own scenes for a data set: each path a scene YAML file or a folder of them (its *.yaml / *.yml files,
-    then those of its train/, validation/ and test/ subfolders, which set the split; others take the hash split).
+    then those of its train/, validation/ and test/ subfolders). A file in a folder named train, validation or
+    test is in that split; the others take the hash split.
 
     Every file is read, validated and simulated (`config`'s timing) before anything is written, so a bad one
-    cannot stop a run half-way.
+    cannot stop a run half-way. The same scene in two splits is warned about (a test scene seen in training).
 
     Raises:
         FileNotFoundError: a path does not exist.
-        ValueError: no scene file, a file named twice, or files that do not load or whose rollout is invalid
-            (diverged, objects starting inside each other): up to `MAX_LISTED` named at once, each with the field,
-            value and what is allowed, or the rollout's reason.
+        ValueError: no scene file, a file listed twice, a scene file in a subfolder that is not a split's, or files
+            that do not load or whose rollout is invalid (diverged, objects starting inside each other): up to
+            `MAX_LISTED` named at once, each with the field, value and what is allowed, or the rollout's reason.
     """
     config = config or GenerateConfig()
     from aynamics.scene import load
@@ -343,12 +373,43 @@ def scene_files(paths: Sequence[str | os.PathLike], config: GenerateConfig | Non
         if not rollout.valid:
             problems.append(f"{path}: the rollout is invalid: {rollout.reason}")
             continue
-        split = path.parent.name if path.parent.name in SPLITS else None
-        out.append(SceneFile(str(path), dump(scene), split))
+        out.append(SceneFile(str(path), dump(scene), split_of_folder(path)))
     if problems:
         more = f" (and {len(problems) - MAX_LISTED} more)" if len(problems) > MAX_LISTED else ""
         raise ValueError(f"{len(problems)} scene file(s) cannot be used{more}: " + "; ".join(problems[:MAX_LISTED]))
+    seen: dict[str, SceneFile] = {}
+    for f in out:
+        other = seen.setdefault(f.sha256, f)
+        if other is not f and other.split != f.split:
+            warnings.warn(
+                f"--scenes: {other.path!r} ({other.split or 'hash'} split) and {f.path!r} ({f.split or 'hash'} "
+                "split) hold the same scene",
+                stacklevel=2,
+            )
     return out
+
+
+def check_scene_run(out: Path, scenes: Sequence[SceneFile] | None) -> None:
+    """Refuse to add records to a run in `out` made from other scenes: sampled ones (`scenes` None) to a run of
+    scene files or the reverse, or scene files to a run of others, naming the first whose content or split differs
+    (the manifest keeps each scene's hash and split by position, not its path, so the same files typed another
+    way, from another folder or on another machine's mount resume)."""
+    path = out / MANIFEST
+    if not path.is_file():
+        return
+    old = json.loads(path.read_text())
+    stored = old.get("config", {}).get("scenes")
+    if (stored is None) != (scenes is None):
+        was, now = ("sampled scenes", "scene files") if stored is None else ("scene files", "sampled scenes")
+        raise ValueError(f"--out {str(out)!r} holds a run of {was}, this run makes {now}; use another folder")
+    names = old.get("scene_files", [])
+    for i, (was, f) in enumerate(zip(stored or [], scenes or [], strict=False)):
+        if was != {"sha256": f.sha256, "split": f.split}:
+            where = f" ({names[i]!r} then)" if i < len(names) else ""
+            raise ValueError(
+                f"--out {str(out)!r} holds a run whose scene {i}{where} had another content or split than "
+                f"{f.path!r} now; use another folder, or the same scene files to resume"
+            )
 
 
 def sample_simulated(index: int, seed: int, config: GenerateConfig) -> tuple[Scene, Rollout, int]:
@@ -563,9 +624,13 @@ def generate(
         raise ValueError(f"--out {str(out)!r} is a file, not a folder")
     mine = shard_chunks(num, config.chunk_size, shard, num_shards)  # checked before anything is written
     settings = config.to_json()
-    if scenes is not None:  # the files decide the records: a changed or reordered one is another run
-        settings["scenes"] = {f.path: {"index": i, "sha256": f.sha256, "split": f.split} for i, f in enumerate(scenes)}
-    write_manifest(out, {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": settings})
+    manifest = {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": settings}
+    check_scene_run(out, scenes)
+    if scenes is not None:  # the scenes decide the records (a changed or reordered one is another run), not the sampler
+        settings.pop("sampler")
+        settings["scenes"] = [{"sha256": f.sha256, "split": f.split} for f in scenes]
+        manifest["scene_files"] = [f.path for f in scenes]  # for the reader; not compared on a resume
+    write_manifest(out, manifest)
     (out / "chunks").mkdir(exist_ok=True)
     ranges = chunk_ranges(num, config.chunk_size)
     remove_partial_chunks(out, mine)  # leftovers of a killed run of this shard
@@ -636,21 +701,22 @@ def add_generate_parser(sub) -> None:
 
 def run_generate(args) -> int:
     """Run `aynamics generate` (errors become `UsageError`: exit 2 with one message)."""
-    from aynamics.cli import UsageError, missing_file_message
+    from aynamics.cli import UsageError, missing_file_message, warnings_as_lines
 
     try:
         config = load_config(args.config) if args.config else GenerateConfig()
         config = apply_overrides(config, args.overrides)
         if args.workers is not None:
             config = dataclasses.replace(config, workers=args.workers)
-        scenes = None if args.scenes is None else scene_files(args.scenes, config)
-        num = len(scenes) if scenes is not None else args.num
-        if args.assemble is not None:
+        if args.assemble is not None:  # the chunks hold the records: the scene files are not read again
             path = assemble(args.out, args.assemble or None)
         else:
+            with warnings_as_lines("generate", "--scenes: "):  # the same scene in two splits
+                scenes = None if args.scenes is None else scene_files(args.scenes, config)
+            num = len(scenes) if scenes is not None else args.num
             path = generate(args.out, num, args.seed, config, args.shard, args.num_shards, not args.quiet, scenes)
         if path is None:
-            which = f"--num {args.num}" if scenes is None else "--scenes " + " ".join(args.scenes)
+            which = f"--num {args.num}" if args.scenes is None else "--scenes " + shlex.join(args.scenes)
             print(f"shard {args.shard}/{args.num_shards} done; the data set is assembled by the last shard to finish")
             print(f"(or run: aynamics generate {which} --out {args.out} --assemble)")
             return 0

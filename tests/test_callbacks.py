@@ -442,8 +442,10 @@ def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
     cases = [
         (["--data", str(tmp_path / "nothing")], "--data = '" + str(tmp_path / "nothing") + "' holds no data set"),
         (["--data", str(data), "--split", "dev"], "--split 'dev': the data set"),
-        (["--data", str(data), "--num", "0"], "num = 0, batch_size = 4"),
+        (["--data", str(data), "--num", "0"], "evaluate: --num = 0: must be >= 1"),
+        (["--data", str(data), "--refine", "-1"], "evaluate: --refine = -1: must be >= 0"),
         (["--data", str(data), "--refine-seconds", "nan"], "--refine-seconds = nan"),
+        (["--data", str(data), "--refine-seconds", "-3"], "--refine-seconds = -3.0"),
         (["--adapter", str(tmp_path / "none"), "--data", str(data)], "is not a folder"),
     ]
     for extra, message in cases:
@@ -458,6 +460,13 @@ def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
     assert main([*base, "--data", str(data), "--out", str(tmp_path / "taken")]) == 2
     assert "holds other files ('notes.txt'" in capsys.readouterr().err
     assert (tmp_path / "taken" / "notes.txt").read_text() == "mine"
+    import datasets
+
+    held_out = datasets.load_from_disk(str(data))
+    del held_out["train"]
+    held_out.save_to_disk(str(tmp_path / "held_out"))  # a data set of held-out scenes only: no train split
+    assert main([*base, "--data", str(tmp_path / "held_out")]) == 2
+    assert "aynamics.json' not found: --adapter must be" in capsys.readouterr().err  # past the data set
 
 
 def test_refine_texts_refines_valid_scenes_and_keeps_the_rest(truth):

@@ -300,7 +300,8 @@ def test_own_scene_files_make_a_data_set(tmp_path, capsys):
     paths[1].write_text(dump(from_items(items)))
     capsys.readouterr()
     assert main(argv) == 2
-    assert f"config scenes.{paths[1]}.sha256 = " in capsys.readouterr().err and _rows(out) == before
+    message = f"holds a run whose scene 1 ({str(paths[1])!r} then) had another content or split than {str(paths[1])!r}"
+    assert message in capsys.readouterr().err and _rows(out) == before
 
     bad = tmp_path / "bad"
     bad.mkdir()
@@ -320,3 +321,49 @@ def test_own_scene_files_make_a_data_set(tmp_path, capsys):
     assert f"--scenes {str(tmp_path / 'none')!r} does not exist" in capsys.readouterr().err
     assert main(["generate", "--scenes", str(folder), "--num", "3", "--out", str(new)]) == 2
     assert "not allowed with argument" in capsys.readouterr().err
+
+
+def test_scene_file_splits_and_resume_do_not_depend_on_how_paths_are_typed(tmp_path, monkeypatch, capsys):
+    """The split is the file's folder's (absolute path, any case), so `c.yaml` typed inside `Test/` is a test
+    scene; a scene file in another subfolder is refused, not left out unseen; hidden files are skipped; the same
+    scene in two splits is warned about; a rerun with the folder typed another way, from another working folder,
+    and --assemble after the files are gone, all take the run as the same."""
+    from aynamics.scene import dump
+
+    folder = tmp_path / "s"
+    (folder / "Test").mkdir(parents=True)
+    scenes = [gen.sample_simulated(i, SEED, CFG)[0] for i in range(2)]
+    (folder / "a.yaml").write_text(dump(scenes[0]))
+    (folder / "Test" / "c.yaml").write_text(dump(scenes[1]))
+    (folder / "Test" / "._c.yaml").write_bytes(b"\x00\x05 resource fork")  # macOS debris
+    monkeypatch.chdir(folder / "Test")
+    assert [f.split for f in gen.scene_files(["c.yaml", "../a.yaml"], CFG)] == ["test", None]
+    assert [(f.path, f.split) for f in gen.scene_files([folder], CFG)] == [
+        (str(folder / "a.yaml"), None),
+        (str(folder / "Test" / "c.yaml"), "test"),
+    ]
+    (folder / "nested").mkdir()
+    (folder / "nested" / "d.yaml").write_text(dump(scenes[0]))
+    with pytest.raises(ValueError, match=r"nested/d.yaml' is in a subfolder that is not train/, validation/ or test/"):
+        gen.scene_files([folder], CFG)
+    with pytest.warns(UserWarning, match=r"a.yaml' \(hash split\) and '.*c.yaml' \(test split\) hold the same scene"):
+        (folder / "Test" / "c.yaml").write_text(dump(scenes[0]))
+        gen.scene_files([folder / "a.yaml", folder / "Test"], CFG)
+    shutil.rmtree(folder / "nested")
+    (folder / "Test" / "c.yaml").write_text(dump(scenes[1]))
+
+    out = tmp_path / "out"
+    argv = ["generate", "--out", str(out), "--workers", "0", "--quiet", "width=64", "height=48", "chunk_size=1"]
+    monkeypatch.chdir(tmp_path)
+    assert main([*argv, "--scenes", "s", "--shard", "0", "--num-shards", "2"]) == 0  # chunk 0 only
+    monkeypatch.chdir(folder)
+    assert main([*argv, "--scenes", str(folder) + "/", "--shard", "1", "--num-shards", "2"]) == 0  # the rest
+    splits = datasets.load_from_disk(str(out))
+    assert (len(splits["test"]), splits["test"][0]["scene_yaml"]) == (1, dump(scenes[1]))
+    assert json.loads((out / "generate.json").read_text())["scene_files"] == ["s/a.yaml", "s/Test/c.yaml"]
+    shutil.rmtree(folder)
+    before = _rows(out)
+    assert main([*argv, "--scenes", "gone", "--assemble"]) == 0 and _rows(out) == before
+    capsys.readouterr()
+    assert main([*argv[:3], "--num", "2", "--workers", "0", "--quiet"]) == 2  # sampled scenes into this run
+    assert "holds a run of scene files, this run makes sampled scenes" in capsys.readouterr().err

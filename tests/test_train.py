@@ -75,7 +75,8 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys)
     rows = [json.loads(x) for x in (tmp_path / "eval" / "predictions_step000001.jsonl").read_text().splitlines()]
     assert len(rows) == 2 and all(r["reason"] for r in rows)
     _predict_gives_the_evaluation_response(cfg, tmp_path / "adapter", rows[0])
-    _evaluate_gives_the_training_evaluation(tmp_path, dataset_dir, metrics, rows)
+    if target == "answer":
+        _evaluate_gives_the_training_evaluation(tmp_path, dataset_dir, metrics, rows)
 
 
 def _evaluate_gives_the_training_evaluation(run: Path, dataset_dir: Path, metrics: dict, rows: list[dict]) -> None:
@@ -103,6 +104,31 @@ def _evaluate_gives_the_training_evaluation(run: Path, dataset_dir: Path, metric
     assert [p["refined"] for p in predicted] == [r["prediction"] for r in rows]
     written = json.loads((out / "metrics.json").read_text())
     assert written["table"] == table and written["scenes"] == 2 and written["settings"]["split"] == "validation"
+    assert written["left_out"] == 0 and written["refine_timed_out"] == 0
+    _evaluate_names_the_records_it_leaves_out(run, dataset_dir)
+
+
+def _evaluate_names_the_records_it_leaves_out(run: Path, dataset_dir: Path) -> None:
+    """Records whose scene cannot be scored are named on stderr as they are found, even when that leaves nothing
+    to score (exit 2 with one line saying so)."""
+    import datasets
+
+    from aynamics.cli import main
+
+    broken = datasets.load_from_disk(str(dataset_dir))
+    broken["validation"] = broken["validation"].map(lambda r: {"scene_yaml": "- type: box\n  size: -1\n"})
+    broken.save_to_disk(str(run / "broken"))
+    args = ["evaluate", "--adapter", str(run / "adapter"), "--data", str(run / "broken"), "--split", "validation"]
+    stderr = io.StringIO()
+    with contextlib.redirect_stderr(stderr):
+        assert main([*args, "--num", "2", "--max-new-tokens", "4", "--device", "cpu", "--quiet"]) == 2
+    lines = stderr.getvalue().splitlines()
+    named = [x for x in lines if x.startswith("evaluate: record ") and "is left out: its scene_yaml cannot" in x]
+    assert len(named) == 2, lines
+    assert lines[-1] == (
+        f"evaluate: no scene of the validation records of --data {str(run / 'broken')!r} can be scored (each one was "
+        "named above)"
+    )
 
 
 def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> None:
