@@ -51,21 +51,23 @@ METRIC_KEYS = (
 )
 
 
-def evaluate_texts(texts: Sequence[str], targets: Sequence[Scene], observations: Sequence) -> dict[str, list]:
+def evaluate_texts(texts: Sequence[str], targets: Sequence[Scene] | None, observations: Sequence) -> dict[str, list]:
     """Per-response metrics of model outputs against their true scenes and observed videos (pure, batched).
 
     Args:
         texts: Model responses (the YAML is taken from <answer> tags when present).
-        targets: The true scenes.
-        observations: `scorer.Observation` of each true scene.
+        targets: The true scenes; None for videos without one (no count, composition or state errors then).
+        observations: `scorer.Observation` of each video.
 
     Returns:
-        One list per key of `METRIC_KEYS` (floats, 1.0/0.0 for the rates) plus "reason" (None when valid).
+        One list per key of `METRIC_KEYS` (floats, 1.0/0.0 for the rates; without targets only validity, IoU and
+        EPE) plus "reason" (None when valid).
     """
     from aynamics.reward import score_completions
 
-    if not len(texts) == len(targets) == len(observations):
-        raise ValueError(f"{len(texts)} texts, {len(targets)} targets, {len(observations)} observations: must match")
+    n_targets = len(texts) if targets is None else len(targets)
+    if not len(texts) == n_targets == len(observations):
+        raise ValueError(f"{len(texts)} texts, {n_targets} targets, {len(observations)} observations: must match")
     yaml_valid = []
     for t in texts:
         try:
@@ -74,21 +76,19 @@ def evaluate_texts(texts: Sequence[str], targets: Sequence[Scene], observations:
         except SceneError:
             yaml_valid.append(0.0)
     scores = [s[0] for s in score_completions([[t] for t in texts], observations)]
-    count, shapes = metrics.composition_accuracy(texts, targets)
-    mae = metrics.state_mae_batch(texts, targets)
-    return {
-        "yaml_valid": yaml_valid,
-        "sim_valid": [float(s.valid) for s in scores],
-        "count_acc": count,
-        "composition_acc": shapes,
+    out = {"yaml_valid": yaml_valid, "sim_valid": [float(s.valid) for s in scores]}
+    if targets is not None:
+        out["count_acc"], out["composition_acc"] = metrics.composition_accuracy(texts, targets)
+    out |= {
         "iou_first": [s.iou_first for s in scores],
         "iou_full": [s.iou_full for s in scores],
         "epe_first": [s.epe_first for s in scores],
         "epe_full": [s.epe_full for s in scores],
-        "position_mae": [m[0] for m in mae],
-        "velocity_mae": [m[1] for m in mae],
-        "reason": [s.reason for s in scores],
     }
+    if targets is not None:
+        mae = metrics.state_mae_batch(texts, targets)
+        out |= {"position_mae": [m[0] for m in mae], "velocity_mae": [m[1] for m in mae]}
+    return out | {"reason": [s.reason for s in scores]}
 
 
 def summarize(per_item: dict[str, list]) -> dict[str, float]:
@@ -363,11 +363,13 @@ class SceneEvaluation(L.Callback):
 
 
 def write_predictions(path: Path, texts: Sequence[str], records: Sequence[dict], per: dict[str, list]) -> None:
-    """One JSON line per record: its `index`, the `prediction`, the `target` scene and its metrics and `reason`
-    (`evaluate_texts`; every key of `per`, in its order)."""
+    """One JSON line per record: its `index` (a video folder's name for unlabeled videos), the `prediction`, the
+    `target` scene (None without one) and its metrics and `reason` (`evaluate_texts`; every key of `per`, in its
+    order)."""
     with open(path, "w") as f:
         for k, (text, r) in enumerate(zip(texts, records, strict=True)):
-            row = {"index": int(r["index"]), "prediction": text, "target": r["scene_yaml"]}
+            key = r["index"] if isinstance(r["index"], str) else int(r["index"])  # a video folder's name, or an index
+            row = {"index": key, "prediction": text, "target": r.get("scene_yaml")}
             row |= {m: v[k] for m, v in per.items()}
             f.write(json.dumps(row) + "\n")
 

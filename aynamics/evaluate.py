@@ -3,6 +3,7 @@
     aynamics evaluate --adapter OUT/adapter --data DIR                          # every scene of the test split
     aynamics evaluate --adapter OUT/adapter --data DIR --split validation --num 32 --out EVAL/
     aynamics evaluate --adapter OUT/adapter --data DIR --refine 300             # + CMA-ES test-time refinement
+    aynamics evaluate --adapter OUT/adapter --videos VIDEOS/                     # videos without labels: IoU, EPE
 
 Training scores a fixed validation subset while it runs (`callbacks.SceneEvaluation`); this scores any split of
 any data set afterwards (the test split that training never looks at, or data of your own made by `aynamics
@@ -14,6 +15,10 @@ evaluation's. With `--refine N` every valid prediction is also refined by CMA-ES
 N simulations and at most `--refine-seconds` each) and scored again: the paper's test-time refinement column; the
 average scene is refined the same way beside it, so the table shows what the model's start adds to the search.
 
+`--videos` scores videos that have no scene label, as the paper does on real videos: folders of `frames/*.png`
+beside the observed segmentation (and optional flow) that `aynamics render` writes and the PRO stage reads
+(`aynamics.unlabeled`); there only validity, IoU and EPE can be measured.
+
 `--out DIR` writes `predictions.jsonl` (per scene: the response, the target and each metric; with `--refine` the
 refined scene and its metrics) and `metrics.json` (the table, the split, the counts, the settings).
 """
@@ -23,6 +28,7 @@ from __future__ import annotations
 import json
 import sys
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,6 +76,78 @@ class Evaluation:
     split_size: int = 0
 
 
+def _check_counts(num: int | None, batch_size: int, max_new_tokens: int, refine_budget: int, refine_seconds: float):
+    if num is not None and num < 1 or batch_size < 1 or max_new_tokens < 1 or refine_budget < 0:
+        raise ValueError(
+            f"num = {num}, batch_size = {batch_size}, max_new_tokens = {max_new_tokens}, refine_budget = "
+            f"{refine_budget}: counts must be >= 1 (num may be None: all; refine_budget >= 0)"
+        )
+    if not refine_seconds > 0:
+        raise ValueError(f"refine_seconds = {refine_seconds}: must be > 0")
+
+
+def _generate(
+    model,
+    processor,
+    items: Iterator[list[dict]],
+    n: int,
+    batch_size: int,
+    max_new_tokens: int,
+    desc: str,
+    progress: bool,
+) -> tuple[list[dict], list[str]]:
+    """Greedy responses for the records of `items` (per source item, a list of 0 or 1 scorable records with a
+    `prompt`), `batch_size` scorable records at a time (the training evaluation's batches); the records are
+    returned without their prompts."""
+    from tqdm.auto import tqdm
+
+    from aynamics import lm
+
+    records: list[dict] = []
+    texts: list[str] = []
+    pending: list[dict] = []
+    with tqdm(total=n, unit="scene", desc=desc, disable=not progress) as bar:
+        for i, found in enumerate(items):
+            pending += found
+            if pending and (len(pending) == batch_size or i == n - 1):
+                texts += lm.greedy_texts(model, processor, [r["prompt"] for r in pending], max_new_tokens)
+                records += [{k: v for k, v in r.items() if k != "prompt"} for r in pending]
+                pending.clear()
+            bar.update(1)
+    return records, texts
+
+
+def _score(
+    records: list[dict],
+    texts: list[str],
+    *,
+    average: str | None,
+    refine_budget: int,
+    refine_seconds: float,
+    progress: bool,
+    left_out: int,
+    split_size: int,
+) -> Evaluation:
+    """The table of the responses (and of the `average` scene), refined when `refine_budget` > 0. Records with a
+    true `scene` get every metric; videos without one the validity, IoU and EPE only."""
+    targets = [r["scene"] for r in records] if "scene" in records[0] else None
+    observations = [r["observation"] for r in records]
+    per = evaluate_texts(texts, targets, observations)
+    result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=left_out, split_size=split_size)
+    if average is not None:
+        result.table[BASELINE] = baseline_summary(average, records)
+    if refine_budget:
+        result.refined, result.refine_timed_out = refine_texts(texts, records, refine_budget, refine_seconds, progress)
+        result.refined_per_item = evaluate_texts(result.refined, targets, observations)
+        result.table[REFINED] = summarize(result.refined_per_item)
+        if average is not None:  # the same search from the average scene: what the model's start adds
+            start = [average] * len(records)
+            from_average, timed_out = refine_texts(start, records, refine_budget, refine_seconds, progress)
+            result.refine_timed_out += timed_out
+            result.table[BASELINE_REFINED] = summarize(evaluate_texts(from_average, targets, observations))
+    return result
+
+
 def evaluate_adapter(
     adapter: str | Path,
     data_dir: str | Path,
@@ -92,17 +170,9 @@ def evaluate_adapter(
         ValueError: a split the data set lacks or an empty one, bad counts, an adapter that cannot be loaded, or a
             data set without the adapter's modality.
     """
-    from tqdm.auto import tqdm
-
     from aynamics import data, lm
 
-    if num is not None and num < 1 or batch_size < 1 or max_new_tokens < 1 or refine_budget < 0:
-        raise ValueError(
-            f"num = {num}, batch_size = {batch_size}, max_new_tokens = {max_new_tokens}, refine_budget = "
-            f"{refine_budget}: counts must be >= 1 (num may be None: all; refine_budget >= 0)"
-        )
-    if not refine_seconds > 0:
-        raise ValueError(f"refine_seconds = {refine_seconds}: must be > 0")
+    _check_counts(num, batch_size, max_new_tokens, refine_budget, refine_seconds)
     splits = data.load_splits(data_dir, what="--data", require_train=False)
     if split not in splits or len(splits[split]) == 0:
         raise ValueError(
@@ -119,48 +189,85 @@ def evaluate_adapter(
     rows = data.used_columns(splits[split], ("index", "scene_yaml", prompt.modality))  # decode only these
     n = len(rows) if num is None else min(num, len(rows))
     where = f"{split} records of --data {str(data_dir)!r}"
-    records: list[dict] = []
-    texts: list[str] = []
-    pending: list[dict] = []  # scorable records not generated for yet: batches as the training evaluation's
-
-    def flush() -> None:
-        texts.extend(lm.greedy_texts(model, processor, [r["prompt"] for r in pending], max_new_tokens))
-        records.extend({k: v for k, v in r.items() if k != "prompt"} for r in pending)
-        pending.clear()
-
-    with tqdm(total=n, unit="scene", desc=f"evaluate {split}", disable=not progress) as bar:
-        for i in range(n):
-            pending += scorable_records([data.eval_record(rows[i], processor, prompt, i)], where)
-            if len(pending) == batch_size or (i == n - 1 and pending):
-                flush()
-            bar.update(1)
+    items = (scorable_records([data.eval_record(rows[i], processor, prompt, i)], where) for i in range(n))
+    records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, f"evaluate {split}", progress)
     if not records:
         raise ValueError(f"no scene of the {where} can be scored (each one was named above)")
-    per = evaluate_texts(texts, [r["scene"] for r in records], [r["observation"] for r in records])
-    result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=n - len(records), split_size=len(rows))
     average = None
     if baseline and "train" in splits:
         average = average_scene_text(splits["train"])
     elif baseline:
         warnings.warn(f"scene evaluation: no average-scene baseline: --data {str(data_dir)!r} has no train split")
-    if average is not None:
-        result.table[BASELINE] = baseline_summary(average, records)
-    if refine_budget:
-        result.refined, result.refine_timed_out = refine_texts(texts, records, refine_budget, refine_seconds, progress)
-        result.refined_per_item = evaluate_texts(
-            result.refined, [r["scene"] for r in records], [r["observation"] for r in records]
+    return _score(
+        records,
+        texts,
+        average=average,
+        refine_budget=refine_budget,
+        refine_seconds=refine_seconds,
+        progress=progress,
+        left_out=n - len(records),
+        split_size=len(rows),
+    )
+
+
+def evaluate_videos(
+    adapter: str | Path,
+    videos: str | Path,
+    *,
+    num: int | None = None,
+    batch_size: int = 4,
+    max_new_tokens: int = 2048,
+    device: str = "auto",
+    refine_budget: int = 0,
+    refine_seconds: float = 60.0,
+    progress: bool = False,
+) -> Evaluation:
+    """The same for videos without a scene label (`aynamics.unlabeled`: a folder of frames/*.png beside the observed
+    segmentation, optional flow, or a folder of such folders): validity, IoU and EPE, the metrics the paper reports
+    on real videos; no count, composition, state errors or average scene, which need true scenes.
+
+    Raises:
+        FileNotFoundError: no such folder, or a video folder without frames or masks.
+        ValueError: bad counts, an adapter that cannot be loaded or that reads flow images (folders give RGB
+            frames), or frames that do not match the masks.
+    """
+    from aynamics import lm
+    from aynamics.unlabeled import video_folders, video_from_folder
+
+    _check_counts(num, batch_size, max_new_tokens, refine_budget, refine_seconds)
+    found = video_folders(videos)
+    model, spec, prompt = lm.load_adapter(adapter, device)
+    if prompt.modality != "rgb":
+        raise ValueError(
+            f"--videos {str(videos)!r}: the adapter reads {prompt.modality!r} images (data.modality), video folders "
+            "give it RGB frames; evaluate it on a generated data set (--data)"
         )
-        result.table[REFINED] = summarize(result.refined_per_item)
-        if average is not None:  # the same search from the average scene: what the model's start adds
-            from_average, timed_out = refine_texts(
-                [average] * len(records), records, refine_budget, refine_seconds, progress
-            )
-            result.refine_timed_out += timed_out
-            per_average = evaluate_texts(
-                from_average, [r["scene"] for r in records], [r["observation"] for r in records]
-            )
-            result.table[BASELINE_REFINED] = summarize(per_average)
-    return result
+    processor = lm.load_processor(spec, prompt)
+    n = len(found) if num is None else min(num, len(found))
+
+    def item(folder: Path) -> list[dict]:
+        video = video_from_folder(folder)  # read when its turn comes: --num reads only those
+        frames = list(video.frames)
+        return [
+            {
+                "index": video.key,
+                "prompt": lm.prompt_inputs(processor, prompt, frames),
+                "observation": video.observation,
+            }
+        ]
+
+    items = (item(folder) for folder in found[:n])
+    records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, "evaluate videos", progress)
+    return _score(
+        records,
+        texts,
+        average=None,
+        refine_budget=refine_budget,
+        refine_seconds=refine_seconds,
+        progress=progress,
+        left_out=0,
+        split_size=len(found),
+    )
 
 
 def refine_texts(
@@ -216,9 +323,15 @@ def add_evaluate_command(sub) -> None:
         "evaluate", help="score a trained adapter's scenes on a data-set split by simulation (IoU, EPE, ...)"
     )
     p.add_argument("--adapter", required=True, help="adapter folder written by training (OUT/adapter)")
-    p.add_argument("--data", required=True, help="data set folder (aynamics generate --out)")
-    p.add_argument("--split", default="test", help="train, validation or test (default test)")
-    p.add_argument("--num", type=int, help="score the split's first NUM scenes (default: all)")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", help="data set folder (aynamics generate --out): scenes with their true YAML")
+    source.add_argument(
+        "--videos",
+        help="or videos without a label: a folder of frames/*.png beside segmentation.npy or segmentation/*.png "
+        "(optional flow.npy), or a folder of such folders: validity, IoU and EPE only",
+    )
+    p.add_argument("--split", default="test", help="with --data: train, validation or test (default test)")
+    p.add_argument("--num", type=int, help="score the first NUM scenes or videos (default: all)")
     p.add_argument("--batch-size", type=int, default=4, help="prompts generated at once (default 4)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
     p.add_argument(
@@ -260,29 +373,32 @@ def run_evaluate(args) -> int:
         raise UsageError(f"evaluate: --adapter {args.adapter!r} is not a folder (give OUT/adapter of a training run)")
     settings = {
         "adapter": str(args.adapter),
-        "data": str(args.data),
-        "split": args.split,
+        "data": args.data,
+        "videos": args.videos,
+        "split": args.split if args.data else None,
         "num": args.num,
         "batch_size": args.batch_size,
         "max_new_tokens": args.max_new_tokens,
         "refine": args.refine,
         "refine_seconds": args.refine_seconds,
     }
+    common = {
+        "num": args.num,
+        "batch_size": args.batch_size,
+        "max_new_tokens": args.max_new_tokens,
+        "device": args.device,
+        "refine_budget": args.refine,
+        "refine_seconds": args.refine_seconds,
+        "progress": not args.quiet,
+    }
     try:
         with warnings_as_lines("evaluate", "scene evaluation: "):  # records left out: named as they are found
-            result = evaluate_adapter(
-                args.adapter,
-                args.data,
-                split=args.split,
-                num=args.num,
-                batch_size=args.batch_size,
-                max_new_tokens=args.max_new_tokens,
-                device=args.device,
-                refine_budget=args.refine,
-                refine_seconds=args.refine_seconds,
-                baseline=not args.no_baseline,
-                progress=not args.quiet,
-            )
+            if args.data is not None:
+                result = evaluate_adapter(
+                    args.adapter, args.data, split=args.split, baseline=not args.no_baseline, **common
+                )
+            else:
+                result = evaluate_videos(args.adapter, args.videos, **common)
     except FileNotFoundError as e:
         raise UsageError(f"evaluate: {missing_file_message(e)}") from None
     except ValueError as e:
@@ -293,7 +409,7 @@ def run_evaluate(args) -> int:
         json.dump(summary(result), sys.stdout)
         sys.stdout.write("\n")
     else:
-        print(describe(result, args.split))
+        print(describe(result, args.split if args.data else None))
         print(format_table(result.table))
     return 0
 
@@ -309,10 +425,12 @@ def summary(result: Evaluation) -> dict:
     }
 
 
-def describe(result: Evaluation, split: str) -> str:
-    """The line above the table: how many scenes of the split were scored, left out, cut short."""
+def describe(result: Evaluation, split: str | None) -> str:
+    """The line above the table: how many scenes of the split (or videos, `split` None) were scored, left out,
+    cut short."""
     n = len(result.records)
-    line = f"{split}: {n} scene{'s' * (n != 1)}"
+    noun = "scene" if split else "video"
+    line = f"{split or 'videos'}: {n} {noun}{'s' * (n != 1)}"
     if n + result.left_out < result.split_size:
         line += f" of {result.split_size} (--num)"
     if result.left_out:

@@ -235,17 +235,22 @@ def video_from_folder(path: str | Path, *, width: int | None = None, height: int
     return UnlabeledVideo(root.name, frames, obs)
 
 
-def load_folders(path: str | Path, *, width: int | None = None, height: int | None = None) -> list[UnlabeledVideo]:
+def video_folders(path: str | Path) -> list[Path]:
     """One video folder, or every sub-folder (in name order) of a collection that holds one."""
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(2, f"video folder {str(root)!r} does not exist", str(root))
     if (root / "frames").is_dir():
-        return [video_from_folder(root, width=width, height=height)]
+        return [root]
     subs = sorted(p for p in root.iterdir() if (p / "frames").is_dir())
     if not subs:
         raise FileNotFoundError(2, f"{str(root)!r} holds no frames/ folder, nor sub-folders with one", str(root))
-    return [video_from_folder(p, width=width, height=height) for p in subs]
+    return subs
+
+
+def load_folders(path: str | Path, *, width: int | None = None, height: int | None = None) -> list[UnlabeledVideo]:
+    """The videos of `video_folders(path)`."""
+    return [video_from_folder(p, width=width, height=height) for p in video_folders(path)]
 
 
 def is_generated(path: str | Path) -> bool:

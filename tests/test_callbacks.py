@@ -428,6 +428,18 @@ def test_evaluation_split_over_two_processes_equals_one_process(monkeypatch, tru
     assert per["velocity_mae"][0] == 0.0 and per["velocity_mae"][1] > 0
 
 
+def test_videos_without_a_label_get_the_metrics_that_need_none(truth):
+    """Without true scenes (`targets=None`: real videos) the validity, IoU and EPE are those computed with them,
+    and count, composition and state errors are not reported rather than guessed."""
+    scene, obs = truth
+    texts = [dump(scene), "no scene here"]
+    labelled = evaluate_texts(texts, [scene] * 2, [obs] * 2)
+    unlabelled = evaluate_texts(texts, None, [obs] * 2)
+    kept = ("yaml_valid", "sim_valid", "iou_first", "iou_full", "epe_first", "epe_full", "reason")
+    assert list(unlabelled) == list(kept) and unlabelled == {k: labelled[k] for k in kept}
+    assert set(summarize(unlabelled)) == set(kept) - {"reason"}
+
+
 def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
     """`aynamics evaluate` names a missing data set, a split it lacks (with the ones it has), bad counts and an output
     folder of other files, each with exit 2 before any model loads."""
@@ -482,8 +494,9 @@ def test_refine_texts_refines_valid_scenes_and_keeps_the_rest(truth):
     items[1]["state"]["position"][0] += 0.3  # the cylinder, in view
     off = dump(from_items(items))
     before = score([parse(off)], obs)[0].iou_full
-    refined = refine_texts([off, "no scene"], [{"observation": obs}] * 2, budget=60, seconds=30)
-    assert refined[1] == "no scene"
+    refined, timed_out = refine_texts([off, "no scene"], [{"observation": obs}] * 2, budget=60, seconds=30)
+    assert refined[1] == "no scene" and timed_out == 0
     after = parse(refined[0])
     assert after.structure == scene.structure and before < 0.6  # 0.47 measured
     assert score([after], obs)[0].iou_full > 0.9  # 0.98 measured
+    assert refine_texts([off], [{"observation": obs}], budget=100_000, seconds=0.2)[1] == 1  # cut by the time limit

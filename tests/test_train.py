@@ -77,6 +77,41 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys)
     _predict_gives_the_evaluation_response(cfg, tmp_path / "adapter", rows[0])
     if target == "answer":
         _evaluate_gives_the_training_evaluation(tmp_path, dataset_dir, metrics, rows)
+        _evaluate_scores_videos_without_labels(tmp_path, dataset_dir)
+    else:  # a flow-trained adapter: video folders give RGB frames
+        from aynamics.cli import main
+
+        stderr = io.StringIO()
+        with contextlib.redirect_stderr(stderr):
+            assert main(["evaluate", "--adapter", str(tmp_path / "adapter"), "--videos", str(tmp_path)]) == 2
+        assert "the adapter reads 'flow' images (data.modality)" in stderr.getvalue()
+
+
+def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path) -> None:
+    """`aynamics evaluate --videos` on 2 folders written by `aynamics render` (frames/, segmentation.npy): one row
+    per video, named by its folder, no target, and the metrics that need no label."""
+    import datasets
+
+    from aynamics.cli import main
+    from aynamics.render import gl_available
+
+    if not gl_available()[0]:
+        return  # render needs headless OpenGL (the CI image has it)
+    videos = run / "videos"
+    for k, record in enumerate(datasets.load_from_disk(str(dataset_dir))["validation"].select(range(2))):
+        (run / f"scene{k}.yaml").write_text(record["scene_yaml"])
+        args = ["render", str(run / f"scene{k}.yaml"), "--out", str(videos / f"v{k}"), "--width", "64"]
+        with contextlib.redirect_stdout(io.StringIO()):
+            assert main([*args, "--height", "48", "--no-gif"]) == 0
+    stdout = io.StringIO()
+    args = ["evaluate", "--adapter", str(run / "adapter"), "--videos", str(videos), "--max-new-tokens", "16"]
+    with contextlib.redirect_stdout(stdout):
+        assert main([*args, "--out", str(run / "video_eval"), "--json", "--quiet", "--device", "cpu"]) == 0
+    table = json.loads(stdout.getvalue())["table"]
+    assert set(table) == {"model"}  # no average scene without training scenes
+    assert set(table["model"]) == {"yaml_valid", "sim_valid", "iou_first", "iou_full", "epe_first", "epe_full"}
+    rows = [json.loads(x) for x in (run / "video_eval" / "predictions.jsonl").read_text().splitlines()]
+    assert [(r["index"], r["target"]) for r in rows] == [("v0", None), ("v1", None)]
 
 
 def _evaluate_gives_the_training_evaluation(run: Path, dataset_dir: Path, metrics: dict, rows: list[dict]) -> None:
