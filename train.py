@@ -17,6 +17,7 @@ import logging
 import math
 import os
 import re
+import shlex
 import sys
 import traceback
 import warnings
@@ -79,8 +80,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
             print(f"\nValidation ({evaluation.evaluated} held-out scenes, step {trainer.global_step}):")
             print(format_table(rows))
             adapter = cfg.get("callbacks", {}).get("adapter", {}).get("dirpath")
-            if adapter and cfg.get("data", {}).get("dir"):  # the split training never read
-                print(f"The test split's table: aynamics evaluate --adapter {adapter} --data {cfg.data.dir}")
+            if adapter and cfg.get("data", {}).get("dir"):  # the split training never read, in the same settings
+                command = ["aynamics", "evaluate", "--adapter", adapter, "--data", cfg.data.dir]
+                command += ["--batch-size", evaluation.batch_size, "--max-new-tokens", evaluation.max_new_tokens]
+                print(f"The test split's table: {shlex.join(str(c) for c in command)}")
     return metrics
 
 

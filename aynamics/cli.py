@@ -9,7 +9,7 @@
     aynamics edit SCENE.yaml "INSTRUCTION" [--out EDITED.yaml] [--render DIR]
     aynamics audit --measured M.csv --scene S.yaml --out DIR [--json]
     aynamics predict --adapter DIR VIDEO_OR_FRAMES_DIR
-    aynamics evaluate --adapter DIR --data DIR [--split test] [--refine N]
+    aynamics evaluate --adapter DIR --data DIR [--split test] [--refine N]   (or --videos DIR)
     aynamics preferences --data DIR --out DIR
     aynamics collect MULTIRUN_DIR
 

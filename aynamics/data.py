@@ -612,9 +612,21 @@ class SceneDataModule(L.LightningDataModule):
 
     def eval_records(self, split: str = "validation", n: int = 8) -> list[dict[str, Any]]:
         """A fixed subset for generation: the first `n` records' prompt (unbatched), scene text and the frames'
-        (width, height) in pixels (`size`: the view the scene is scored in)."""
-        ds = self.splits[split]
-        return [eval_record(ds[i], self.processor, self.prompt, i) for i in range(min(n, len(ds)))]
+        (width, height) in pixels (`size`: the view the scene is scored in). A record whose frames cannot be read is
+        left out with a warning (`readable_eval_record`)."""
+        ds, where = self.splits[split], f"{split} records of data.dir = {self.dir!r}"
+        found = (readable_eval_record(ds, i, self.processor, self.prompt, where) for i in range(min(n, len(ds))))
+        return [r for r in found if r is not None]
+
+
+def readable_eval_record(split, i: int, processor, prompt: lm.PromptSpec, where: str) -> dict[str, Any] | None:
+    """`eval_record` of row `i` of `split`, or None with a warning naming it among `where` when its frames cannot be
+    read (none stored, a broken image): one bad record never stops a training run or an evaluation."""
+    try:
+        return eval_record(split[i], processor, prompt, i)
+    except (ValueError, OSError) as e:  # PIL's UnidentifiedImageError is an OSError
+        warnings.warn(f"scene evaluation: record {i} of the {where} is left out: its frames cannot be read ({e})")
+        return None
 
 
 def eval_record(record: dict[str, Any], processor, prompt: lm.PromptSpec, position: int = 0) -> dict[str, Any]:

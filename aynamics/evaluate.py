@@ -189,7 +189,8 @@ def evaluate_adapter(
     rows = data.used_columns(splits[split], ("index", "scene_yaml", prompt.modality))  # decode only these
     n = len(rows) if num is None else min(num, len(rows))
     where = f"{split} records of --data {str(data_dir)!r}"
-    items = (scorable_records([data.eval_record(rows[i], processor, prompt, i)], where) for i in range(n))
+    found = (data.readable_eval_record(rows, i, processor, prompt, where) for i in range(n))
+    items = ([] if r is None else scorable_records([r], where) for r in found)
     records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, f"evaluate {split}", progress)
     if not records:
         raise ValueError(f"no scene of the {where} can be scored (each one was named above)")
@@ -246,7 +247,11 @@ def evaluate_videos(
     n = len(found) if num is None else min(num, len(found))
 
     def item(folder: Path) -> list[dict]:
-        video = video_from_folder(folder)  # read when its turn comes: --num reads only those
+        try:
+            video = video_from_folder(folder)  # read when its turn comes: --num reads only those
+        except (FileNotFoundError, ValueError) as e:  # one bad folder never stops the evaluation
+            warnings.warn(f"scene evaluation: video folder {str(folder)!r} is left out: {e}", stacklevel=2)
+            return []
         frames = list(video.frames)
         return [
             {
@@ -258,6 +263,8 @@ def evaluate_videos(
 
     items = (item(folder) for folder in found[:n])
     records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, "evaluate videos", progress)
+    if not records:
+        raise ValueError(f"no video of --videos {str(videos)!r} can be scored (each one was named above)")
     return _score(
         records,
         texts,
@@ -265,7 +272,7 @@ def evaluate_videos(
         refine_budget=refine_budget,
         refine_seconds=refine_seconds,
         progress=progress,
-        left_out=0,
+        left_out=n - len(records),
         split_size=len(found),
     )
 
@@ -320,7 +327,8 @@ def add_evaluate_command(sub) -> None:
     from aynamics.cli import add_device_option
 
     p = sub.add_parser(
-        "evaluate", help="score a trained adapter's scenes on a data-set split by simulation (IoU, EPE, ...)"
+        "evaluate",
+        help="score a trained adapter's scenes on a data-set split or unlabeled videos by simulation (IoU, EPE, ...)",
     )
     p.add_argument("--adapter", required=True, help="adapter folder written by training (OUT/adapter)")
     source = p.add_mutually_exclusive_group(required=True)
@@ -330,7 +338,7 @@ def add_evaluate_command(sub) -> None:
         help="or videos without a label: a folder of frames/*.png beside segmentation.npy or segmentation/*.png "
         "(optional flow.npy), or a folder of such folders: validity, IoU and EPE only",
     )
-    p.add_argument("--split", default="test", help="with --data: train, validation or test (default test)")
+    p.add_argument("--split", help="with --data: train, validation or test (default test)")
     p.add_argument("--num", type=int, help="score the first NUM scenes or videos (default: all)")
     p.add_argument("--batch-size", type=int, default=4, help="prompts generated at once (default 4)")
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
@@ -359,6 +367,10 @@ def run_evaluate(args) -> int:
 
     if args.out is not None:
         check_out_folder("evaluate", args.out, writes=OUT_FILES)
+    if args.videos is not None and (args.split is not None or args.no_baseline):
+        option = "--split" if args.split is not None else "--no-baseline"
+        raise UsageError(f"evaluate: {option} is for --data (a data set); videos have no splits nor training scenes")
+    args.split = args.split or "test"
     for option, value, least in (
         ("--num", args.num, 1),
         ("--batch-size", args.batch_size, 1),

@@ -307,11 +307,16 @@ def split_of_folder(path: Path) -> str | None:
     return name if name in SPLITS else None
 
 
+def _hidden(path: Path, root: Path) -> bool:
+    return any(part.startswith(".") for part in path.relative_to(root).parts)
+
+
 def _scene_paths(paths: Sequence[str | os.PathLike]) -> list[Path]:
-    """The files of `paths`: a file as given; a folder's scene files (*.yaml / *.yml, not hidden) and those of its
-    train/, validation/ and test/ subfolders (any case), each sorted by name. A scene file in any other subfolder
-    is refused rather than left out unseen."""
+    """The files of `paths`: a file as given; a folder's scene files (*.yaml / *.yml, not hidden) and then those of
+    its train/, validation/ and test/ subfolders (any case; in that order), each sorted by name. A scene file
+    under a given folder that none of the paths reads (another subfolder) is refused rather than left out unseen."""
     found: list[Path] = []
+    folders: list[Path] = []
     for given in paths:
         path = Path(given)
         if not path.exists():
@@ -319,23 +324,26 @@ def _scene_paths(paths: Sequence[str | os.PathLike]) -> list[Path]:
         if path.is_file():
             found.append(path)
             continue
-        subfolders = sorted(d for d in path.iterdir() if d.is_dir() and d.name.lower() in SPLITS)
+        subfolders = [d for d in path.iterdir() if d.is_dir() and d.name.lower() in SPLITS]
+        subfolders.sort(key=lambda d: (SPLITS.index(d.name.lower()), d.name))
         files = [f for d in (path, *subfolders) for f in sorted(d.iterdir()) if _is_scene_file(f)]
-        read = {f.resolve() for f in files}
-        unread = sorted(
-            f for f in path.rglob("*") if _is_scene_file(f) and f.resolve() not in read and ".git" not in f.parts
-        )
-        if unread:
-            raise ValueError(
-                f"--scenes {str(path)!r}: {str(unread[0])!r} is in a subfolder that is not train/, validation/ or "
-                f"test/ ({len(unread)} such file(s)); move them, or give their folder as a --scenes path of its own"
-            )
         if not files:
             raise ValueError(
                 f"--scenes {str(path)!r} holds no scene files (*.yaml, *.yml; also looked in its "
                 f"{', '.join(s + '/' for s in SPLITS)} subfolders)"
             )
         found += files
+        folders.append(path)
+    read = {f.resolve() for f in found}
+    for folder in folders:
+        unread = sorted(
+            f for f in folder.rglob("*") if _is_scene_file(f) and not _hidden(f, folder) and f.resolve() not in read
+        )
+        if unread:
+            raise ValueError(
+                f"--scenes {str(folder)!r}: {str(unread[0])!r} is in a subfolder that is not train/, validation/ or "
+                f"test/ ({len(unread)} such file(s)); move them, or give their folder as a --scenes path too"
+            )
     first: dict[Path, Path] = {}
     for p in found:
         other = first.setdefault(p.resolve(), p)
@@ -350,7 +358,7 @@ def scene_files(paths: Sequence[str | os.PathLike], config: GenerateConfig | Non
     test is in that split; the others take the hash split.
 
     Every file is read, validated and simulated (`config`'s timing) before anything is written, so a bad one
-    cannot stop a run half-way. The same scene in two splits is warned about (a test scene seen in training).
+    cannot stop a run half-way.
 
     Raises:
         FileNotFoundError: a path does not exist.
@@ -377,16 +385,20 @@ def scene_files(paths: Sequence[str | os.PathLike], config: GenerateConfig | Non
     if problems:
         more = f" (and {len(problems) - MAX_LISTED} more)" if len(problems) > MAX_LISTED else ""
         raise ValueError(f"{len(problems)} scene file(s) cannot be used{more}: " + "; ".join(problems[:MAX_LISTED]))
-    seen: dict[str, SceneFile] = {}
-    for f in out:
-        other = seen.setdefault(f.sha256, f)
-        if other is not f and other.split != f.split:
+    return out
+
+
+def warn_repeated_scenes(scenes: Sequence[SceneFile], seed: int, config: GenerateConfig) -> None:
+    """Warn when one scene lands in two splits (a test scene seen in training), by the split each record gets."""
+    seen: dict[str, tuple[SceneFile, str]] = {}
+    for i, f in enumerate(scenes):
+        split = f.split or split_of(seed, i, config.splits)
+        other, other_split = seen.setdefault(f.sha256, (f, split))
+        if other is not f and other_split != split:
             warnings.warn(
-                f"--scenes: {other.path!r} ({other.split or 'hash'} split) and {f.path!r} ({f.split or 'hash'} "
-                "split) hold the same scene",
+                f"--scenes: {other.path!r} ({other_split} split) and {f.path!r} ({split} split) hold the same scene",
                 stacklevel=2,
             )
-    return out
 
 
 def check_scene_run(out: Path, scenes: Sequence[SceneFile] | None) -> None:
@@ -626,7 +638,10 @@ def generate(
     settings = config.to_json()
     manifest = {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": settings}
     check_scene_run(out, scenes)
-    if scenes is not None:  # the scenes decide the records (a changed or reordered one is another run), not the sampler
+    if scenes is not None:
+        warn_repeated_scenes(
+            scenes, seed, config
+        )  # the scenes decide the records (a changed or reordered one is another run), not the sampler
         settings.pop("sampler")
         settings["scenes"] = [{"sha256": f.sha256, "split": f.split} for f in scenes]
         manifest["scene_files"] = [f.path for f in scenes]  # for the reader; not compared on a resume
@@ -711,14 +726,14 @@ def run_generate(args) -> int:
         if args.assemble is not None:  # the chunks hold the records: the scene files are not read again
             path = assemble(args.out, args.assemble or None)
         else:
-            with warnings_as_lines("generate", "--scenes: "):  # the same scene in two splits
-                scenes = None if args.scenes is None else scene_files(args.scenes, config)
+            scenes = None if args.scenes is None else scene_files(args.scenes, config)
             num = len(scenes) if scenes is not None else args.num
-            path = generate(args.out, num, args.seed, config, args.shard, args.num_shards, not args.quiet, scenes)
+            with warnings_as_lines("generate", "--scenes: "):  # the same scene in two splits
+                path = generate(args.out, num, args.seed, config, args.shard, args.num_shards, not args.quiet, scenes)
         if path is None:
             which = f"--num {args.num}" if args.scenes is None else "--scenes " + shlex.join(args.scenes)
             print(f"shard {args.shard}/{args.num_shards} done; the data set is assembled by the last shard to finish")
-            print(f"(or run: aynamics generate {which} --out {args.out} --assemble)")
+            print(f"(or run: aynamics generate {which} --out {shlex.quote(args.out)} --assemble)")
             return 0
         if args.in_context:
             from aynamics.incontext import write_in_context

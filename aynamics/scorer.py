@@ -86,6 +86,7 @@ class Observation:
         occluded: (F, h, w) bool, True where the observed flow is occluded, or None.
         names: object names for matching by name, or None.
         fps: frames per second of the video.
+        video_shape: (T, H, W) of the full video it was read from (`from_dir`: every frame's masks), or None.
     """
 
     segmentation: np.ndarray
@@ -96,6 +97,7 @@ class Observation:
     occluded: np.ndarray | None = None
     names: tuple[str, ...] | None = None
     fps: int = sim.FPS
+    video_shape: tuple[int, int, int] | None = None
 
     def __post_init__(self):
         f = len(self.frames)
@@ -195,7 +197,7 @@ class Observation:
                 raise ValueError(
                     f"{root / 'meta.json'}: fps = {fps!r}: must be a whole number of frames per second >= 1"
                 )
-        return cls(seg[sub].astype(np.int16), frames, width, height, flow, occluded, names, fps)
+        return cls(seg[sub].astype(np.int16), frames, width, height, flow, occluded, names, fps, seg.shape)
 
 
 def scoring_size(full_w: int, full_h: int, width: int | None = None, height: int | None = None) -> tuple[int, int]:

@@ -17,6 +17,7 @@ Two sources, neither of which needs (or reads) a scene label:
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -210,36 +211,52 @@ class GeneratedVideos(torch.utils.data.Dataset):
 def video_from_folder(path: str | Path, *, width: int | None = None, height: int | None = None) -> UnlabeledVideo:
     """An `UnlabeledVideo` from `frames/*.png` plus the scorer's observed layout (see the module docstring).
 
-    When `frames/` holds every frame of the video, the model sees the sampled frames (those the observation
-    uses); when it holds exactly as many frames as are sampled, it sees them all.
+    When `frames/` holds every frame of the video (as many as the segmentation), the model sees the sampled frames
+    (those the observation uses); when it holds exactly as many frames as are sampled, it sees them all. Hidden
+    files (`._*.png`) are not frames.
 
     Raises:
         FileNotFoundError: the folder, its frames or its segmentation is missing.
-        ValueError: frame counts that fit neither case, or a frame Pillow cannot read (named).
+        ValueError: frame counts that fit neither case (a frame missing would shift every later one), frames of
+            another aspect ratio than the masks, or a frame Pillow cannot read (named).
     """
-    root = Path(path)
+    root = Path(os.path.abspath(path))  # its name is the video's key, also for "."
     obs = Observation.from_dir(root, width=width, height=height)  # raises for a missing folder / masks
-    files = sorted((root / "frames").glob("*.png")) if (root / "frames").is_dir() else []
+    frames_dir = root / "frames"
+    files = sorted(
+        p
+        for p in (frames_dir.iterdir() if frames_dir.is_dir() else ())
+        if p.suffix.lower() == ".png" and not p.name.startswith(".")
+    )
     if not files:
-        raise FileNotFoundError(2, f"{str(root)!r} has no frames/*.png for the model to see", str(root / "frames"))
+        raise FileNotFoundError(2, f"{str(root)!r} has no frames/*.png for the model to see", str(frames_dir))
+    n_video, full_h, full_w = obs.video_shape
     if len(files) == len(obs.frames):
         chosen = files
-    elif len(files) > int(obs.frames.max()):
+    elif len(files) == n_video:
         chosen = [files[int(k)] for k in obs.frames]
     else:
         raise ValueError(
-            f"{str(root / 'frames')!r}: {len(files)} frames; need every video frame (> {int(obs.frames.max())}) "
-            f"or exactly the {len(obs.frames)} sampled ones"
+            f"{str(frames_dir)!r}: {len(files)} frames; need every video frame ({n_video}, as many as the "
+            f"segmentation) or exactly the {len(obs.frames)} sampled ones"
         )
     frames = tuple(Image.fromarray(read_image(f)).convert("RGB") for f in chosen)
+    w, h = frames[0].size
+    if abs(w * full_h / full_w - h) > 1:
+        raise ValueError(
+            f"{str(chosen[0])!r}: {w}×{h} pixels, another aspect ratio than the masks' {full_w}×{full_h}: the scenes "
+            "would be scored in another view than the model saw"
+        )
     return UnlabeledVideo(root.name, frames, obs)
 
 
 def video_folders(path: str | Path) -> list[Path]:
     """One video folder, or every sub-folder (in name order) of a collection that holds one."""
     root = Path(path)
-    if not root.is_dir():
+    if not root.exists():
         raise FileNotFoundError(2, f"video folder {str(root)!r} does not exist", str(root))
+    if not root.is_dir():
+        raise ValueError(f"{str(root)!r} is a file, not a video folder (frames/ beside the segmentation)")
     if (root / "frames").is_dir():
         return [root]
     subs = sorted(p for p in root.iterdir() if (p / "frames").is_dir())

@@ -451,6 +451,7 @@ def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
     adapter = tmp_path / "adapter"
     adapter.mkdir()
     base = ["evaluate", "--adapter", str(adapter), "--quiet"]
+    (tmp_path / "v.txt").write_text("a file")
     cases = [
         (["--data", str(tmp_path / "nothing")], "--data = '" + str(tmp_path / "nothing") + "' holds no data set"),
         (["--data", str(data), "--split", "dev"], "--split 'dev': the data set"),
@@ -459,6 +460,8 @@ def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
         (["--data", str(data), "--refine-seconds", "nan"], "--refine-seconds = nan"),
         (["--data", str(data), "--refine-seconds", "-3"], "--refine-seconds = -3.0"),
         (["--adapter", str(tmp_path / "none"), "--data", str(data)], "is not a folder"),
+        (["--videos", str(tmp_path), "--split", "test"], "evaluate: --split is for --data (a data set)"),
+        (["--videos", str(tmp_path / "v.txt")], "'" + str(tmp_path / "v.txt") + "' is a file, not a video folder"),
     ]
     for extra, message in cases:
         assert main(base + extra) == 2, extra

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import warnings
 
 import datasets
 import numpy as np
@@ -326,7 +327,8 @@ def test_own_scene_files_make_a_data_set(tmp_path, capsys):
 def test_scene_file_splits_and_resume_do_not_depend_on_how_paths_are_typed(tmp_path, monkeypatch, capsys):
     """The split is the file's folder's (absolute path, any case), so `c.yaml` typed inside `Test/` is a test
     scene; a scene file in another subfolder is refused, not left out unseen; hidden files are skipped; the same
-    scene in two splits is warned about; a rerun with the folder typed another way, from another working folder,
+    scene in two splits (by the split each record gets) is warned about; a rerun with the folder typed another way,
+    from another working folder,
     and --assemble after the files are gone, all take the run as the same."""
     from aynamics.scene import dump
 
@@ -346,10 +348,21 @@ def test_scene_file_splits_and_resume_do_not_depend_on_how_paths_are_typed(tmp_p
     (folder / "nested" / "d.yaml").write_text(dump(scenes[0]))
     with pytest.raises(ValueError, match=r"nested/d.yaml' is in a subfolder that is not train/, validation/ or test/"):
         gen.scene_files([folder], CFG)
-    with pytest.warns(UserWarning, match=r"a.yaml' \(hash split\) and '.*c.yaml' \(test split\) hold the same scene"):
-        (folder / "Test" / "c.yaml").write_text(dump(scenes[0]))
-        gen.scene_files([folder / "a.yaml", folder / "Test"], CFG)
+    assert len(gen.scene_files([folder, folder / "nested"], CFG)) == 3  # given as a path of its own: read
     shutil.rmtree(folder / "nested")
+    (folder / ".ipynb_checkpoints").mkdir()
+    (folder / ".ipynb_checkpoints" / "a-checkpoint.yaml").write_text("not read")
+    assert len(gen.scene_files([folder], CFG)) == 2  # a hidden folder is not a subfolder of scenes
+
+    # One scene in two splits, by the split each record gets (indices 0, 1, 2 hash to train, test, train):
+    a, c = gen.SceneFile("a.yaml", dump(scenes[0])), gen.SceneFile("c.yaml", dump(scenes[0]), "test")
+    with pytest.warns(UserWarning, match=r"--scenes: 'a.yaml' \(train split\) and 'c.yaml' \(test split\) hold"):
+        gen.warn_repeated_scenes([a, c], 0, CFG)
+    with pytest.warns(UserWarning, match=r"'a.yaml' \(train split\) and 'b.yaml' \(test split\) hold the same"):
+        gen.warn_repeated_scenes([a, dataclasses.replace(a, path="b.yaml")], 0, CFG)  # both by the hash
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gen.warn_repeated_scenes([a, gen.SceneFile("x.yaml", dump(scenes[1])), a], 0, CFG)  # train and train
     (folder / "Test" / "c.yaml").write_text(dump(scenes[1]))
 
     out = tmp_path / "out"

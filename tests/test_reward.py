@@ -236,8 +236,10 @@ def test_open_videos_errors(tmp_path):
         open_videos(tmp_path / "empty")
 
 
-def test_video_folder_with_frames_and_masks(tmp_path):
-    """A folder of 30 frames + segmentation.npy: the model sees the 10 sampled frames; the true scene is exact."""
+def test_video_folder_with_frames_and_masks(tmp_path, monkeypatch):
+    """A folder of 30 frames + segmentation.npy: the model sees the 10 sampled frames; the true scene is exact. A
+    frame missing, frames of another aspect ratio and a broken frame are named; hidden files are no frames; the
+    video's key is its folder's name, also when given as "."."""
     from PIL import Image
 
     scene = parse(open(os.path.join(os.path.dirname(__file__), "assets", "paper_example.yaml")).read())
@@ -251,6 +253,19 @@ def test_video_folder_with_frames_and_masks(tmp_path):
     assert len(video.frames) == 10 and video.frames[1].getpixel((0, 0)) == (3, 3, 3)
     r = rw.simulator_rewards([dump(scene), dump(_moved(scene, dx=0.5))], [video.observation] * 2)
     assert r[0] == pytest.approx(1.0) and r[1] < 0.9
+    (root / "frames" / "._000.png").write_bytes(b"\x00\x05 macOS resource fork")  # not a frame
+    monkeypatch.chdir(root)
+    assert open_videos(".")[0].key == "vid"  # the folder's own name, also for "."
+    missing = root / "frames" / "010.png"
+    kept = missing.read_bytes()
+    missing.unlink()  # 29 frames: every later one would be one off
+    with pytest.raises(ValueError, match=r"29 frames; need every video frame \(30, as many as the segmentation\)"):
+        open_videos(root)
+    missing.write_bytes(kept)
+    Image.fromarray(np.zeros((80, 100, 3), np.uint8)).save(root / "frames" / "000.png")  # 100×80 beside 120×80 masks
+    with pytest.raises(ValueError, match=r"000\.png': 100×80 pixels, another aspect ratio than the masks' 120×80"):
+        open_videos(root)
+    Image.fromarray(np.full((80, 120, 3), 0, np.uint8)).save(root / "frames" / "000.png")
     broken = root / "frames" / "003.png"
     broken.write_bytes(broken.read_bytes()[:40])  # truncated
     with pytest.raises(ValueError, match=r"cannot read frame .*003\.png"):

@@ -65,9 +65,8 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys)
     metrics = train(cfg)
     printed = capsys.readouterr().out
     assert "Validation (2 held-out scenes, step 1):" in printed and "average scene" in printed
-    assert (
-        f"The test split's table: aynamics evaluate --adapter {tmp_path / 'adapter'} --data {dataset_dir}\n" in printed
-    )
+    evaluate = f"aynamics evaluate --adapter {tmp_path / 'adapter'} --data {dataset_dir} --batch-size 8"
+    assert f"The test split's table: {evaluate} --max-new-tokens 16\n" in printed  # the evaluation's settings
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
     assert metrics["val/yaml_valid"] == 0.0 and metrics["val/iou_full"] == 0.0  # 16 tokens cannot hold a scene
     assert metrics["val/baseline/yaml_valid"] == 1.0  # the average scene is a valid scene
@@ -89,7 +88,8 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys)
 
 def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path) -> None:
     """`aynamics evaluate --videos` on 2 folders written by `aynamics render` (frames/, segmentation.npy): one row
-    per video, named by its folder, no target, and the metrics that need no label."""
+    per video, named by its folder, no target, and the metrics that need no label; a third folder missing a frame
+    is named and left out."""
     import datasets
 
     from aynamics.cli import main
@@ -103,10 +103,15 @@ def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path) -> None
         args = ["render", str(run / f"scene{k}.yaml"), "--out", str(videos / f"v{k}"), "--width", "64"]
         with contextlib.redirect_stdout(io.StringIO()):
             assert main([*args, "--height", "48", "--no-gif"]) == 0
-    stdout = io.StringIO()
+    shutil.copytree(videos / "v1", videos / "v2")
+    sorted((videos / "v2" / "frames").iterdir())[5].unlink()  # 29 of 30 frames: left out, named, the rest scored
+    stdout, stderr = io.StringIO(), io.StringIO()
     args = ["evaluate", "--adapter", str(run / "adapter"), "--videos", str(videos), "--max-new-tokens", "16"]
-    with contextlib.redirect_stdout(stdout):
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
         assert main([*args, "--out", str(run / "video_eval"), "--json", "--quiet", "--device", "cpu"]) == 0
+    assert f"evaluate: video folder {str(videos / 'v2')!r} is left out: " in stderr.getvalue()
+    assert "29 frames; need every video frame (30" in stderr.getvalue()
+    assert json.loads(stdout.getvalue())["left_out"] == 1
     table = json.loads(stdout.getvalue())["table"]
     assert set(table) == {"model"}  # no average scene without training scenes
     assert set(table["model"]) == {"yaml_valid", "sim_valid", "iou_first", "iou_full", "epe_first", "epe_full"}
