@@ -503,3 +503,26 @@ def test_refine_texts_refines_valid_scenes_and_keeps_the_rest(truth):
     assert after.structure == scene.structure and before < 0.6  # 0.47 measured
     assert score([after], obs)[0].iou_full > 0.9  # 0.98 measured
     assert refine_texts([off], [{"observation": obs}], budget=100_000, seconds=0.2)[1] == 1  # cut by the time limit
+
+
+def test_a_record_whose_frames_cannot_be_read_is_left_out_with_its_reason():
+    """The evaluation's records (training's and `aynamics evaluate`'s): a record without frames, or one whose
+    image cannot be decoded, is named and left out instead of stopping the run."""
+    from PIL import UnidentifiedImageError
+
+    from aynamics import lm
+    from aynamics.data import readable_eval_record
+
+    class Broken:  # a split whose row 0 holds a PNG Pillow cannot identify
+        def __getitem__(self, i):
+            raise UnidentifiedImageError("cannot identify image file")
+
+    processor = lm.load_processor(lm.ModelSpec(), lm.PromptSpec())
+    empty = [{"index": 7, "rgb": [], "scene_yaml": "- type: camera\n  position: [0, -2, 3]\n"}]
+    with pytest.warns(UserWarning, match=r"record 0 of the test records of X is left out: .*record 7 has no 'rgb'"):
+        assert readable_eval_record(empty, 0, processor, lm.PromptSpec(), "test records of X") is None
+    with pytest.warns(
+        UserWarning,
+        match=r"record 0 of the test records of X is left out: its frames cannot be read \(cannot identify image",
+    ):
+        assert readable_eval_record(Broken(), 0, processor, lm.PromptSpec(), "test records of X") is None
