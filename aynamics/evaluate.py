@@ -223,14 +223,15 @@ def evaluate_videos(
     refine_seconds: float = 60.0,
     progress: bool = False,
 ) -> Evaluation:
-    """The same for videos without a scene label (`aynamics.unlabeled`: a folder of frames/*.png beside the observed
-    segmentation, optional flow, or a folder of such folders): validity, IoU and EPE, the metrics the paper reports
-    on real videos; no count, composition, state errors or average scene, which need true scenes.
+    """The same for videos without a scene label (`aynamics.unlabeled`: a folder of frames/*.png, or flow/*.png for
+    a flow-trained adapter, beside the observed segmentation and optional flow, or a folder of such folders):
+    validity, IoU and EPE, the metrics the paper reports on real videos; no count, composition, state errors or
+    average scene, which need true scenes.
 
     Raises:
         FileNotFoundError: no such folder, or a video folder without frames or masks.
-        ValueError: bad counts, an adapter that cannot be loaded or that reads flow images (folders give RGB
-            frames), or frames that do not match the masks.
+        ValueError: bad counts or an adapter that cannot be loaded (a video folder that cannot be read is left out
+            with a warning naming it).
     """
     from aynamics import lm
     from aynamics.unlabeled import video_folders, video_from_folder
@@ -238,17 +239,12 @@ def evaluate_videos(
     _check_counts(num, batch_size, max_new_tokens, refine_budget, refine_seconds)
     found = video_folders(videos)
     model, spec, prompt = lm.load_adapter(adapter, device)
-    if prompt.modality != "rgb":
-        raise ValueError(
-            f"--videos {str(videos)!r}: the adapter reads {prompt.modality!r} images (data.modality), video folders "
-            "give it RGB frames; evaluate it on a generated data set (--data)"
-        )
     processor = lm.load_processor(spec, prompt)
     n = len(found) if num is None else min(num, len(found))
 
     def item(folder: Path) -> list[dict]:
         try:
-            video = video_from_folder(folder)  # read when its turn comes: --num reads only those
+            video = video_from_folder(folder, inputs=prompt.modality)  # read in its turn: --num reads only those
         except (FileNotFoundError, ValueError) as e:  # one bad folder never stops the evaluation
             warnings.warn(f"scene evaluation: video folder {str(folder)!r} is left out: {e}", stacklevel=2)
             return []

@@ -6,7 +6,8 @@ Two sources, neither of which needs (or reads) a scene label:
   colour images), and the observation is built from the stored `segmentation` masks and the decoded `flow` images
   only. `scene_yaml`, `reasoning`, `target_*`, `states` and `contacts` are dropped on loading, by design.
 - a folder of frames plus segmentation masks: `frames/*.png` (the video frames in name order: every frame of the
-  video, or exactly the sampled ones) next to the scorer's observed-folder layout (`segmentation.npy` or
+  video, or exactly the sampled ones; for a flow-trained model `flow/*.png`, colour-wheel flow images, as
+  `aynamics render` writes both) next to the scorer's observed-folder layout (`segmentation.npy` or
   `segmentation/*.png`, optional `flow.npy`, `occlusion.npy`, `meta.json`; see `aynamics.scorer`). A folder whose
   sub-folders hold that layout is a collection of videos.
 
@@ -208,37 +209,47 @@ class GeneratedVideos(torch.utils.data.Dataset):
         return video_from_record(rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow)
 
 
-def video_from_folder(path: str | Path, *, width: int | None = None, height: int | None = None) -> UnlabeledVideo:
-    """An `UnlabeledVideo` from `frames/*.png` plus the scorer's observed layout (see the module docstring).
+def video_from_folder(
+    path: str | Path, *, inputs: str = "rgb", width: int | None = None, height: int | None = None
+) -> UnlabeledVideo:
+    """An `UnlabeledVideo` from `frames/*.png` (or, with `inputs="flow"`, the colour-wheel flow images
+    `flow/*.png` that `aynamics render` writes, image f the flow from frame f to f + 1) plus the scorer's observed
+    layout (see the module docstring).
 
-    When `frames/` holds every frame of the video (as many as the segmentation), the model sees the sampled frames
-    (those the observation uses); when it holds exactly as many frames as are sampled, it sees them all. Hidden
-    files (`._*.png`) are not frames.
+    When the folder holds every image of the video (as many frames as the segmentation, one flow image fewer), the
+    model sees those of the sampled frames (those the observation uses); when it holds exactly as many as are
+    sampled, it sees them all. Hidden files (`._*.png`) are not images of the video.
 
     Raises:
-        FileNotFoundError: the folder, its frames or its segmentation is missing.
-        ValueError: frame counts that fit neither case (a frame missing would shift every later one), frames of
-            another aspect ratio than the masks, or a frame Pillow cannot read (named).
+        FileNotFoundError: the folder, its images or its segmentation is missing.
+        ValueError: an unknown `inputs`, image counts that fit neither case (one missing would shift every later
+            one), images of another aspect ratio than the masks, or one Pillow cannot read (named).
     """
+    if inputs not in INPUTS:
+        raise ValueError(f"inputs = {inputs!r}: must be one of {INPUTS}")
     root = Path(os.path.abspath(path))  # its name is the video's key, also for "."
     obs = Observation.from_dir(root, width=width, height=height)  # raises for a missing folder / masks
-    frames_dir = root / "frames"
+    folder = root / ("frames" if inputs == "rgb" else "flow")
     files = sorted(
         p
-        for p in (frames_dir.iterdir() if frames_dir.is_dir() else ())
+        for p in (folder.iterdir() if folder.is_dir() else ())
         if p.suffix.lower() == ".png" and not p.name.startswith(".")
     )
     if not files:
-        raise FileNotFoundError(2, f"{str(root)!r} has no frames/*.png for the model to see", str(frames_dir))
+        what = "frames" if inputs == "rgb" else "colour-wheel flow images (a flow-trained model's input)"
+        raise FileNotFoundError(
+            2, f"{str(root)!r} has no {folder.name}/*.png: {what} for the model to see", str(folder)
+        )
     n_video, full_h, full_w = obs.video_shape
+    every = n_video if inputs == "rgb" else n_video - 1  # flow images: f -> f + 1 for every frame but the last
     if len(files) == len(obs.frames):
         chosen = files
-    elif len(files) == n_video:
+    elif len(files) == every:
         chosen = [files[int(k)] for k in obs.frames]
     else:
         raise ValueError(
-            f"{str(frames_dir)!r}: {len(files)} frames; need every video frame ({n_video}, as many as the "
-            f"segmentation) or exactly the {len(obs.frames)} sampled ones"
+            f"{str(folder)!r}: {len(files)} images; need one for every video frame ({every}: the segmentation has "
+            f"{n_video} frames) or exactly the {len(obs.frames)} sampled ones"
         )
     frames = tuple(Image.fromarray(read_image(f)).convert("RGB") for f in chosen)
     w, h = frames[0].size
@@ -265,9 +276,11 @@ def video_folders(path: str | Path) -> list[Path]:
     return subs
 
 
-def load_folders(path: str | Path, *, width: int | None = None, height: int | None = None) -> list[UnlabeledVideo]:
-    """The videos of `video_folders(path)`."""
-    return [video_from_folder(p, width=width, height=height) for p in video_folders(path)]
+def load_folders(
+    path: str | Path, *, inputs: str = "rgb", width: int | None = None, height: int | None = None
+) -> list[UnlabeledVideo]:
+    """The videos of `video_folders(path)`, the model seeing `inputs` ("rgb" frames or "flow" images)."""
+    return [video_from_folder(p, inputs=inputs, width=width, height=height) for p in video_folders(path)]
 
 
 def is_generated(path: str | Path) -> bool:
@@ -290,7 +303,7 @@ def open_videos(
     root = Path(path)
     if is_generated(root):
         return GeneratedVideos(root, split, inputs=inputs, width=width, height=height, use_flow=use_flow, limit=limit)
-    videos = load_folders(root, width=width, height=height)
+    videos = load_folders(root, inputs=inputs, width=width, height=height)
     return videos[:limit] if limit is not None else videos
 
 

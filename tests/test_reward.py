@@ -253,13 +253,20 @@ def test_video_folder_with_frames_and_masks(tmp_path, monkeypatch):
     assert len(video.frames) == 10 and video.frames[1].getpixel((0, 0)) == (3, 3, 3)
     r = rw.simulator_rewards([dump(scene), dump(_moved(scene, dx=0.5))], [video.observation] * 2)
     assert r[0] == pytest.approx(1.0) and r[1] < 0.9
+    with pytest.raises(FileNotFoundError, match=r"vid' has no flow/\*.png: colour-wheel flow images"):
+        open_videos(root, inputs="flow")
+    (root / "flow").mkdir()
+    for k in range(29):  # the flow from frame k to k + 1, as `aynamics render` writes them
+        Image.fromarray(np.full((80, 120, 3), 100 + k, np.uint8)).save(root / "flow" / f"{k:03d}.png")
+    (flow_video,) = open_videos(root, inputs="flow")  # a flow-trained model sees the flow images of the same frames
+    assert [im.getpixel((0, 0))[0] for im in flow_video.frames] == [100 + k for k in range(0, 30, 3)]
     (root / "frames" / "._000.png").write_bytes(b"\x00\x05 macOS resource fork")  # not a frame
     monkeypatch.chdir(root)
     assert open_videos(".")[0].key == "vid"  # the folder's own name, also for "."
     missing = root / "frames" / "010.png"
     kept = missing.read_bytes()
     missing.unlink()  # 29 frames: every later one would be one off
-    with pytest.raises(ValueError, match=r"29 frames; need every video frame \(30, as many as the segmentation\)"):
+    with pytest.raises(ValueError, match=r"29 images; need one for every video frame \(30: the segmentation has 30"):
         open_videos(root)
     missing.write_bytes(kept)
     Image.fromarray(np.zeros((80, 100, 3), np.uint8)).save(root / "frames" / "000.png")  # 100×80 beside 120×80 masks

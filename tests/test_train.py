@@ -76,20 +76,14 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys)
     _predict_gives_the_evaluation_response(cfg, tmp_path / "adapter", rows[0])
     if (target, modality) == ("answer", "rgb"):
         _evaluate_gives_the_training_evaluation(tmp_path, dataset_dir, metrics, rows)
-        _evaluate_scores_videos_without_labels(tmp_path, dataset_dir)
-    elif modality == "flow":  # a flow-trained adapter: video folders give RGB frames
-        from aynamics.cli import main
-
-        stderr = io.StringIO()
-        with contextlib.redirect_stderr(stderr):
-            assert main(["evaluate", "--adapter", str(tmp_path / "adapter"), "--videos", str(tmp_path)]) == 2
-        assert "the adapter reads 'flow' images (data.modality)" in stderr.getvalue()
+    if (target, modality) in (("answer", "rgb"), ("think_answer", "flow")):
+        _evaluate_scores_videos_without_labels(tmp_path, dataset_dir, modality)
 
 
-def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path) -> None:
-    """`aynamics evaluate --videos` on 2 folders written by `aynamics render` (frames/, segmentation.npy): one row
-    per video, named by its folder, no target, and the metrics that need no label; a third folder missing a frame
-    is named and left out."""
+def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path, modality: str) -> None:
+    """`aynamics evaluate --videos` on 2 folders written by `aynamics render` (frames/ and flow/ images,
+    segmentation.npy): one row per video, named by its folder, no target, and the metrics that need no label; a
+    third folder missing one of the images the adapter reads (frames, or flow images) is named and left out."""
     import datasets
 
     from aynamics.cli import main
@@ -104,13 +98,15 @@ def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path) -> None
         with contextlib.redirect_stdout(io.StringIO()):
             assert main([*args, "--height", "48", "--no-gif"]) == 0
     shutil.copytree(videos / "v1", videos / "v2")
-    sorted((videos / "v2" / "frames").iterdir())[5].unlink()  # 29 of 30 frames: left out, named, the rest scored
+    images = "frames" if modality == "rgb" else "flow"
+    sorted((videos / "v2" / images).iterdir())[5].unlink()  # one image missing: left out, named, the rest scored
     stdout, stderr = io.StringIO(), io.StringIO()
     args = ["evaluate", "--adapter", str(run / "adapter"), "--videos", str(videos), "--max-new-tokens", "16"]
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
         assert main([*args, "--out", str(run / "video_eval"), "--json", "--quiet", "--device", "cpu"]) == 0
     assert f"evaluate: video folder {str(videos / 'v2')!r} is left out: " in stderr.getvalue()
-    assert "29 frames; need every video frame (30" in stderr.getvalue()
+    every = 30 if modality == "rgb" else 29  # the segmentation's frames, or the flow images between them
+    assert f"{every - 1} images; need one for every video frame ({every}: the segmentation has 30" in stderr.getvalue()
     assert json.loads(stdout.getvalue())["left_out"] == 1
     table = json.loads(stdout.getvalue())["table"]
     assert set(table) == {"model"}  # no average scene without training scenes
