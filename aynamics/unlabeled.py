@@ -261,18 +261,29 @@ def video_from_folder(
     return UnlabeledVideo(root.name, frames, obs)
 
 
+VIDEO_PARTS = ("frames", "flow", "segmentation", "segmentation.npy")  # what makes a folder a video folder
+
+
+def _is_video_folder(path: Path) -> bool:
+    return path.is_dir() and any((path / part).exists() for part in VIDEO_PARTS)
+
+
 def video_folders(path: str | Path) -> list[Path]:
-    """One video folder, or every sub-folder (in name order) of a collection that holds one."""
+    """One video folder, or every sub-folder (in name order) of a collection that holds one. A sub-folder is a
+    video when it holds any part of one (frames/, flow/, segmentation), so one missing its images or masks is named
+    when it is read rather than passed over unseen."""
     root = Path(path)
     if not root.exists():
         raise FileNotFoundError(2, f"video folder {str(root)!r} does not exist", str(root))
     if not root.is_dir():
         raise ValueError(f"{str(root)!r} is a file, not a video folder (frames/ beside the segmentation)")
-    if (root / "frames").is_dir():
+    if _is_video_folder(root):
         return [root]
-    subs = sorted(p for p in root.iterdir() if (p / "frames").is_dir())
+    subs = sorted(p for p in root.iterdir() if _is_video_folder(p))
     if not subs:
-        raise FileNotFoundError(2, f"{str(root)!r} holds no frames/ folder, nor sub-folders with one", str(root))
+        raise FileNotFoundError(
+            2, f"{str(root)!r} is no video folder (frames/ beside the segmentation), nor holds any", str(root)
+        )
     return subs
 
 

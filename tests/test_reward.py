@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -13,7 +14,13 @@ from aynamics import reward as rw
 from aynamics.flow import flow_to_color
 from aynamics.scene import dump, parse
 from aynamics.scorer import EPE_INVALID, Observation, Score
-from aynamics.unlabeled import GeneratedVideos, decode_flow_colors, observation_from_record, open_videos
+from aynamics.unlabeled import (
+    GeneratedVideos,
+    decode_flow_colors,
+    observation_from_record,
+    open_videos,
+    video_folders,
+)
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -232,7 +239,9 @@ def test_open_videos_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         open_videos(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(FileNotFoundError, match="no frames/ folder"):
+    with pytest.raises(
+        FileNotFoundError, match=r"empty' is no video folder \(frames/ beside the segmentation\), nor holds any"
+    ):
         open_videos(tmp_path / "empty")
 
 
@@ -260,6 +269,14 @@ def test_video_folder_with_frames_and_masks(tmp_path, monkeypatch):
         Image.fromarray(np.full((80, 120, 3), 100 + k, np.uint8)).save(root / "flow" / f"{k:03d}.png")
     (flow_video,) = open_videos(root, inputs="flow")  # a flow-trained model sees the flow images of the same frames
     assert [im.getpixel((0, 0))[0] for im in flow_video.frames] == [100 + k for k in range(0, 30, 3)]
+    coll = tmp_path / "collection"  # a video folder missing its frames is named, not passed over
+    (coll / "b").mkdir(parents=True)
+    np.save(coll / "b" / "segmentation.npy", obs.segmentation.astype(np.int16))
+    shutil.copytree(root, coll / "a")
+    (coll / "notes").mkdir()  # no part of a video: not one
+    assert [p.name for p in video_folders(coll)] == ["a", "b"]
+    with pytest.raises(FileNotFoundError, match=r"b' has no frames/\*.png"):
+        open_videos(coll)
     (root / "frames" / "._000.png").write_bytes(b"\x00\x05 macOS resource fork")  # not a frame
     monkeypatch.chdir(root)
     assert open_videos(".")[0].key == "vid"  # the folder's own name, also for "."
