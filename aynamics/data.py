@@ -614,7 +614,8 @@ class SceneDataModule(L.LightningDataModule):
         """A fixed subset for generation: the first `n` records' prompt (unbatched), scene text and the frames'
         (width, height) in pixels (`size`: the view the scene is scored in). A record whose frames cannot be read is
         left out with a warning (`readable_eval_record`)."""
-        ds, where = self.splits[split], f"{split} records of data.dir = {self.dir!r}"
+        columns = ("index", "scene_yaml", self.prompt.modality)  # decode only these (a broken column unread)
+        ds, where = used_columns(self.splits[split], columns), f"{split} records of data.dir = {self.dir!r}"
         found = (readable_eval_record(ds, i, self.processor, self.prompt, where) for i in range(min(n, len(ds))))
         return [r for r in found if r is not None]
 

@@ -229,11 +229,13 @@ def evaluate_videos(
     average scene, which need true scenes.
 
     Raises:
-        FileNotFoundError: no such folder, or a video folder without frames or masks.
+        FileNotFoundError: no such folder, or one that is no video folder nor holds any (a video folder that
+            lacks its images or masks is left out with a warning naming it).
         ValueError: bad counts or an adapter that cannot be loaded (a video folder that cannot be read is left out
             with a warning naming it).
     """
     from aynamics import lm
+    from aynamics.cli import missing_file_message
     from aynamics.unlabeled import video_folders, video_from_folder
 
     _check_counts(num, batch_size, max_new_tokens, refine_budget, refine_seconds)
@@ -246,7 +248,8 @@ def evaluate_videos(
         try:
             video = video_from_folder(folder, inputs=prompt.modality)  # read in its turn: --num reads only those
         except (FileNotFoundError, ValueError) as e:  # one bad folder never stops the evaluation
-            warnings.warn(f"scene evaluation: video folder {str(folder)!r} is left out: {e}", stacklevel=2)
+            reason = missing_file_message(e) if isinstance(e, FileNotFoundError) else str(e)
+            warnings.warn(f"scene evaluation: video folder {str(folder)!r} is left out: {reason}", stacklevel=2)
             return []
         frames = list(video.frames)
         return [
@@ -331,8 +334,9 @@ def add_evaluate_command(sub) -> None:
     source.add_argument("--data", help="data set folder (aynamics generate --out): scenes with their true YAML")
     source.add_argument(
         "--videos",
-        help="or videos without a label: a folder of frames/*.png beside segmentation.npy or segmentation/*.png "
-        "(optional flow.npy), or a folder of such folders: validity, IoU and EPE only",
+        help="or videos without a label: a folder of frames/*.png (flow/*.png for a flow-trained adapter) beside "
+        "segmentation.npy or segmentation/*.png (optional flow.npy), as aynamics render writes, or a folder of "
+        "such folders: validity, IoU and EPE only",
     )
     p.add_argument("--split", help="with --data: train, validation or test (default test)")
     p.add_argument("--num", type=int, help="score the first NUM scenes or videos (default: all)")

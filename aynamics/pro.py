@@ -382,7 +382,9 @@ class ProDataModule(L.LightningDataModule):
         held_out = hp.val_dir if hp.val_dir is not None else hp.dir
         try:
             self.val_set = open_videos(held_out, hp.val_split, limit=hp.limit_val, **kw)
-        except ValueError:  # no such split
+        except ValueError:  # a generated data set without that split; a folder's errors name what is wrong
+            if not is_generated(held_out):
+                raise
             self.val_set = []
         if hp.val_dir is not None and len(self.val_set) == 0:
             raise ValueError(f"data.val_dir = {hp.val_dir!r}: holds no videos (split {hp.val_split!r})")

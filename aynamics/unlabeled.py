@@ -314,8 +314,8 @@ def open_videos(
     root = Path(path)
     if is_generated(root):
         return GeneratedVideos(root, split, inputs=inputs, width=width, height=height, use_flow=use_flow, limit=limit)
-    videos = load_folders(root, inputs=inputs, width=width, height=height)
-    return videos[:limit] if limit is not None else videos
+    folders = video_folders(root)[:limit]  # read only those kept
+    return [video_from_folder(p, inputs=inputs, width=width, height=height) for p in folders]
 
 
 def collate_videos(items: Sequence[UnlabeledVideo]) -> list[UnlabeledVideo]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 
 import pytest
 import torch
@@ -433,3 +434,25 @@ def test_loader_workers_follow_the_device(dataset_dir, monkeypatch):
     dm.cache, dm.trainer = False, SimpleNamespace(**{**vars(gpu), "accelerator": CPUAccelerator()})
     loaders = [dm.train_dataloader(), dm.val_dataloader()]
     assert [(d.num_workers, d.pin_memory) for d in loaders] == [(0, False)] * 2
+
+
+def test_evaluation_records_read_only_the_columns_the_model_sees(dataset_dir, tmp_path):
+    """A broken image in a column the model does not read (flow, for an rgb prompt) leaves the record in the
+    evaluation, as `aynamics evaluate` keeps it; a broken frame of its own modality leaves it out, named."""
+    import datasets
+
+    splits = datasets.load_from_disk(str(dataset_dir))
+    broken = splits["validation"].cast_column("flow", datasets.List(datasets.Image(decode=False)))
+    garbage = [{"bytes": b"\x89PNG not really", "path": None}]
+    broken = broken.map(lambda r, i: {"flow": garbage} if i == 0 else {}, with_indices=True)
+    splits["validation"] = broken.cast_column("flow", datasets.List(datasets.Image()))
+    splits.save_to_disk(str(tmp_path / "ds"))
+    dm = SceneDataModule(str(tmp_path / "ds"), str(TINY_ASSET_DIR), num_frames=2)
+    dm.setup("fit")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no record left out
+        assert len(dm.eval_records("validation", 2)) == 2
+    dm = SceneDataModule(str(tmp_path / "ds"), str(TINY_ASSET_DIR), num_frames=2, modality="flow")
+    dm.setup("fit")
+    with pytest.warns(UserWarning, match=r"record 0 of the validation records of data.dir = .* is left out"):
+        assert len(dm.eval_records("validation", 2)) == 1

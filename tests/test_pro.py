@@ -496,3 +496,7 @@ def test_folder_videos_validate_on_val_dir_or_say_they_do_not(tmp_path):
     dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), val_dir=str(tmp_path / "empty"), **kw)
     with pytest.raises(FileNotFoundError, match="empty"):
         dm.setup("fit")
+    sorted((tmp_path / "held_out" / "c" / "frames").iterdir())[5].unlink()  # the reason, not "holds no videos"
+    dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), val_dir=str(tmp_path / "held_out"), **kw)
+    with pytest.raises(ValueError, match=r"frames': 29 images; need one for every video frame \(30"):
+        dm.setup("fit")
