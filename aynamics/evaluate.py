@@ -26,6 +26,7 @@ refined scene and its metrics) and `metrics.json` (the table, the split, the cou
 from __future__ import annotations
 
 import json
+import math
 import sys
 import warnings
 from collections.abc import Iterator
@@ -77,13 +78,17 @@ class Evaluation:
 
 
 def _check_counts(num: int | None, batch_size: int, max_new_tokens: int, refine_budget: int, refine_seconds: float):
-    if num is not None and num < 1 or batch_size < 1 or max_new_tokens < 1 or refine_budget < 0:
-        raise ValueError(
-            f"num = {num}, batch_size = {batch_size}, max_new_tokens = {max_new_tokens}, refine_budget = "
-            f"{refine_budget}: counts must be >= 1 (num may be None: all; refine_budget >= 0)"
-        )
-    if not refine_seconds > 0:
-        raise ValueError(f"refine_seconds = {refine_seconds}: must be > 0")
+    """The counts and the time limit, each named as the command-line option that sets it."""
+    for option, value, least in (
+        ("--num", num, 1),
+        ("--batch-size", batch_size, 1),
+        ("--max-new-tokens", max_new_tokens, 1),
+        ("--refine", refine_budget, 0),
+    ):
+        if value is not None and value < least:
+            raise ValueError(f"{option} = {value}: must be >= {least}")
+    if not (math.isfinite(refine_seconds) and refine_seconds > 0):
+        raise ValueError(f"--refine-seconds = {refine_seconds}: must be a finite number > 0")
 
 
 def _generate(
@@ -125,15 +130,19 @@ def _score(
     refine_budget: int,
     refine_seconds: float,
     progress: bool,
-    left_out: int,
+    n: int,
     split_size: int,
+    what: str,
 ) -> Evaluation:
-    """The table of the responses (and of the `average` scene), refined when `refine_budget` > 0. Records with a
-    true `scene` get every metric; videos without one the validity, IoU and EPE only."""
+    """The table of the responses to the `records` scorable among the `n` read (of `split_size`; `what` they
+    were, for the error when none is), and of the `average` scene, refined when `refine_budget` > 0. Records with
+    a true `scene` get every metric; videos without one the validity, IoU and EPE only."""
+    if not records:
+        raise ValueError(f"no {what} can be scored (each one was named above)")
     targets = [r["scene"] for r in records] if "scene" in records[0] else None
     observations = [r["observation"] for r in records]
     per = evaluate_texts(texts, targets, observations)
-    result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=left_out, split_size=split_size)
+    result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=n - len(records), split_size=split_size)
     if average is not None:
         result.table[BASELINE] = baseline_summary(average, records)
     if refine_budget:
@@ -192,13 +201,12 @@ def evaluate_adapter(
     found = (data.readable_eval_record(rows, i, processor, prompt, where) for i in range(n))
     items = ([] if r is None else scorable_records([r], where) for r in found)
     records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, f"evaluate {split}", progress)
-    if not records:
-        raise ValueError(f"no scene of the {where} can be scored (each one was named above)")
     average = None
-    if baseline and "train" in splits:
-        average = average_scene_text(splits["train"])
-    elif baseline:
-        warnings.warn(f"scene evaluation: no average-scene baseline: --data {str(data_dir)!r} has no train split")
+    if baseline and records:  # (without records `_score` says so)
+        if "train" in splits:
+            average = average_scene_text(splits["train"])
+        else:
+            warnings.warn(f"scene evaluation: no average-scene baseline: --data {str(data_dir)!r} has no train split")
     return _score(
         records,
         texts,
@@ -206,8 +214,9 @@ def evaluate_adapter(
         refine_budget=refine_budget,
         refine_seconds=refine_seconds,
         progress=progress,
-        left_out=n - len(records),
+        n=n,
         split_size=len(rows),
+        what=f"scene of the {where}",
     )
 
 
@@ -262,8 +271,6 @@ def evaluate_videos(
 
     items = (item(folder) for folder in found[:n])
     records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, "evaluate videos", progress)
-    if not records:
-        raise ValueError(f"no video of --videos {str(videos)!r} can be scored (each one was named above)")
     return _score(
         records,
         texts,
@@ -271,8 +278,9 @@ def evaluate_videos(
         refine_budget=refine_budget,
         refine_seconds=refine_seconds,
         progress=progress,
-        left_out=n - len(records),
+        n=n,
         split_size=len(found),
+        what=f"video of --videos {str(videos)!r}",
     )
 
 
@@ -361,8 +369,6 @@ def add_evaluate_command(sub) -> None:
 
 
 def run_evaluate(args) -> int:
-    import math
-
     from aynamics.cli import UsageError, check_out_folder, missing_file_message, warnings_as_lines
 
     if args.out is not None:
@@ -371,16 +377,6 @@ def run_evaluate(args) -> int:
         option = "--split" if args.split is not None else "--no-baseline"
         raise UsageError(f"evaluate: {option} is for --data (a data set); videos have no splits nor training scenes")
     args.split = args.split or "test"
-    for option, value, least in (
-        ("--num", args.num, 1),
-        ("--batch-size", args.batch_size, 1),
-        ("--max-new-tokens", args.max_new_tokens, 1),
-        ("--refine", args.refine, 0),
-    ):
-        if value is not None and value < least:
-            raise UsageError(f"evaluate: {option} = {value}: must be >= {least}")
-    if not (math.isfinite(args.refine_seconds) and args.refine_seconds > 0):
-        raise UsageError(f"evaluate: --refine-seconds = {args.refine_seconds}: must be a finite number > 0")
     if not Path(args.adapter).is_dir():
         raise UsageError(f"evaluate: --adapter {args.adapter!r} is not a folder (give OUT/adapter of a training run)")
     settings = {

@@ -288,10 +288,17 @@ def video_folders(path: str | Path) -> list[Path]:
 
 
 def load_folders(
-    path: str | Path, *, inputs: str = "rgb", width: int | None = None, height: int | None = None
+    path: str | Path,
+    *,
+    inputs: str = "rgb",
+    width: int | None = None,
+    height: int | None = None,
+    limit: int | None = None,
 ) -> list[UnlabeledVideo]:
-    """The videos of `video_folders(path)`, the model seeing `inputs` ("rgb" frames or "flow" images)."""
-    return [video_from_folder(p, inputs=inputs, width=width, height=height) for p in video_folders(path)]
+    """The videos of `video_folders(path)` (the first `limit` only are read), the model seeing `inputs` ("rgb"
+    frames or "flow" images)."""
+    folders = video_folders(path)[:limit]
+    return [video_from_folder(p, inputs=inputs, width=width, height=height) for p in folders]
 
 
 def is_generated(path: str | Path) -> bool:
@@ -314,8 +321,7 @@ def open_videos(
     root = Path(path)
     if is_generated(root):
         return GeneratedVideos(root, split, inputs=inputs, width=width, height=height, use_flow=use_flow, limit=limit)
-    folders = video_folders(root)[:limit]  # read only those kept
-    return [video_from_folder(p, inputs=inputs, width=width, height=height) for p in folders]
+    return load_folders(root, inputs=inputs, width=width, height=height, limit=limit)
 
 
 def collate_videos(items: Sequence[UnlabeledVideo]) -> list[UnlabeledVideo]:
