@@ -217,13 +217,15 @@ def video_from_folder(
     layout (see the module docstring).
 
     When the folder holds every image of the video (as many frames as the segmentation, one flow image fewer), the
-    model sees those of the sampled frames (those the observation uses); when it holds exactly as many as are
-    sampled, it sees them all. Hidden files (`._*.png`) are not images of the video.
+    model sees those of the sampled frames (those the observation uses), flow images re-coloured on the scale of
+    the sampled ones (as in generated data); when it holds exactly as many as are sampled, it sees them all as they
+    are. Hidden files (`._*.png`) are not images of the video.
 
     Raises:
         FileNotFoundError: the folder, its images or its segmentation is missing.
         ValueError: an unknown `inputs`, image counts that fit neither case (one missing would shift every later
-            one), images of another aspect ratio than the masks, or one Pillow cannot read (named).
+            one), images of another aspect ratio than the masks or of different sizes, or one Pillow cannot read
+            (named).
     """
     if inputs not in INPUTS:
         raise ValueError(f"inputs = {inputs!r}: must be one of {INPUTS}")
@@ -258,7 +260,28 @@ def video_from_folder(
             f"{str(chosen[0])!r}: {w}×{h} pixels, another aspect ratio than the masks' {full_w}×{full_h}: the scenes "
             "would be scored in another view than the model saw"
         )
+    for f, im in zip(chosen, frames, strict=True):
+        if im.size != (w, h):
+            raise ValueError(f"{str(f)!r}: {im.size[0]}×{im.size[1]} pixels, unlike the {w}×{h} of {str(chosen[0])!r}")
+    if inputs == "flow" and chosen is not files:
+        frames = _own_scale(frames)
     return UnlabeledVideo(root.name, frames, obs)
+
+
+def _own_scale(images: Sequence[Image.Image]) -> tuple[Image.Image, ...]:
+    """Colour-wheel flow images re-coloured on the scale of their own largest flow, as generated data are.
+
+    `aynamics render` colours every flow of the video on one scale (the largest of all of them); a generated record
+    colours its sampled flows on theirs. Picking the sampled images out of a whole video's keeps the first scale
+    and so shows the model paler colours than it was trained on; re-colouring (8-bit exact: decode the relative
+    magnitudes, encode them against their maximum) gives it the colours it knows.
+    """
+    from aynamics.flow import flow_to_color
+
+    relative = decode_flow_colors(np.stack([np.asarray(im) for im in images]), 1.0)  # (F, H, W, 2), max <= 1
+    if np.hypot(relative[..., 0], relative[..., 1]).max() > 1 - 1 / 255:  # already theirs (8-bit): as they are
+        return tuple(images)
+    return tuple(Image.fromarray(c) for c in flow_to_color(relative))  # scale: the largest magnitude among them
 
 
 VIDEO_PARTS = ("frames", "flow", "segmentation", "segmentation.npy")  # what makes a folder a video folder

@@ -265,10 +265,16 @@ def test_video_folder_with_frames_and_masks(tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match=r"vid' has no flow/\*.png: colour-wheel flow images"):
         open_videos(root, inputs="flow")
     (root / "flow").mkdir()
-    for k in range(29):  # the flow from frame k to k + 1, as `aynamics render` writes them
-        Image.fromarray(np.full((80, 120, 3), 100 + k, np.uint8)).save(root / "flow" / f"{k:03d}.png")
+    flows = np.zeros((29, 80, 120, 2), np.float32)  # the flow from frame k to k + 1
+    flows[:, 20:40, 30:60] = np.stack([np.arange(1.0, 30.0), np.linspace(-2, 3, 29)], -1)[:, None, None]
+    flows[28, 20:40, 30:60, 0] = 60.0  # the fastest flow is one the model does not see
+    for k, im in enumerate(flow_to_color(flows)):  # one scale for the whole video, as `aynamics render` writes them
+        Image.fromarray(im).save(root / "flow" / f"{k:03d}.png")
     (flow_video,) = open_videos(root, inputs="flow")  # a flow-trained model sees the flow images of the same frames
-    assert [im.getpixel((0, 0))[0] for im in flow_video.frames] == [100 + k for k in range(0, 30, 3)]
+    seen = np.stack([np.asarray(im) for im in flow_video.frames]).astype(int)
+    generated = flow_to_color(flows[0:30:3]).astype(int)  # a generated record: the sampled flows on their own scale
+    assert np.abs(seen - generated).max() <= 1 and np.abs(seen - flow_to_color(flows)[0:30:3]).max() > 50
+    assert (seen[:, 0, 0] == 255).all()  # still white where nothing moves
     coll = tmp_path / "collection"  # a video folder missing its frames is named, not passed over
     (coll / "b").mkdir(parents=True)
     np.save(coll / "b" / "segmentation.npy", obs.segmentation.astype(np.int16))
@@ -290,6 +296,9 @@ def test_video_folder_with_frames_and_masks(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"000\.png': 100×80 pixels, another aspect ratio than the masks' 120×80"):
         open_videos(root)
     Image.fromarray(np.full((80, 120, 3), 0, np.uint8)).save(root / "frames" / "000.png")
+    Image.fromarray(np.zeros((40, 60, 3), np.uint8)).save(root / "frames" / "003.png")  # half the size of 000.png
+    with pytest.raises(ValueError, match=r"003\.png': 60×40 pixels, unlike the 120×80 of '.*000\.png'"):
+        open_videos(root)
     broken = root / "frames" / "003.png"
     broken.write_bytes(broken.read_bytes()[:40])  # truncated
     with pytest.raises(ValueError, match=r"cannot read frame .*003\.png"):
