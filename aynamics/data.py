@@ -63,6 +63,23 @@ def load_splits(path: str | Path, what: str = "data.dir", require_train: bool = 
     return dd
 
 
+def with_clock(prompt: lm.PromptSpec, path: str | Path, split) -> lm.PromptSpec:
+    """`prompt` with the frame rate and clip frames of a generated data set's videos (its manifest's `config.fps`,
+    the first record's `frame_indices`): what `aynamics predict` picks from a user's video."""
+    import dataclasses
+    import json
+
+    from aynamics.dataset_store import MANIFEST
+
+    fps = prompt.fps
+    try:
+        fps = float(json.loads((Path(path) / MANIFEST).read_text())["config"]["fps"])
+    except (OSError, ValueError, KeyError, TypeError):  # a data set made otherwise: the generator's rate
+        pass
+    frames = used_columns(split, ("frame_indices",))[0].get("frame_indices") if len(split) else None
+    return dataclasses.replace(prompt, fps=fps, clip_frames=tuple(frames) if frames else prompt.clip_frames)
+
+
 def frames_of(record: dict[str, Any], modality: str) -> list:
     """The frames of one record for `modality` ("rgb" or "flow")."""
     if modality not in lm.MODALITIES:
@@ -516,6 +533,7 @@ class SceneDataModule(L.LightningDataModule):
         if len(self.splits["train"]) == 0:
             raise ValueError(f"data.dir = {self.dir!r}: the train split is empty")
         n_stored = len(used_columns(self.splits["train"], ("frame_indices",))[0]["frame_indices"])  # no image decoded
+        self.prompt = with_clock(self.prompt, self.dir, self.splits["train"])
         if self.prompt.num_frames > n_stored:
             raise ValueError(
                 f"data.num_frames = {self.prompt.num_frames}: the scenes in data.dir = {self.dir!r} store {n_stored} "

@@ -259,3 +259,65 @@ def flow_to_color(flow: np.ndarray, max_norm: float | None = None) -> np.ndarray
     col *= 255
     out[where] = np.floor(col, out=col).astype(np.uint8)
     return out
+
+
+# Hue knots of the Middlebury wheel (red, yellow, green, cyan, blue, magenta, red) and their positions on the
+# 55-colour wheel above (segments of 15, 6, 4, 11, 13, 6 colours).
+_HUE_KNOTS = np.array([0, 1, 2, 3, 4, 5, 6]) / 6
+_WHEEL_KNOTS = np.array([0, 15, 21, 25, 36, 49, 55], float)
+_NCOLS = 55
+
+
+def decode_flow_colors(images: np.ndarray, flow_max: float) -> np.ndarray:
+    """Invert `flow_to_color` (without darkened over-range pixels): colour images back to flow.
+
+    The wheel colour of a direction has one channel at 1 and one at 0, so with saturation r the encoded colour
+    is `1 - r (1 - wheel)`: r = 1 - min channel, and the wheel colour (hence the direction, through the hue,
+    which is piecewise linear along the wheel) follows. Quantisation to 8 bits limits the accuracy to about
+    `flow_max / 255` in magnitude and a fraction of a wheel step (360° / 55) in direction.
+
+    Args:
+        images: (..., 3) uint8 colour-coded flow.
+        flow_max: The magnitude of saturation 1 (pixels), as stored with the images.
+
+    Returns:
+        (..., 2) float32 flow (dx right, dy down) in pixels; white decodes to 0.
+    """
+    from matplotlib.colors import rgb_to_hsv
+
+    images = np.asarray(images)
+    if images.shape[-1:] != (3,) or images.dtype != np.uint8:
+        raise ValueError(f"flow images: shape {images.shape} dtype {images.dtype}, expected (..., 3) uint8")
+    if not np.isfinite(flow_max) or flow_max < 0:
+        raise ValueError(f"flow_max = {flow_max}: must be a finite number >= 0")
+    col = np.clip((images.astype(np.float64) + 0.5) / 255.0, 0.0, 1.0)  # undo the floor of the encoder
+    col[images == 255] = 1.0
+    r = 1.0 - col.min(axis=-1)  # (...,)
+    moving = r > 1.0 / 255.0
+    out = np.zeros((*images.shape[:-1], 2), np.float32)
+    if flow_max == 0 or not moving.any():
+        return out
+    rm = r[moving][:, None]
+    wheel = np.clip(1.0 - (1.0 - col[moving]) / rm, 0.0, 1.0)  # (M, 3) the wheel colour
+    hue = rgb_to_hsv(wheel)[:, 0]
+    pos = np.interp(hue, _HUE_KNOTS, _WHEEL_KNOTS)  # position on the wheel, [0, 55)
+    pos = np.where(pos > _NCOLS - 0.5, 0.0, np.minimum(pos, _NCOLS - 1))  # past the last colour: back to red
+    theta = (pos / (_NCOLS - 1) * 2 - 1) * np.pi  # = atan2(-v, -u)
+    mag = np.minimum(rm[:, 0], 1.0) * flow_max
+    out[moving] = np.stack([-mag * np.cos(theta), -mag * np.sin(theta)], axis=-1)
+    return out
+
+
+def on_own_scale(images: np.ndarray) -> np.ndarray:
+    """Colour-wheel flow images (F, H, W, 3) uint8 re-coloured on the scale of their own largest flow, the
+    convention of generated records (whose sampled flows share one scale) and so of what a flow-trained model saw.
+
+    `aynamics render` colours all 29 flows of a video on one scale, other tools on theirs: the sampled images of
+    such a video are paler or darker than the model knows. Re-colouring decodes the relative magnitudes and
+    encodes them against their maximum (within 2 levels of 255); images already on it come back unchanged.
+    """
+    images = np.asarray(images)
+    relative = decode_flow_colors(images, 1.0)  # (F, H, W, 2), magnitudes <= 1
+    if not relative.any() or np.hypot(relative[..., 0], relative[..., 1]).max() > 1 - 1 / 255:
+        return images
+    return flow_to_color(relative)

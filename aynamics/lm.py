@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,8 @@ MODALITY_NOTE = {
 }
 
 
+CLIP_FRAMES = tuple(range(0, 30, 3))  # the frames of a generated record: every third of a 30-frame video
+
 # What a trained adapter / stored data must agree on (the in-context examples are checked apart: long texts).
 PROMPT_KEYS = ("target", "modality", "as_video", "num_frames", "min_pixels", "max_pixels")
 
@@ -60,6 +63,10 @@ class PromptSpec:
         min_pixels, max_pixels: Pixel bounds per frame after the processor's resize (None: the processor's).
         system_prompt: The system message.
         examples: In-context example texts placed before the frames (usually scenes in YAML).
+        fps: Frame rate of the training videos (frames per second).
+        clip_frames: The video frames (at `fps`) that a training record holds, from which `num_frames` are taken
+            evenly: `aynamics predict` takes a video's frames at these times. The default is the generator's: every
+            third of 30, `flow.sample_frames(30)`.
     """
 
     target: str = "answer"
@@ -70,6 +77,8 @@ class PromptSpec:
     max_pixels: int | None = None
     system_prompt: str = SYSTEM_PROMPT
     examples: tuple[str, ...] = ()
+    fps: float = 30.0
+    clip_frames: tuple[int, ...] = CLIP_FRAMES
 
     def __post_init__(self) -> None:
         if self.target not in TARGETS:
@@ -83,6 +92,17 @@ class PromptSpec:
             if value is not None and value < 28 * 28:
                 raise ValueError(f"{key} = {value}: must be >= {28 * 28} (one 2x2 block of 14-pixel patches) or null")
         object.__setattr__(self, "examples", tuple(self.examples))
+        object.__setattr__(self, "clip_frames", tuple(int(k) for k in self.clip_frames))
+        if not (math.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"fps = {self.fps}: must be a finite number > 0")
+        frames = self.clip_frames
+        if not frames or frames[0] < 0 or any(b <= a for a, b in zip(frames, frames[1:])):
+            raise ValueError(f"clip_frames = {list(frames)}: must be increasing frame indices >= 0, at least one")
+
+    @property
+    def frame_times(self) -> tuple[float, ...]:
+        """Seconds from the first frame of each frame a training record holds."""
+        return tuple((k - self.clip_frames[0]) / self.fps for k in self.clip_frames)
 
     @property
     def user_prompt(self) -> str:

@@ -1,77 +1,68 @@
 """`aynamics predict`: write the scene (and the reasoning) of a video with a trained adapter.
 
-    aynamics predict --adapter OUT/adapter VIDEO.mp4            # MP4, WebM, AVI, GIF...: what FFmpeg (PyAV) decodes
-    aynamics predict --adapter OUT/adapter FRAMES_DIR/          # a folder of PNG/JPEG frames, in name order
+    aynamics predict --adapter OUT/adapter VIDEO.mp4            # MP4, WebM, AVI, GIF...: FFmpeg (PyAV) / Pillow
+    aynamics predict --adapter OUT/adapter FRAMES_DIR/          # a folder of PNG/JPEG frames (30 fps unless --fps)
     aynamics predict --adapter OUT/adapter FRAMES_DIR/ --json   # {"reasoning", "yaml", "valid", "problems"}
     aynamics export-adapter OUT/checkpoints/step000200.ckpt --out step200/   # any step's adapter folder
 
 The adapter folder (written by training: peft files + `aynamics.json`) says which base model to rebuild and how
-the prompt was made (modality, number of frames, images or one video, target). Frames are sampled evenly to the
-trained count. Flow-trained adapters expect flow images (Middlebury colours), e.g. the `flow/` PNGs of
-`aynamics render`. The process exits 0 when the response holds a valid scene, 1 when it does not.
+the prompt was made (modality, number of frames, images or one video, target) and when the training frames were
+taken (`fps`, `clip_frames`: every third frame of a 30 fps video for generated data). The model reads the video's
+frames at those times from its first frame, whatever the video's own rate (`clip_of`), then the trained number
+of them evenly, as in training. Flow-trained adapters expect flow images (Middlebury colours), e.g. the `flow/`
+PNGs of `aynamics render`. The process exits 0 when the response holds a valid scene, 1 when it does not.
 """
 
 from __future__ import annotations
 
-import errno
 import json
-import os
+import math
 import re
 import sys
 from pathlib import Path
 
 import numpy as np
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
 _THINK = re.compile(r"<think>(.*?)(?:</think>|$)", re.S)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """One image file as an array, its path named when it cannot be read (truncated, not an image, unreadable)."""
-    import imageio.v3 as iio
+def clip_of(path: str | Path, prompt, fps: float | None = None) -> list[np.ndarray]:
+    """The frames of a video (a file, or a folder of frames) that the adapter was trained on: those on screen at
+    the times of the frames a training record holds (`prompt.frame_times`: every third of 30 at 30 fps, 0 to
+    0.9 s, for the generator's data), from the video's first frame. The processor then takes the trained number
+    of them evenly, as in training.
 
-    try:
-        return iio.imread(path)
-    except Exception as e:  # Pillow and imageio raise OSError, ValueError and more for a broken image
-        raise ValueError(f"cannot read frame {str(path)!r}: {type(e).__name__}: {e}") from None
+    Args:
+        path: A video file (its own frame rate) or a folder of consecutive frames (at `fps`, default the training
+            videos' rate); a folder holding exactly as many images as a training record (no `fps` given) is taken
+            as those frames, the way `aynamics evaluate --videos` reads one.
+        prompt: The adapter's `lm.PromptSpec` (`lm.read_adapter_meta`).
+        fps: The video's frame rate, when its file states none or states it wrong, or for a folder.
 
-
-def read_frames(path: str | Path) -> list[np.ndarray]:
-    """RGB frames (H, W, 3) uint8 of a folder of images (name order) or a video file.
+    Returns:
+        (H, W, 3) uint8 frames; flow images (a flow-trained adapter) re-coloured on their own scale, as generated
+        records are.
 
     Raises:
         FileNotFoundError: the path does not exist.
-        ValueError: the folder holds no images, the video cannot be decoded, or the frames differ in size.
+        ValueError: no frames, a video too short for the clip's times (named with its length and rate), an image
+            or video that cannot be read, frames of different sizes.
     """
-    import imageio.v3 as iio
+    from aynamics import video_io
+    from aynamics.flow import on_own_scale
 
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
-    if path.is_dir():
-        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not files:
-            raise ValueError(f"{str(path)!r} holds no frames (looked for {', '.join(IMAGE_SUFFIXES)})")
-        frames = [read_image(p) for p in files]
+    if fps is None and path.is_dir():
+        n = len(video_io.image_files(path))
+        fps = prompt.fps if n != len(prompt.clip_frames) else None
+        times = prompt.frame_times if fps is not None else range(len(prompt.clip_frames))
+        video = video_io.open_video(path, fps=fps or 1.0)  # the clip itself: image k at "time" k
     else:
-        try:
-            frames = list(iio.imiter(path))
-        except Exception as e:  # imageio raises many types for an unreadable or plugin-less video
-            raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
-        if not frames:
-            raise ValueError(f"video {str(path)!r} has no frames")
-    out = []
-    for k, f in enumerate(frames):
-        f = np.asarray(f)
-        if f.ndim == 2:
-            f = np.repeat(f[..., None], 3, axis=-1)
-        if f.ndim != 3 or f.shape[-1] not in (3, 4):
-            raise ValueError(f"frame {k} of {str(path)!r} has shape {f.shape}: need (H, W, 3) RGB")
-        out.append(np.ascontiguousarray(f[..., :3].astype(np.uint8)))
-    sizes = {f.shape for f in out}
-    if len(sizes) > 1:
-        raise ValueError(f"frames of {str(path)!r} differ in size: {sorted(sizes)}")
-    return out
+        video, times = video_io.open_video(path, fps=fps), prompt.frame_times
+    frames = video.frames_at(times)
+    if prompt.modality == "flow":
+        frames = list(on_own_scale(np.stack(frames)))
+    return frames
 
 
 def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048, device: str = "auto") -> dict:
@@ -98,8 +89,16 @@ def add_predict_command(sub) -> None:
     from aynamics.cli import add_device_option
 
     p = sub.add_parser("predict", help="write the scene YAML (and reasoning) of a video with a trained adapter")
-    p.add_argument("input", help="a video file or a folder of frames (PNG/JPEG, name order)")
+    p.add_argument("input", help="a video file or a folder of frames (PNG/JPEG, natural name order: 2 before 10)")
     p.add_argument("--adapter", required=True, help="adapter folder written by training (OUT/adapter)")
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="the video's frame rate: for a folder of frames (default: the training videos' rate, 30 for generated "
+        "data), or a file that states none or a wrong one. The model reads the frames at the times training showed "
+        "it (0 to 0.9 s of the video for generated data)",
+    )
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     add_device_option(p)
@@ -107,14 +106,17 @@ def add_predict_command(sub) -> None:
 
 
 def run_predict(args) -> int:
+    from aynamics import lm
     from aynamics.cli import UsageError, missing_file_message
 
     if args.max_new_tokens < 1:
         raise UsageError(f"predict: --max-new-tokens = {args.max_new_tokens}: must be >= 1")
     if not Path(args.adapter).is_dir():
         raise UsageError(f"predict: --adapter {args.adapter!r} is not a folder (give OUT/adapter of a training run)")
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        raise UsageError(f"predict: --fps {args.fps}: must be a finite number > 0")
     try:
-        frames = read_frames(args.input)
+        frames = clip_of(args.input, lm.read_adapter_meta(args.adapter)[1], args.fps)
         result = predict(args.adapter, frames, args.max_new_tokens, args.device)
     except FileNotFoundError as e:
         raise UsageError(f"predict: {missing_file_message(e)}") from None

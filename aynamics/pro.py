@@ -40,7 +40,7 @@ from aynamics import reward as rw
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
 from aynamics.sft import check_gradients
-from aynamics.unlabeled import UnlabeledVideo, collate_videos, is_generated, open_videos
+from aynamics.unlabeled import GeneratedVideos, UnlabeledVideo, collate_videos, is_generated, open_videos
 
 LOSSES = ("soft", "ranking")
 MODES = ("online", "offline")
@@ -168,6 +168,14 @@ class ProModule(L.LightningModule):
             if mismatch:
                 was, now = mismatch
                 raise ValueError(f"stage.init_adapter was trained with {was}, but the data are set to {now}")
+            clock = ("fps", "clip_frames")
+            if any(getattr(trained, k) != getattr(self.prompt, k) for k in clock):
+                warnings.warn(
+                    f"stage.init_adapter was trained on clips of frames {list(trained.clip_frames)} at "
+                    f"{trained.fps:g} fps, PRO's videos hold frames {list(self.prompt.clip_frames)} at "
+                    f"{self.prompt.fps:g} fps: the model learns two timings (the adapter written records PRO's)",
+                    stacklevel=2,
+                )
             if trained.examples != self.prompt.examples:
                 raise ValueError(
                     f"stage.init_adapter was trained with {len(trained.examples)} in-context examples in its prompt, "
@@ -377,6 +385,10 @@ class ProDataModule(L.LightningDataModule):
             check_made_for(hp.preferences_dir, self.prompt, self.processor.tokenizer)
         else:
             self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
+            if isinstance(self.train_set, GeneratedVideos):  # video folders: every third of 30 frames, the default
+                from aynamics.data import with_clock
+
+                self.prompt = with_clock(self.prompt, hp.dir, self.train_set.ds)
         if len(self.train_set) == 0:
             raise ValueError(f"data.dir = {hp.dir!r}: split {hp.train_split!r} holds no videos")
         held_out = hp.val_dir if hp.val_dir is not None else hp.dir

@@ -31,6 +31,7 @@ import numpy as np
 from aynamics import camera as camlib
 from aynamics import simulate as sim
 from aynamics.scene import MAX_OBJECTS, Scene
+from aynamics.video_io import image_files
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 FLOOR_TEXTURE = 512  # pixels per side of the floor photograph texture
@@ -170,7 +171,7 @@ def texture_images(textures_dir: str | Path | None = None) -> list[Path]:
     root = Path(textures_dir)
     if not root.is_dir():
         raise FileNotFoundError(2, f"textures_dir {str(root)!r} is not a folder", str(root))
-    paths = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    paths = image_files(root, IMAGE_SUFFIXES)
     if not paths:
         raise ValueError(f"textures_dir {str(root)!r}: no images ({', '.join(IMAGE_SUFFIXES)}) in it")
     return paths

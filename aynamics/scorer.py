@@ -17,8 +17,9 @@ reason=...)`; the others in the batch are scored normally.
 
 Observed folder layout (what `aynamics render --out DIR` writes; all frames are the full video, frame k = state k):
     segmentation.npy    (T, H, W) int, -1 background, else object index   -- or --
-    segmentation/*.png  one mask per frame in name order: 0 background, v > 0 object v - 1 (8/16-bit grey),
-                        or colour masks where each distinct non-black colour is one object
+    segmentation/*.png  one mask per frame in natural name order (2.png before 10.png): 0 background, v > 0
+                        object v - 1 (8/16-bit grey), or colour masks where each distinct non-black colour is
+                        one object
     flow.npy            optional (T-1, H, W, 2) float pixels at H×W (dx right, dy down), flow k: frame k -> k+1
     occlusion.npy       optional (T-1, H, W) bool, True where the observed flow is occluded
     meta.json           optional {"names": [...], "fps": 30}: object names for matching by name
@@ -42,6 +43,7 @@ from aynamics import simulate as sim
 from aynamics.flow import sample_frames
 from aynamics.raycast import Cast, cast_group
 from aynamics.scene import Scene, SceneError, parse
+from aynamics.video_io import image_files
 
 WIDTH, HEIGHT = 120, 80  # scorer resolution: a quarter of 480×320 per side
 REFERENCE_WIDTH = 480  # EPE is reported in pixels of an image this wide
@@ -249,7 +251,7 @@ def _load_segmentation(root: Path) -> np.ndarray:
             )
         return seg
     folder = root / "segmentation"
-    files = sorted(p for p in folder.glob("*.png")) if folder.is_dir() else []
+    files = image_files(folder, (".png",))  # natural order: 2.png before 10.png
     if not files:
         raise FileNotFoundError(2, f"{str(root)!r} has neither segmentation.npy nor segmentation/*.png", str(root))
     import imageio.v3 as iio

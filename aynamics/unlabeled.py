@@ -25,21 +25,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from matplotlib.colors import rgb_to_hsv
 from PIL import Image
 
-from aynamics.predict import read_image
+from aynamics.flow import decode_flow_colors, on_own_scale
 from aynamics.scorer import Observation, scoring_size
+from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image
 
 # Columns of a generated record that the PRO stage may read; everything else (the labels) is dropped on loading.
 OBSERVED_COLUMNS = ("index", "rgb", "flow", "flow_max", "segmentation", "frame_indices")
 INPUTS = ("rgb", "flow")  # what the model sees: the RGB frames or the flow colour images
-
-# Hue knots of the Middlebury wheel (red, yellow, green, cyan, blue, magenta, red) and their positions on the
-# 55-colour wheel of `aynamics.flow` (segments of 15, 6, 4, 11, 13, 6 colours).
-_HUE_KNOTS = np.array([0, 1, 2, 3, 4, 5, 6]) / 6
-_WHEEL_KNOTS = np.array([0, 15, 21, 25, 36, 49, 55], float)
-_NCOLS = 55
 
 
 @dataclass(frozen=True)
@@ -55,44 +49,6 @@ class UnlabeledVideo:
     key: str
     frames: tuple[Image.Image, ...]
     observation: Observation
-
-
-def decode_flow_colors(images: np.ndarray, flow_max: float) -> np.ndarray:
-    """Invert `aynamics.flow.flow_to_color` (without darkened over-range pixels): colour images back to flow.
-
-    The wheel colour of a direction has one channel at 1 and one at 0, so with saturation r the encoded colour
-    is `1 - r (1 - wheel)`: r = 1 - min channel, and the wheel colour (hence the direction, through the hue,
-    which is piecewise linear along the wheel) follows. Quantisation to 8 bits limits the accuracy to about
-    `flow_max / 255` in magnitude and a fraction of a wheel step (360° / 55) in direction.
-
-    Args:
-        images: (..., 3) uint8 colour-coded flow.
-        flow_max: The magnitude of saturation 1 (pixels), as stored with the images.
-
-    Returns:
-        (..., 2) float32 flow (dx right, dy down) in pixels; white decodes to 0.
-    """
-    images = np.asarray(images)
-    if images.shape[-1:] != (3,) or images.dtype != np.uint8:
-        raise ValueError(f"flow images: shape {images.shape} dtype {images.dtype}, expected (..., 3) uint8")
-    if not np.isfinite(flow_max) or flow_max < 0:
-        raise ValueError(f"flow_max = {flow_max}: must be a finite number >= 0")
-    col = np.clip((images.astype(np.float64) + 0.5) / 255.0, 0.0, 1.0)  # undo the floor of the encoder
-    col[images == 255] = 1.0
-    r = 1.0 - col.min(axis=-1)  # (...,)
-    moving = r > 1.0 / 255.0
-    out = np.zeros((*images.shape[:-1], 2), np.float32)
-    if flow_max == 0 or not moving.any():
-        return out
-    rm = r[moving][:, None]
-    wheel = np.clip(1.0 - (1.0 - col[moving]) / rm, 0.0, 1.0)  # (M, 3) the wheel colour
-    hue = rgb_to_hsv(wheel)[:, 0]
-    pos = np.interp(hue, _HUE_KNOTS, _WHEEL_KNOTS)  # position on the wheel, [0, 55)
-    pos = np.where(pos > _NCOLS - 0.5, 0.0, np.minimum(pos, _NCOLS - 1))  # past the last colour: back to red
-    theta = (pos / (_NCOLS - 1) * 2 - 1) * np.pi  # = atan2(-v, -u)
-    mag = np.minimum(rm[:, 0], 1.0) * flow_max
-    out[moving] = np.stack([-mag * np.cos(theta), -mag * np.sin(theta)], axis=-1)
-    return out
 
 
 def _nearest(full: int, low: int) -> np.ndarray:
@@ -217,9 +173,11 @@ def video_from_folder(
     layout (see the module docstring).
 
     When the folder holds every image of the video (as many frames as the segmentation, one flow image fewer), the
-    model sees those of the sampled frames (those the observation uses), flow images re-coloured on the scale of
-    the sampled ones (as in generated data); when it holds exactly as many as are sampled, it sees them all as they
-    are. Hidden files (`._*.png`) are not images of the video.
+    model sees those of the sampled frames (those the observation uses); when it holds exactly as many as are
+    sampled, it sees them all. Images are taken in natural name order (`2.png` before `10.png`); hidden files
+    (`._0.png`) are not images of the video. Frames may be PNG or JPEG (read as the camera showed them, see
+    `aynamics.video_io.read_image`); flow images, PNG, are re-coloured on the scale of those the model sees, as
+    generated records are (`aynamics.flow.on_own_scale`: `aynamics render` colours all 29 on one scale).
 
     Raises:
         FileNotFoundError: the folder, its images or its segmentation is missing.
@@ -232,15 +190,12 @@ def video_from_folder(
     root = Path(os.path.abspath(path))  # its name is the video's key, also for "."
     obs = Observation.from_dir(root, width=width, height=height)  # raises for a missing folder / masks
     folder = root / ("frames" if inputs == "rgb" else "flow")
-    files = sorted(
-        p
-        for p in (folder.iterdir() if folder.is_dir() else ())
-        if p.suffix.lower() == ".png" and not p.name.startswith(".")
-    )
+    files = image_files(folder, IMAGE_SUFFIXES if inputs == "rgb" else (".png",))  # flow: lossless only
     if not files:
         what = "frames" if inputs == "rgb" else "colour-wheel flow images (a flow-trained model's input)"
+        also = f" (or {', '.join(IMAGE_SUFFIXES[1:])})" if inputs == "rgb" else ""
         raise FileNotFoundError(
-            2, f"{str(root)!r} has no {folder.name}/*.png: {what} for the model to see", str(folder)
+            2, f"{str(root)!r} has no {folder.name}/*.png{also}: {what} for the model to see", str(folder)
         )
     n_video, full_h, full_w = obs.video_shape
     every = n_video if inputs == "rgb" else n_video - 1  # flow images: f -> f + 1 for every frame but the last
@@ -253,35 +208,22 @@ def video_from_folder(
             f"{str(folder)!r}: {len(files)} images; need one for every video frame ({every}: the segmentation has "
             f"{n_video} frames) or exactly the {len(obs.frames)} sampled ones"
         )
-    frames = tuple(Image.fromarray(read_image(f)).convert("RGB") for f in chosen)
-    w, h = frames[0].size
+    images = [read_image(f) for f in chosen]  # (H, W, 3) uint8 RGB each
+    h, w = images[0].shape[:2]
     if abs(w * full_h / full_w - h) > 1:
         raise ValueError(
             f"{str(chosen[0])!r}: {w}×{h} pixels, another aspect ratio than the masks' {full_w}×{full_h}: the scenes "
             "would be scored in another view than the model saw"
         )
-    for f, im in zip(chosen, frames, strict=True):
-        if im.size != (w, h):
-            raise ValueError(f"{str(f)!r}: {im.size[0]}×{im.size[1]} pixels, unlike the {w}×{h} of {str(chosen[0])!r}")
-    if inputs == "flow" and chosen is not files:
-        frames = _own_scale(frames)
+    for f, im in zip(chosen, images, strict=True):
+        if im.shape[:2] != (h, w):
+            raise ValueError(
+                f"{str(f)!r}: {im.shape[1]}×{im.shape[0]} pixels, unlike the {w}×{h} of {str(chosen[0])!r}"
+            )
+    if inputs == "flow":  # on the scale of the images the model sees, as generated records are
+        images = list(on_own_scale(np.stack(images)))
+    frames = tuple(Image.fromarray(im) for im in images)
     return UnlabeledVideo(root.name, frames, obs)
-
-
-def _own_scale(images: Sequence[Image.Image]) -> tuple[Image.Image, ...]:
-    """Colour-wheel flow images re-coloured on the scale of their own largest flow, as generated data are.
-
-    `aynamics render` colours every flow of the video on one scale (the largest of all of them); a generated record
-    colours its sampled flows on theirs. Picking the sampled images out of a whole video's keeps the first scale
-    and so shows the model paler colours than it was trained on; re-colouring (8-bit exact: decode the relative
-    magnitudes, encode them against their maximum) gives it the colours it knows.
-    """
-    from aynamics.flow import flow_to_color
-
-    relative = decode_flow_colors(np.stack([np.asarray(im) for im in images]), 1.0)  # (F, H, W, 2), max <= 1
-    if np.hypot(relative[..., 0], relative[..., 1]).max() > 1 - 1 / 255:  # already theirs (8-bit): as they are
-        return tuple(images)
-    return tuple(Image.fromarray(c) for c in flow_to_color(relative))  # scale: the largest magnitude among them
 
 
 VIDEO_PARTS = ("frames", "flow", "segmentation", "segmentation.npy")  # what makes a folder a video folder

@@ -163,14 +163,34 @@ def test_collect_multirun_folder(tmp_path):
         collect(tmp_path / "0" / "metrics.json")
 
 
+def _clip_folder(path: Path, n: int = 10) -> Path:
+    """A folder of `n` 16×16 frames: with 10, a default adapter's clip itself (every third frame of 30)."""
+    import imageio.v3 as iio
+
+    path.mkdir()
+    for k in range(n):
+        iio.imwrite(path / f"{k}.png", np.full((16, 16, 3), k, np.uint8))
+    return path
+
+
 def test_predict_cli_errors_are_clear(tmp_path, capsys):
+    """Exit 2 naming the problem: a missing input, no frames, a video too short for the clip the adapter was
+    trained on (every third frame of 30 at 30 fps: 0 to 0.9 s), a bad --fps."""
+    from aynamics import lm
     from aynamics.cli import main
 
+    (tmp_path / "aynamics.json").write_text(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
     assert main(["predict", "--adapter", str(tmp_path), str(tmp_path / "missing")]) == 2
     assert "file not found" in capsys.readouterr().err
     (tmp_path / "frames").mkdir()
     assert main(["predict", "--adapter", str(tmp_path), str(tmp_path / "frames")]) == 2
     assert "holds no frames" in capsys.readouterr().err
+    short = _clip_folder(tmp_path / "short", 20)  # 20 frames at 30 fps: 0.63 s
+    assert main(["predict", "--adapter", str(tmp_path), str(short)]) == 2
+    assert "short' (20 frames at 30 fps) ends at 0.633 s, but frames up to 0.9 s are needed" in capsys.readouterr().err
+    for bad in ("0", "nan", "-30"):
+        assert main(["predict", "--adapter", str(tmp_path), str(short), "--fps", bad]) == 2
+        assert f"predict: --fps {float(bad)}: must be a finite number > 0" in capsys.readouterr().err
 
 
 def test_inference_device_names_a_device_this_machine_lacks(tmp_path, capsys):
@@ -199,11 +219,7 @@ def test_inference_device_names_a_device_this_machine_lacks(tmp_path, capsys):
     adapter = tmp_path / "adapter"
     adapter.mkdir()
     (adapter / "aynamics.json").write_text(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    import imageio.v3 as iio
-
-    iio.imwrite(frames / "a.png", np.zeros((16, 16, 3), np.uint8))
+    frames = _clip_folder(tmp_path / "frames")
     assert main(["predict", "--adapter", str(adapter), str(frames), "--device", f"cuda:{gpus}"]) == 2
     assert f"predict: device = 'cuda:{gpus}'" in capsys.readouterr().err
 
@@ -212,24 +228,21 @@ def test_predict_cli_names_the_broken_file(tmp_path, capsys):
     """A truncated frame, and each broken file of an adapter folder, exit 2 naming the file and the problem (they
     raised OSError, KeyError 'prompt', SafetensorError, or "Expecting value" without a file name). Every check runs
     before a base model is built, so the folders here are written by hand."""
-    import imageio.v3 as iio
 
     from aynamics import lm
     from aynamics.cli import main
 
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    iio.imwrite(frames / "a.png", np.zeros((16, 16, 3), np.uint8))
-    broken = tmp_path / "broken"
-    broken.mkdir()
-    iio.imwrite(broken / "a.png", np.zeros((16, 16, 3), np.uint8))
-    png = (broken / "a.png").read_bytes()
-    (broken / "b.png").write_bytes(png[: len(png) // 2])
+    frames = _clip_folder(tmp_path / "frames")
+    broken = _clip_folder(tmp_path / "broken")
+    png = (broken / "3.png").read_bytes()
+    (broken / "3.png").write_bytes(png[: len(png) // 2])
     good_meta = json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec()))
     adapter = tmp_path / "adapter"
     adapter.mkdir()
+    (adapter / "aynamics.json").write_text(good_meta)
     assert main(["predict", "--adapter", str(adapter), str(broken)]) == 2
-    assert f"cannot read frame {str(broken / 'b.png')!r}" in capsys.readouterr().err
+    assert f"cannot read frame {str(broken / '3.png')!r}" in capsys.readouterr().err
+    (adapter / "aynamics.json").unlink()
     weights = b"\x40\x00\x00\x00\x00\x00\x00\x00" + b'{"w": {"dtype": "F32", "shape": [4], "data_offsets": [0, 16]}}'
     cases = [  # (file, content, what the message says)
         ("aynamics.json", "{}", "aynamics.json': not the model and prompt specs training writes"),

@@ -303,7 +303,7 @@ def test_write_animation_gif_and_mp4_read_back(tmp_path):
     """Two tiles of a square moving right by 4 px per frame, side by side; odd sizes (15 × 21 per tile) make
     the MP4 pad to 16 × 42. Both files read back (the MP4 through PyAV, as `aynamics predict` reads a video)
     with the frames' count, size and content: the square's column in the GIF exactly, in the lossy MP4 to 1 px."""
-    from aynamics.predict import read_frames
+    from aynamics.video_io import read_frames
     from aynamics.whatif import write_animation
 
     video = np.zeros((6, 15, 21, 3), np.uint8)

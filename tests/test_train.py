@@ -177,7 +177,7 @@ def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> Non
 
     from aynamics.cli import main
     from aynamics.data import frames_of
-    from aynamics.predict import read_frames
+    from aynamics.predict import clip_of
 
     spec = hydra.utils.instantiate(cfg.model)
     dm = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
@@ -192,7 +192,8 @@ def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> Non
         iio.imwrite(folder / f"{k:03d}.png", f)
     iio.imwrite(adapter.parent / "video.mp4", np.stack(frames), plugin="pyav", codec="libx264", fps=10)
     saved_spec, prompt = lm.read_adapter_meta(adapter)
-    ours = lm.prompt_inputs(lm.load_processor(saved_spec, prompt), prompt, read_frames(folder))
+    assert prompt.clip_frames == tuple(record["frame_indices"]) and prompt.fps == 30  # the data's clock
+    ours = lm.prompt_inputs(lm.load_processor(saved_spec, prompt), prompt, clip_of(folder, prompt))
     assert sorted(ours) == sorted(expected["prompt"])
     for key, value in expected["prompt"].items():
         assert torch.equal(ours[key], value), key

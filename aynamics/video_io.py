@@ -1,0 +1,246 @@
+"""Reading a user's frames and videos: image files in time order, one image as the camera showed it, and the
+frames of a video (a file or a folder of images) at given times.
+
+    files = image_files("frames/")                  # frame_2.png before frame_10.png; hidden files left out
+    rgb = read_image(files[0])                      # (H, W, 3) uint8, EXIF rotation applied, 16-bit scaled
+    video = open_video("clip.mp4")                  # its frame rate from the file (or fps=... for a folder)
+    frames = video.frames_at([0.0, 0.1, 0.2])       # the frames on screen at those times, decoding stops there
+
+Frame rates: a video file's own (FFmpeg through PyAV; a GIF's per-frame durations), or the `fps` passed, which
+a folder of images needs. Everything here raises `ValueError` naming the file and the problem, or
+`FileNotFoundError` for a missing path.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp")
+PILLOW_SUFFIXES = (*IMAGE_SUFFIXES, ".gif", ".apng", ".tif", ".tiff")  # images and animations: per-frame durations
+
+
+def natural_key(name: str) -> list:
+    """Sort key of a file name with its numbers compared as numbers: frame_2 before frame_10."""
+    return [(0, int(s), s) if s.isdigit() else (1, 0, s.lower()) for s in re.split(r"(\d+)", name) if s]
+
+
+def image_files(folder: str | Path, suffixes: Sequence[str] = IMAGE_SUFFIXES) -> list[Path]:
+    """The image files of a folder in natural name order (0.png, 1.png, ..., 10.png), hidden ones (`.thumb.png`,
+    macOS `._0.png`) and sub-folders left out; [] for a folder without any (or no folder)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    found = [p for p in folder.iterdir() if p.suffix.lower() in suffixes and not p.name.startswith(".") and p.is_file()]
+    return sorted(found, key=lambda p: natural_key(p.name))
+
+
+def rgb8(image) -> np.ndarray:
+    """A Pillow image as (H, W, 3) uint8 RGB: grey, palette, CMYK and alpha images converted (alpha dropped),
+    16-bit and 32-bit grey scaled to 8 bits (not wrapped), float images taken as [0, 1]."""
+    if image.mode in ("I;16", "I;16L", "I;16B", "I;16N", "I", "F"):
+        a = np.asarray(image).astype(np.float64)
+        if image.mode == "F":
+            a = a * 255.0
+        elif image.mode == "I" and a.max(initial=0) > 65535:  # a true 32-bit image: its own range
+            a = a * (255.0 / a.max())
+        elif image.mode != "I" or a.max(initial=0) > 255:  # 16-bit values
+            a = a / 257.0
+        grey = np.clip(np.round(a), 0, 255).astype(np.uint8)
+        return np.repeat(grey[..., None], 3, axis=-1)
+    return np.asarray(image.convert("RGB"))
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """One image file as (H, W, 3) uint8 RGB, as the camera showed it (EXIF orientation applied, see `rgb8`).
+
+    Raises:
+        ValueError: the file cannot be read as an image (truncated, not an image, unreadable), named.
+    """
+    from PIL import Image, ImageOps
+
+    try:
+        with Image.open(path) as image:
+            return rgb8(ImageOps.exif_transpose(image))
+    except Exception as e:  # Pillow raises OSError, ValueError, SyntaxError and more for a broken image
+        raise ValueError(f"cannot read frame {str(path)!r}: {type(e).__name__}: {e}") from None
+
+
+@dataclass(frozen=True)
+class Video:
+    """A video's frames, read lazily: a file (its frame rate and durations from the file) or a folder of images.
+
+    Attributes:
+        path: The file or folder.
+        starts: (N,) the time each frame comes on screen, s, from the first frame; None for a file whose frame
+            count is not known before decoding (`fps` then gives the times).
+        fps: The nominal frame rate (frames per second).
+        files: A folder's image files, in time order (None for a file).
+    """
+
+    path: Path
+    starts: np.ndarray | None
+    fps: float
+    files: tuple[Path, ...] | None = None
+
+    def describe(self) -> str:
+        n = len(self.starts) if self.starts is not None else None
+        count = "frames" if n is None else f"{n} frame{'s' * (n != 1)}"
+        return f"{str(self.path)!r} ({count} at {self.fps:.3g} fps)"
+
+    def indices_at(self, times: Sequence[float]) -> list[int]:
+        """The frame on screen at each time (s from the first frame; the nearest frame at a constant rate).
+
+        Raises:
+            ValueError: a time past the video's end, naming how long it is.
+        """
+        times = np.asarray(times, float)
+        if self.starts is None:
+            return [int(k) for k in np.round(times * self.fps + 1e-9)]
+        durations = np.diff(self.starts, append=self.starts[-1] + 1.0 / self.fps)
+        tolerance = 0.5 * float(np.median(durations))  # half a frame: at a constant rate, the nearest frame
+        picked = np.searchsorted(self.starts, times + tolerance + 1e-9, side="right") - 1
+        end = self.starts[-1] + tolerance
+        if (times > end + 1e-9).any():
+            raise ValueError(
+                f"{self.describe()} ends at {self.starts[-1]:.3g} s, but frames up to {times.max():.3g} s are "
+                "needed: give a longer video, or the right frame rate with --fps"
+            )
+        return [int(k) for k in np.maximum(picked, 0)]
+
+    def frames_at(self, times: Sequence[float]) -> list[np.ndarray]:
+        """(H, W, 3) uint8 frames on screen at `times`; a file is decoded only up to the last one needed."""
+        want = self.indices_at(times)
+        if self.files is not None:
+            cache = {k: read_image(self.files[k]) for k in sorted(set(want))}
+        else:
+            cache, n = _decode(self.path, set(want))
+            if max(want) not in cache:
+                raise ValueError(
+                    f"{self.describe()} has {n} frames ({n / self.fps:.3g} s), but frames up to {max(times):.3g} s "
+                    "are needed: give a longer video, or the right frame rate with --fps"
+                )
+        return _same_size([cache[k] for k in want], self.path)
+
+
+def open_video(path: str | Path, fps: float | None = None) -> Video:
+    """A video file (MP4, WebM, AVI, ...: what FFmpeg decodes; GIF and animated WebP/PNG with their own frame
+    durations), a single image (a one-frame video), or a folder of images (in `image_files` order, consecutive
+    frames at `fps`).
+
+    Args:
+        fps: The frame rate; required for a folder, and for a file overrides the rate stored in it.
+
+    Raises:
+        FileNotFoundError: the path does not exist.
+        ValueError: a folder without images, a file that is no readable video, or a bad `fps`.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(path))
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps = {fps}: must be a finite number > 0")
+    if path.is_dir():
+        files = image_files(path)
+        if not files:
+            raise ValueError(f"{str(path)!r} holds no frames (looked for {', '.join(IMAGE_SUFFIXES)})")
+        if fps is None:
+            raise ValueError(f"{str(path)!r} is a folder of frames: its frame rate (fps) must be given")
+        return Video(path, np.arange(len(files)) / fps, float(fps), tuple(files))
+    if path.stat().st_size == 0:
+        raise ValueError(f"{str(path)!r} is an empty file, not a video")
+    durations = _pillow_durations(path) if path.suffix.lower() in PILLOW_SUFFIXES else None
+    if durations is not None:  # an image (one frame) or an animation: its own timing unless fps is given
+        if fps is not None or len(durations) == 1 or not (durations > 0).all():
+            rate = fps or 1.0 / (float(np.median(durations)) if (durations > 0).all() else 0.1)
+            return Video(path, np.arange(len(durations)) / rate, rate)
+        return Video(path, np.concatenate([[0.0], np.cumsum(durations[:-1])]), 1.0 / float(np.median(durations)))
+    if fps is None:
+        fps = _file_rate(path)
+    return Video(path, None, float(fps))
+
+
+def read_frames(path: str | Path) -> list[np.ndarray]:
+    """Every frame of a video file, or of a folder of images, as (H, W, 3) uint8 (`Video.frames_at` reads only
+    those it needs).
+
+    Raises:
+        FileNotFoundError: the path does not exist.
+        ValueError: nothing to read, a file that cannot be decoded (named), frames of different sizes.
+    """
+    video = open_video(path, fps=1.0 if Path(path).is_dir() else None)
+    if video.files is not None:
+        return video.frames_at(video.starts)
+    got, n = _decode(video.path, None)
+    if not n:
+        raise ValueError(f"video {str(video.path)!r} has no frames")
+    return _same_size([got[k] for k in range(n)], video.path)
+
+
+def _pillow_durations(path: Path) -> np.ndarray | None:
+    """Per-frame durations (s) of an image or animation Pillow reads; None when Pillow cannot open it."""
+    from PIL import Image, ImageSequence
+
+    try:
+        with Image.open(path) as image:
+            return np.array([f.info.get("duration", 0) / 1000.0 for f in ImageSequence.Iterator(image)])
+    except Exception:  # not an image Pillow knows: a video, or a broken file that FFmpeg will name
+        return None
+
+
+def _file_rate(path: Path) -> float:
+    """The frame rate a video file states (FFmpeg through PyAV)."""
+    import imageio.v3 as iio
+
+    try:
+        meta = iio.immeta(path, plugin="pyav")
+    except Exception as e:  # PyAV raises its own error types for a file that is no video
+        raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
+    fps = meta.get("fps")
+    if not fps or not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"video {str(path)!r} states no frame rate: give it with --fps")
+    return float(fps)
+
+
+def _frames(path: Path) -> Iterator[np.ndarray]:
+    """A video file's frames as (H, W, 3) uint8, one at a time (Pillow for images and animations, else PyAV)."""
+    import imageio.v3 as iio
+
+    if path.suffix.lower() in PILLOW_SUFFIXES and _pillow_durations(path) is not None:
+        from PIL import Image, ImageSequence
+
+        with Image.open(path) as image:
+            for frame in ImageSequence.Iterator(image):
+                yield rgb8(frame)
+        return
+    for frame in iio.imiter(path, plugin="pyav"):
+        yield np.ascontiguousarray(np.asarray(frame)[..., :3].astype(np.uint8))
+
+
+def _decode(path: Path, want: set[int] | None) -> tuple[dict[int, np.ndarray], int]:
+    """The frames of `want` (indices; None: all) of a video file, decoding no further than the last of them, and
+    how many frames were decoded."""
+    last, got, n = (max(want) if want is not None else None), {}, 0
+    try:
+        for k, frame in enumerate(_frames(path)):
+            n = k + 1
+            if want is None or k in want:
+                got[k] = frame
+            if last is not None and k >= last:
+                break
+    except Exception as e:  # PyAV / Pillow raise many types for a file they cannot decode
+        raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
+    return got, n
+
+
+def _same_size(frames: list[np.ndarray], path: Path) -> list[np.ndarray]:
+    if len({f.shape for f in frames}) > 1:
+        sizes = sorted({(f.shape[1], f.shape[0]) for f in frames})
+        raise ValueError(f"frames of {str(path)!r} differ in size (width, height): {sizes}")
+    return frames

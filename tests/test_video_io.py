@@ -1,0 +1,152 @@
+"""Reading a user's frames and videos (`aynamics.video_io`), and the clip `aynamics predict` takes from them: the
+frames training showed the model, at the times it showed them."""
+
+from __future__ import annotations
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from PIL import Image
+
+from aynamics import flow, lm, video_io
+from aynamics.predict import clip_of
+
+
+def _stamped(k: int, size=(24, 32)) -> np.ndarray:
+    """A frame whose pixels all hold 8·(k mod 32): which frame a reader returned survives JPEG and H.264."""
+    return np.full((*size, 3), 8 * (k % 32), np.uint8)
+
+
+def _stamps(frames) -> list[int]:
+    return [int(round(float(f.mean()) / 8)) for f in frames]
+
+
+def _folder(path, n: int, name=lambda k: f"{k}.png"):
+    path.mkdir()
+    for k in range(n):
+        iio.imwrite(path / name(k), _stamped(k))
+    return path
+
+
+def test_image_files_in_natural_order_without_hidden_files(tmp_path):
+    """0.png … 11.png without zero-padding come in number order (name order put 10 and 11 after 1); hidden files
+    (a macOS `._0.png`, a `.thumb.png`), sub-folders and other files are not frames."""
+    folder = _folder(tmp_path / "f", 12)
+    (folder / "._0.png").write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+    iio.imwrite(folder / ".thumb.png", _stamped(31))
+    (folder / "notes.txt").write_text("x")
+    (folder / "sub.png").mkdir()
+    assert [p.name for p in video_io.image_files(folder)] == [f"{k}.png" for k in range(12)]
+    assert [p.name for p in video_io.image_files(tmp_path / "none")] == []
+    names = ["frame_10.png", "frame_9.png", "Frame_11.PNG", "frame_1.jpg"]
+    assert sorted(names, key=video_io.natural_key) == ["frame_1.jpg", "frame_9.png", "frame_10.png", "Frame_11.PNG"]
+
+
+def test_read_image_gives_rgb8_as_the_camera_showed_it(tmp_path):
+    """16-bit grey is scaled (40000 -> 156; it was wrapped to its low byte), CMYK is converted (its channels were
+    taken as RGBA), the EXIF rotation of a phone JPEG is applied, grey + alpha and palette images come as RGB."""
+    grey16 = np.full((4, 6), 40000, np.uint16)
+    Image.fromarray(grey16).save(tmp_path / "g16.png")
+    out = video_io.read_image(tmp_path / "g16.png")
+    assert out.dtype == np.uint8 and out.shape == (4, 6, 3) and (out == 156).all()  # 40000 / 257 = 155.6
+    Image.new("RGB", (6, 4), (255, 0, 0)).convert("CMYK").save(tmp_path / "cmyk.jpg", quality=100)
+    red = video_io.read_image(tmp_path / "cmyk.jpg").astype(int)
+    assert (np.abs(red - [255, 0, 0]) <= 3).all()
+    exif = Image.Exif()
+    exif[0x0112] = 6  # orientation: rotate 90° clockwise to show
+    Image.new("RGB", (6, 4), (0, 0, 0)).save(tmp_path / "phone.jpg", exif=exif)
+    assert video_io.read_image(tmp_path / "phone.jpg").shape == (6, 4, 3)  # shown 4 wide, 6 high
+    Image.new("LA", (6, 4), (200, 10)).save(tmp_path / "la.png")
+    assert (video_io.read_image(tmp_path / "la.png") == 200).all()
+    Image.new("RGB", (6, 4), (10, 20, 30)).convert("P", palette=Image.Palette.ADAPTIVE).save(tmp_path / "p.png")
+    assert video_io.read_image(tmp_path / "p.png")[0, 0].tolist() == [10, 20, 30]
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG broken")
+    with pytest.raises(ValueError, match=r"cannot read frame '.*bad\.png'"):
+        video_io.read_image(tmp_path / "bad.png")
+
+
+def test_the_clip_is_the_frames_training_showed(tmp_path):
+    """A default adapter was trained on records holding every third frame of a 30 fps video (0, 0.1, ... 0.9 s).
+    From 30 frames predict takes frames 0, 3, ..., 27 (it spread its frames over all 30 before: 0 and 29 for
+    two); from a 60 fps folder the frames at the same times; a folder of exactly 10 is the clip itself; a GIF
+    by its frame durations; an MP4 by its frame rate. Too short a video is named with its length."""
+    prompt = lm.PromptSpec()
+    assert prompt.frame_times == tuple(flow.sample_frames(30) / 30)
+    assert _stamps(clip_of(_folder(tmp_path / "v30", 30), prompt)) == list(range(0, 30, 3))
+    v60 = _folder(tmp_path / "v60", 60, name=lambda k: f"f{k}.jpg")
+    assert _stamps(clip_of(v60, prompt, fps=60)) == [k % 32 for k in range(0, 60, 6)]
+    assert _stamps(clip_of(_folder(tmp_path / "v10", 10), prompt)) == list(range(10))
+    with pytest.raises(ValueError, match=r"v20' \(20 frames at 30 fps\) ends at 0.633 s, but frames up to 0.9 s"):
+        clip_of(_folder(tmp_path / "v20", 20), prompt)
+    assert _stamps(clip_of(tmp_path / "v20", prompt, fps=20)) == [0, 2, 4, 6, 8, 10, 12, 14, 16, 18]
+    gif = [Image.fromarray(_stamped(k)) for k in range(12)]  # 100 ms each: 10 fps, 1.2 s
+    gif[0].save(tmp_path / "a.gif", save_all=True, append_images=gif[1:], duration=100, loop=0)
+    assert _stamps(clip_of(tmp_path / "a.gif", prompt)) == list(range(10))
+    iio.imwrite(
+        tmp_path / "a.mp4", np.stack([_stamped(k, (48, 64)) for k in range(31)]), plugin="pyav", codec="libx264", fps=30
+    )
+    assert _stamps(clip_of(tmp_path / "a.mp4", prompt)) == list(range(0, 30, 3))
+
+
+def test_a_video_file_is_decoded_only_as_far_as_the_clip_needs(tmp_path, monkeypatch):
+    """The clip of a 300-frame video ends at frame 27: decoding stops there (the whole file was decoded into memory
+    before: 1.7 GB for 10 s of 720p)."""
+    iio.imwrite(
+        tmp_path / "long.mp4",
+        np.stack([_stamped(k % 30, (48, 64)) for k in range(300)]),
+        plugin="pyav",
+        codec="libx264",
+        fps=30,
+    )
+    decoded = []
+    frames = video_io._frames
+
+    def counting(path):
+        for f in frames(path):
+            decoded.append(1)
+            yield f
+
+    monkeypatch.setattr(video_io, "_frames", counting)
+    assert _stamps(clip_of(tmp_path / "long.mp4", lm.PromptSpec())) == list(range(0, 30, 3))
+    assert len(decoded) == 28
+    assert len(video_io.read_frames(tmp_path / "long.mp4")) == 300
+
+
+def test_flow_clips_are_recoloured_on_their_own_scale(tmp_path):
+    """A flow-trained adapter: the 29 flow images of `aynamics render` share one scale, a generated record's
+    sampled ones theirs; the clip gets the generated colours (within 2 levels of 255), and images already on their own
+    scale come back unchanged."""
+    flows = np.zeros((29, 24, 32, 2), np.float32)
+    flows[:, 8:16, 8:20, 0] = np.arange(1.0, 30.0)[:, None, None]
+    flows[28, 8:16, 8:20, 0] = 80.0  # the fastest, not in the clip
+    folder = tmp_path / "flow"
+    folder.mkdir()
+    for k, im in enumerate(flow.flow_to_color(flows)):
+        iio.imwrite(folder / f"flow_{k:04d}.png", im)
+    got = np.stack(clip_of(folder, lm.PromptSpec(modality="flow"))).astype(int)
+    want = flow.flow_to_color(flows[0:30:3]).astype(int)
+    assert np.abs(got - want).max() <= 2
+    same = flow.flow_to_color(flows[:3])
+    assert flow.on_own_scale(same) is same
+
+
+def test_prompt_clock_checks_and_old_adapters(tmp_path):
+    """The clock is checked; an adapter written before it existed reads as the generator's default; a data set's
+    clock comes from its manifest and records."""
+    import datasets
+
+    from aynamics.data import with_clock
+
+    with pytest.raises(ValueError, match="fps = 0: must be a finite number > 0"):
+        lm.PromptSpec(fps=0)
+    with pytest.raises(ValueError, match=r"clip_frames = \[0, 3, 3\]: must be increasing"):
+        lm.PromptSpec(clip_frames=(0, 3, 3))
+    meta = lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())
+    for key in ("fps", "clip_frames"):
+        del meta["prompt"][key]
+    old = lm.specs_of_meta(meta)[1]
+    assert old.fps == 30 and old.clip_frames == tuple(range(0, 30, 3))
+    (tmp_path / "generate.json").write_text('{"config": {"fps": 60}}')
+    split = datasets.Dataset.from_dict({"frame_indices": [[0, 2, 4, 6]]})
+    clocked = with_clock(lm.PromptSpec(), tmp_path, split)
+    assert clocked.fps == 60 and clocked.clip_frames == (0, 2, 4, 6) and clocked.frame_times[-1] == 0.1
