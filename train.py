@@ -40,7 +40,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the stage described by `cfg` and return the final metrics (also written to `OUT/metrics.json`)."""
     import lightning as L
 
-    from aynamics.callbacks import SceneEvaluation, format_table
+    from aynamics.callbacks import SceneEvaluation, format_table, json_safe
 
     interval = cfg.trainer.get("val_check_interval")
     if isinstance(interval, int | float) and not interval > 0:  # Lightning divided by it after the first step
@@ -71,7 +71,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if trainer.is_global_zero:
         overrides = OmegaConf.to_container(cfg, resolve=False) if cfg.get("save_config", True) else {}
         record = {"metrics": metrics, "global_step": trainer.global_step, "config": overrides}
-        (out / "metrics.json").write_text(json.dumps(record, indent=2, default=str))
+        (out / "metrics.json").write_text(json.dumps(json_safe(record), indent=2, default=str, allow_nan=False))
         evaluation = next((c for c in callbacks if isinstance(c, SceneEvaluation)), None)
         if cfg.get("print_table", True) and evaluation is not None and evaluation.last:
             rows = {"model": evaluation.last}

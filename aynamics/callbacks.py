@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import signal
 import threading
 import warnings
@@ -362,6 +363,18 @@ class SceneEvaluation(L.Callback):
                 tb.add_image(f"val/rollout_{k}", strip, global_step=step, dataformats="HWC")
 
 
+def json_safe(value):
+    """`value` with every NaN or infinite float (a metric nothing could be computed for, e.g. EPE without observed
+    flow) as None: strict JSON readers refuse Python's bare NaN."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
+
+
 def write_predictions(path: Path, texts: Sequence[str], records: Sequence[dict], per: dict[str, list]) -> None:
     """One JSON line per record: its `index` (a video folder's name for unlabeled videos), the `prediction`, the
     `target` scene (None without one) and its metrics and `reason` (`evaluate_texts`; every key of `per`, in its
@@ -371,7 +384,7 @@ def write_predictions(path: Path, texts: Sequence[str], records: Sequence[dict],
             key = r["index"] if isinstance(r["index"], str) else int(r["index"])  # a video folder's name, or an index
             row = {"index": key, "prediction": text, "target": r.get("scene_yaml")}
             row |= {m: v[k] for m, v in per.items()}
-            f.write(json.dumps(row) + "\n")
+            f.write(json.dumps(json_safe(row), allow_nan=False) + "\n")
 
 
 def scorable_records(records: Sequence[dict], where: str = "records") -> list[dict]:

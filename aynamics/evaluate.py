@@ -38,6 +38,7 @@ from aynamics.callbacks import (
     baseline_summary,
     evaluate_texts,
     format_table,
+    json_safe,
     scorable_records,
     summarize,
     write_predictions,
@@ -322,7 +323,7 @@ def write_evaluation(out: str | Path, result: Evaluation, settings: dict) -> Pat
         per |= {f"refined_{k}": v for k, v in result.refined_per_item.items()}
     write_predictions(out / "predictions.jsonl", result.texts, result.records, per)
     meta = summary(result) | {"settings": settings}
-    (out / "metrics.json").write_text(json.dumps(meta, indent=2) + "\n")
+    (out / "metrics.json").write_text(json.dumps(json_safe(meta), indent=2, allow_nan=False) + "\n")
     return out
 
 
@@ -414,7 +415,7 @@ def run_evaluate(args) -> int:
     if args.out is not None:
         write_evaluation(args.out, result, settings)
     if args.json:
-        json.dump(summary(result), sys.stdout)
+        json.dump(summary(result), sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
     else:
         print(describe(result, args.split if args.data else None))
@@ -423,14 +424,17 @@ def run_evaluate(args) -> int:
 
 
 def summary(result: Evaluation) -> dict:
-    """What `metrics.json` and `--json` report besides the settings."""
-    return {
-        "table": result.table,
-        "scenes": len(result.records),
-        "left_out": result.left_out,
-        "split_size": result.split_size,
-        "refine_timed_out": result.refine_timed_out,
-    }
+    """What `metrics.json` and `--json` report besides the settings (a mean nothing could be computed for, e.g. EPE
+    without observed flow, as null)."""
+    return json_safe(
+        {
+            "table": result.table,
+            "scenes": len(result.records),
+            "left_out": result.left_out,
+            "split_size": result.split_size,
+            "refine_timed_out": result.refine_timed_out,
+        }
+    )
 
 
 def describe(result: Evaluation, split: str | None) -> str:

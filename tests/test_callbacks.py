@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,35 @@ def test_format_table():
     assert lines[0].split() == ["metric", "model", "average", "scene"]
     assert lines[1].split() == ["yaml_valid", "0.5000", "1.0000"]
     assert lines[2].split() == ["iou_full", "0.2500", "nan"]
+
+
+def test_metric_files_are_strict_json(tmp_path):
+    """A mean nothing could be computed for (EPE of videos without observed flow: NaN) is written as null in
+    `metrics.json`, `--json` and `predictions.jsonl`: Python's bare NaN is not JSON to other readers."""
+    from aynamics.callbacks import json_safe
+    from aynamics.evaluate import Evaluation, summary, write_evaluation
+
+    assert json_safe({"a": [1.0, math.nan, (math.inf, "x")], "b": -math.inf, "c": 2}) == {
+        "a": [1.0, None, [None, "x"]],
+        "b": None,
+        "c": 2,
+    }
+    nan = float("nan")
+    result = Evaluation(
+        table={"model": {"iou_full": 0.5, "epe_full": nan}},
+        records=[{"index": "v0"}],
+        texts=["- type: box"],
+        per_item={"iou_full": [0.5], "epe_full": [nan]},
+        split_size=1,
+    )
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"not JSON: {c}"))
+
+    out = write_evaluation(tmp_path / "eval", result, {"videos": "v"})
+    assert strict((out / "metrics.json").read_text())["table"]["model"] == {"iou_full": 0.5, "epe_full": None}
+    assert strict((out / "predictions.jsonl").read_text())["epe_full"] is None
+    assert summary(result)["table"]["model"]["epe_full"] is None
 
 
 def _moved(scene, field: str, dx: float):
