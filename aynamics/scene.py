@@ -173,6 +173,9 @@ def _fmt(x: float) -> str:
     return f"{x:g}"
 
 
+MAX_PROBLEMS_SHOWN = 20  # in the message (all are in `problems`): 45 000 bad items made a 2.7 MB line
+
+
 class SceneError(ValueError):
     """A scene text or record is invalid. `problems` lists every problem found."""
 
@@ -180,7 +183,9 @@ class SceneError(ValueError):
         self.problems = list(problems)
         n = len(self.problems)
         head = f"invalid scene ({n} problem{'s' if n != 1 else ''}): "
-        super().__init__(head + "; ".join(str(p) for p in self.problems))
+        shown = "; ".join(str(p) for p in self.problems[:MAX_PROBLEMS_SHOWN])
+        more = f"; and {n - MAX_PROBLEMS_SHOWN} more" if n > MAX_PROBLEMS_SHOWN else ""
+        super().__init__(head + shown + more)
 
 
 def _show(value: Any, limit: int = 200) -> str:
@@ -525,9 +530,10 @@ def _core_schema_numbers(table: dict) -> dict:
     """The implicit-resolver table `table` (PyYAML's, YAML 1.1) with YAML 1.2 core-schema numbers: `1e-1` and
     `2E5` are floats (1.1 reads them as strings, then "must be a number, got str"), `1:00` is not 60 (1.1's
     base 60), `010` is 10 (1.1: octal 8; `_construct_int`), `0o17` and `0x1F` are 15 and 31; `.inf` and `.nan`
-    stay floats (the fields then refuse them by name)."""
+    stay floats (the fields then refuse them by name); `2024-01-01` is a string, not a date."""
     int_tag, float_tag = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
-    out = {k: [(tag, rx) for tag, rx in v if tag not in (int_tag, float_tag)] for k, v in table.items()}
+    dropped = (int_tag, float_tag, "tag:yaml.org,2002:timestamp")  # a date is a string here (then named)
+    out = {k: [(tag, rx) for tag, rx in v if tag not in dropped] for k, v in table.items()}
     numbers = (
         (int_tag, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"), "-+0123456789"),
         (
@@ -571,11 +577,19 @@ class _UniqueKeys:
         return super().construct_mapping(node, deep=deep)
 
 
+_PLAIN_TAGS = {f"tag:yaml.org,2002:{t}" for t in ("null", "bool", "int", "float", "str", "seq", "map")}
+
+
 class _NoAliasLoader(_UniqueKeys, yaml.SafeLoader):
     """SafeLoader that refuses anchors/aliases (no alias bombs) and python/* tags (SafeLoader already does)."""
 
     yaml_implicit_resolvers = _core_schema_numbers(yaml.SafeLoader.yaml_implicit_resolvers)
-    yaml_constructors = {**yaml.SafeLoader.yaml_constructors, "tag:yaml.org,2002:int": _construct_int}
+    # plain YAML only: the tags !!binary, !!set, !!omap, !!pairs and !!timestamp made values no scene field takes
+    # (!!set {1.0, 0.5, 0.4} became a reordered size, !!binary a name); an unknown tag is a YAML error
+    yaml_constructors = {
+        **{k: v for k, v in yaml.SafeLoader.yaml_constructors.items() if k in _PLAIN_TAGS or k is None},
+        "tag:yaml.org,2002:int": _construct_int,
+    }
 
     def compose_node(self, parent, index):  # noqa: D102
         if self.check_event(yaml.AliasEvent):
@@ -647,7 +661,7 @@ def load_yaml(text: str | bytes) -> Any:
 _ANSWER = re.compile(r"<answer>(.*?)(?:</answer>|$)", re.S)
 _THINK = re.compile(r"<think>.*?(?:</think>|$)", re.S)
 _FENCE = re.compile(r"```(?:ya?ml)?\s*\n(.*?)(?:```|$)", re.S)
-_FIRST_ITEM = re.compile(r"^\s*-\s+type\s*:", re.M)
+_FIRST_ITEM = re.compile(r"^[ \t]*-[ \t]+type[ \t]*:", re.M)  # not \s: blank lines made it quadratic
 
 
 def _strip_wrappers(text: str) -> str:

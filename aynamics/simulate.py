@@ -392,6 +392,9 @@ class Rollout:
         return {"objects": objects, "valid": self.valid, "reason": self.reason}
 
 
+MAX_STEPS = 200_000  # physics steps of one rollout (each recorded): e.g. 60 s at 30 fps with 100 substeps
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Timing of a rollout: `duration` s at `fps` frames per second, `substeps` physics steps per frame."""
@@ -405,6 +408,12 @@ class SimConfig:
             raise ValueError(f"duration = {self.duration}: must be in (0, 60] s")
         if not (1 <= self.fps <= 1000) or not (1 <= self.substeps <= 1000):
             raise ValueError(f"fps = {self.fps}, substeps = {self.substeps}: must be in [1, 1000]")
+        steps = self.frames * self.substeps
+        if steps > MAX_STEPS:  # every step's state is recorded: 60 s at 1000 fps x 1000 substeps needed > 6 GB
+            raise ValueError(
+                f"duration = {self.duration} s at fps = {self.fps} with substeps = {self.substeps} is {steps} physics "
+                f"steps: at most {MAX_STEPS} (the default is {DURATION:g} s x {FPS} x {SUBSTEPS})"
+            )
         if self.frames < 1:  # MuJoCo's rollout needs at least one step
             raise ValueError(
                 f"duration = {self.duration} s at fps = {self.fps} is {self.frames} frames: need at least 1 "

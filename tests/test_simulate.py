@@ -438,6 +438,9 @@ def test_invalid_timing_is_refused():
     with pytest.raises(ValueError, match=r"duration = 0.01 s at fps = 30 is 0 frames: need at least 1"):
         sim.SimConfig(duration=0.01)  # was MuJoCo's "nstep must be positive" at the rollout
     assert sim.SimConfig(duration=0.02).frames == 1
+    with pytest.raises(ValueError, match=r"fps = 1000 with substeps = 1000 is 60000000 physics steps: at most 200000"):
+        sim.SimConfig(duration=60, fps=1000, substeps=1000)  # each factor in range; > 6 GB of recorded states
+    assert sim.SimConfig(duration=60, fps=30, substeps=100).frames == 1800
 
 
 def test_contact_intervals_of_interleaved_pairs():
