@@ -661,7 +661,8 @@ def load_yaml(text: str | bytes) -> Any:
 _ANSWER = re.compile(r"<answer>(.*?)(?:</answer>|$)", re.S)
 _THINK = re.compile(r"<think>.*?(?:</think>|$)", re.S)
 _FENCE = re.compile(r"```(?:ya?ml)?\s*\n(.*?)(?:```|$)", re.S)
-_FIRST_ITEM = re.compile(r"^[ \t]*-[ \t]+type[ \t]*:", re.M)  # not \s: blank lines made it quadratic
+# `- type:`, or `-` alone then `type:` on the next line; not \s*: runs of blank lines made the search quadratic
+_FIRST_ITEM = re.compile(r"^[ \t]*-(?:[ \t]+|[ \t]*\n[ \t]+)type[ \t]*:", re.M)
 
 
 def _strip_wrappers(text: str) -> str:

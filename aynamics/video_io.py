@@ -82,12 +82,15 @@ class Video:
             count is not known before decoding (`fps` then gives the times).
         fps: The nominal frame rate (frames per second).
         files: A folder's image files, in time order (None for a file).
+        end: When the last frame leaves the screen, s (an animation's last duration); None: half a frame after
+            it comes (a constant rate: the nearest frame must exist).
     """
 
     path: Path
     starts: np.ndarray | None
     fps: float
     files: tuple[Path, ...] | None = None
+    end: float | None = None
 
     def describe(self) -> str:
         n = len(self.starts) if self.starts is not None else None
@@ -106,10 +109,11 @@ class Video:
         durations = np.diff(self.starts, append=self.starts[-1] + 1.0 / self.fps)
         tolerance = 0.5 * float(np.median(durations))  # half a frame: at a constant rate, the nearest frame
         picked = np.searchsorted(self.starts, times + tolerance + 1e-9, side="right") - 1
-        end = self.starts[-1] + tolerance
+        end = self.end if self.end is not None else self.starts[-1] + tolerance  # constant rate: the nearest frame
         if (times > end + 1e-9).any():
+            length = self.end if self.end is not None else self.starts[-1] + 1.0 / self.fps
             raise ValueError(
-                f"{self.describe()} ends at {self.starts[-1]:.3g} s, but frames up to {times.max():.3g} s are "
+                f"{self.describe()} lasts {length:.3g} s, but frames up to {times.max():.3g} s are "
                 "needed: give a longer video, or the right frame rate with --fps"
             )
         return [int(k) for k in np.maximum(picked, 0)]
@@ -156,11 +160,14 @@ def open_video(path: str | Path, fps: float | None = None) -> Video:
     if path.stat().st_size == 0:
         raise ValueError(f"{str(path)!r} is an empty file, not a video")
     durations = _pillow_durations(path) if path.suffix.lower() in PILLOW_SUFFIXES else None
-    if durations is not None:  # an image (one frame) or an animation: its own timing unless fps is given
-        if fps is not None or len(durations) == 1 or not (durations > 0).all():
-            rate = fps or 1.0 / (float(np.median(durations)) if (durations > 0).all() else 0.1)
+    if durations is not None:  # an image (one frame) or an animation: its own timing
+        if len(durations) == 1 or not (durations > 0).all():  # no timing stored: 10 fps unless fps is given
+            rate = fps or 10.0
             return Video(path, np.arange(len(durations)) / rate, rate)
-        return Video(path, np.concatenate([[0.0], np.cumsum(durations[:-1])]), 1.0 / float(np.median(durations)))
+        if fps is not None:  # its typical frame lasts 1 / fps; a long one (still frames merged on saving) longer
+            durations = durations / (float(np.median(durations)) * fps)
+        starts = np.concatenate([[0.0], np.cumsum(durations[:-1])])
+        return Video(path, starts, 1.0 / float(np.median(durations)), end=float(starts[-1] + durations[-1]))
     if fps is None:
         fps = _file_rate(path)
     return Video(path, None, float(fps))
@@ -189,7 +196,11 @@ def _pillow_durations(path: Path) -> np.ndarray | None:
 
     try:
         with Image.open(path) as image:
-            return np.array([f.info.get("duration", 0) / 1000.0 for f in ImageSequence.Iterator(image)])
+            durations = []
+            for frame in ImageSequence.Iterator(image):
+                frame.load()  # WebP sets the duration on loading, GIF and APNG on seeking
+                durations.append(frame.info.get("duration", 0) / 1000.0)
+            return np.array(durations)
     except Exception:  # not an image Pillow knows: a video, or a broken file that FFmpeg will name
         return None
 

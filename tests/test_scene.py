@@ -425,6 +425,8 @@ def test_prose_of_blank_lines_is_read_in_linear_time():
     with pytest.raises(S.SceneError, match="must be a YAML list of items"):
         S.parse("a\n" + "\n" * 199_990)
     assert time.perf_counter() - t < 5.0
+    split_items = S.dump(S.parse(OK_BOX + CAMERA)).replace("- type:", "-\n  type:")  # `-` alone, then the keys
+    assert S.parse(f"The scene:\n{split_items}\nThat's all.") == S.parse(OK_BOX + CAMERA)
 
 
 def test_the_message_names_the_first_problems_and_counts_the_rest():

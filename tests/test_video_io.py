@@ -76,12 +76,22 @@ def test_the_clip_is_the_frames_training_showed(tmp_path):
     v60 = _folder(tmp_path / "v60", 60, name=lambda k: f"f{k}.jpg")
     assert _stamps(clip_of(v60, prompt, fps=60)) == [k % 32 for k in range(0, 60, 6)]
     assert _stamps(clip_of(_folder(tmp_path / "v10", 10), prompt)) == list(range(10))
-    with pytest.raises(ValueError, match=r"v20' \(20 frames at 30 fps\) ends at 0.633 s, but frames up to 0.9 s"):
+    with pytest.raises(ValueError, match=r"v20' \(20 frames at 30 fps\) lasts 0.667 s, but frames up to 0.9 s"):
         clip_of(_folder(tmp_path / "v20", 20), prompt)
     assert _stamps(clip_of(tmp_path / "v20", prompt, fps=20)) == [0, 2, 4, 6, 8, 10, 12, 14, 16, 18]
     gif = [Image.fromarray(_stamped(k)) for k in range(12)]  # 100 ms each: 10 fps, 1.2 s
     gif[0].save(tmp_path / "a.gif", save_all=True, append_images=gif[1:], duration=100, loop=0)
     assert _stamps(clip_of(tmp_path / "a.gif", prompt)) == list(range(10))
+    still = [Image.fromarray(_stamped(min(k, 7))) for k in range(12)]  # at rest from 0.7 s: Pillow merges 7..11
+    still[0].save(tmp_path / "still.gif", save_all=True, append_images=still[1:], duration=100, loop=0)
+    assert len(video_io.open_video(tmp_path / "still.gif").starts) == 8  # the last frame lasts 0.5 s
+    assert _stamps(clip_of(tmp_path / "still.gif", prompt)) == [0, 1, 2, 3, 4, 5, 6, 7, 7, 7]  # was "ends at 0.75 s"
+    assert _stamps(clip_of(tmp_path / "still.gif", prompt, fps=4)) == [0, 0, 1, 1, 2, 2, 2, 3, 3, 4]  # 0.25 s each
+    with pytest.raises(ValueError, match=r"still.gif' \(8 frames at 20 fps\) lasts 0.6 s"):  # the still: 0.25 s
+        clip_of(tmp_path / "still.gif", prompt, fps=20)
+    webp = [Image.fromarray(_stamped(k)) for k in range(20)]  # 50 ms each: WebP sets durations on loading
+    webp[0].save(tmp_path / "a.webp", save_all=True, append_images=webp[1:], duration=50, lossless=True)
+    assert _stamps(clip_of(tmp_path / "a.webp", prompt)) == list(range(0, 20, 2))  # read as 10 fps before: 0..9
     iio.imwrite(
         tmp_path / "a.mp4", np.stack([_stamped(k, (48, 64)) for k in range(31)]), plugin="pyav", codec="libx264", fps=30
     )
