@@ -52,13 +52,9 @@ def clip_of(path: str | Path, prompt, fps: float | None = None) -> list[np.ndarr
     from aynamics.flow import on_own_scale
 
     path = Path(path)
-    if fps is None and path.is_dir():
-        n = len(video_io.image_files(path))
-        fps = prompt.fps if n != len(prompt.clip_frames) else None
-        times = prompt.frame_times if fps is not None else range(len(prompt.clip_frames))
-        video = video_io.open_video(path, fps=fps or 1.0)  # the clip itself: image k at "time" k
-    else:
-        video, times = video_io.open_video(path, fps=fps), prompt.frame_times
+    video, times = video_io.open_video(path, fps=fps or (prompt.fps if path.is_dir() else None)), prompt.frame_times
+    if fps is None and video.files is not None and len(video.files) == len(prompt.clip_frames):
+        times = video.starts  # the clip itself: every image
     frames = video.frames_at(times)
     if prompt.modality == "flow":
         frames = list(on_own_scale(np.stack(frames)))

@@ -29,7 +29,7 @@ from PIL import Image
 
 from aynamics.flow import decode_flow_colors, on_own_scale
 from aynamics.scorer import Observation, scoring_size
-from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image
+from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image, same_size
 
 # Columns of a generated record that the PRO stage may read; everything else (the labels) is dropped on loading.
 OBSERVED_COLUMNS = ("index", "rgb", "flow", "flow_max", "segmentation", "frame_indices")
@@ -215,11 +215,7 @@ def video_from_folder(
             f"{str(chosen[0])!r}: {w}×{h} pixels, another aspect ratio than the masks' {full_w}×{full_h}: the scenes "
             "would be scored in another view than the model saw"
         )
-    for f, im in zip(chosen, images, strict=True):
-        if im.shape[:2] != (h, w):
-            raise ValueError(
-                f"{str(f)!r}: {im.shape[1]}×{im.shape[0]} pixels, unlike the {w}×{h} of {str(chosen[0])!r}"
-            )
+    same_size(images, [repr(str(f)) for f in chosen])
     if inputs == "flow":  # on the scale of the images the model sees, as generated records are
         images = list(on_own_scale(np.stack(images)))
     frames = tuple(Image.fromarray(im) for im in images)

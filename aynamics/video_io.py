@@ -84,6 +84,7 @@ class Video:
         files: A folder's image files, in time order (None for a file).
         end: When the last frame leaves the screen, s (an animation's last duration); None: half a frame after
             it comes (a constant rate: the nearest frame must exist).
+        pillow: A file Pillow reads (an image or an animation), else one FFmpeg decodes.
     """
 
     path: Path
@@ -91,6 +92,7 @@ class Video:
     fps: float
     files: tuple[Path, ...] | None = None
     end: float | None = None
+    pillow: bool = False
 
     def describe(self) -> str:
         n = len(self.starts) if self.starts is not None else None
@@ -124,13 +126,17 @@ class Video:
         if self.files is not None:
             cache = {k: read_image(self.files[k]) for k in sorted(set(want))}
         else:
-            cache, n = _decode(self.path, set(want))
+            cache, n = _decode(self.path, set(want), self.pillow)
             if max(want) not in cache:
                 raise ValueError(
                     f"{self.describe()} has {n} frames ({n / self.fps:.3g} s), but frames up to {max(times):.3g} s "
                     "are needed: give a longer video, or the right frame rate with --fps"
                 )
-        return _same_size([cache[k] for k in want], self.path)
+        return same_size([cache[k] for k in want], [self.name(k) for k in want])
+
+    def name(self, k: int) -> str:
+        """Frame `k` as an error message names it: its file, or its place in the video file."""
+        return repr(str(self.files[k])) if self.files is not None else f"frame {k} of {str(self.path)!r}"
 
 
 def open_video(path: str | Path, fps: float | None = None) -> Video:
@@ -163,11 +169,12 @@ def open_video(path: str | Path, fps: float | None = None) -> Video:
     if durations is not None:  # an image (one frame) or an animation: its own timing
         if len(durations) == 1 or not (durations > 0).all():  # no timing stored: 10 fps unless fps is given
             rate = fps or 10.0
-            return Video(path, np.arange(len(durations)) / rate, rate)
+            return Video(path, np.arange(len(durations)) / rate, rate, pillow=True)
         if fps is not None:  # its typical frame lasts 1 / fps; a long one (still frames merged on saving) longer
             durations = durations / (float(np.median(durations)) * fps)
         starts = np.concatenate([[0.0], np.cumsum(durations[:-1])])
-        return Video(path, starts, 1.0 / float(np.median(durations)), end=float(starts[-1] + durations[-1]))
+        rate = 1.0 / float(np.median(durations))
+        return Video(path, starts, rate, end=float(starts[-1] + durations[-1]), pillow=True)
     if fps is None:
         fps = _file_rate(path)
     return Video(path, None, float(fps))
@@ -184,10 +191,10 @@ def read_frames(path: str | Path) -> list[np.ndarray]:
     video = open_video(path, fps=1.0 if Path(path).is_dir() else None)
     if video.files is not None:
         return video.frames_at(video.starts)
-    got, n = _decode(video.path, None)
+    got, n = _decode(video.path, None, video.pillow)
     if not n:
         raise ValueError(f"video {str(video.path)!r} has no frames")
-    return _same_size([got[k] for k in range(n)], video.path)
+    return same_size([got[k] for k in range(n)], [video.name(k) for k in range(n)])
 
 
 def _pillow_durations(path: Path) -> np.ndarray | None:
@@ -219,11 +226,11 @@ def _file_rate(path: Path) -> float:
     return float(fps)
 
 
-def _frames(path: Path) -> Iterator[np.ndarray]:
+def _frames(path: Path, pillow: bool) -> Iterator[np.ndarray]:
     """A video file's frames as (H, W, 3) uint8, one at a time (Pillow for images and animations, else PyAV)."""
     import imageio.v3 as iio
 
-    if path.suffix.lower() in PILLOW_SUFFIXES and _pillow_durations(path) is not None:
+    if pillow:
         from PIL import Image, ImageSequence
 
         with Image.open(path) as image:
@@ -234,12 +241,12 @@ def _frames(path: Path) -> Iterator[np.ndarray]:
         yield np.ascontiguousarray(np.asarray(frame)[..., :3].astype(np.uint8))
 
 
-def _decode(path: Path, want: set[int] | None) -> tuple[dict[int, np.ndarray], int]:
-    """The frames of `want` (indices; None: all) of a video file, decoding no further than the last of them, and
-    how many frames were decoded."""
+def _decode(path: Path, want: set[int] | None, pillow: bool) -> tuple[dict[int, np.ndarray], int]:
+    """The frames of `want` (indices; None: all) of a video file (`pillow`: one Pillow reads), decoding no further
+    than the last of them, and how many frames were decoded."""
     last, got, n = (max(want) if want is not None else None), {}, 0
     try:
-        for k, frame in enumerate(_frames(path)):
+        for k, frame in enumerate(_frames(path, pillow)):
             n = k + 1
             if want is None or k in want:
                 got[k] = frame
@@ -250,8 +257,14 @@ def _decode(path: Path, want: set[int] | None) -> tuple[dict[int, np.ndarray], i
     return got, n
 
 
-def _same_size(frames: list[np.ndarray], path: Path) -> list[np.ndarray]:
-    if len({f.shape for f in frames}) > 1:
-        sizes = sorted({(f.shape[1], f.shape[0]) for f in frames})
-        raise ValueError(f"frames of {str(path)!r} differ in size (width, height): {sizes}")
+def same_size(frames: Sequence[np.ndarray], names: Sequence[str]) -> Sequence[np.ndarray]:
+    """`frames` (H, W, 3), checked to share one size; `names` say where each came from (a file's repr).
+
+    Raises:
+        ValueError: the first frame of another size than the first, named with both sizes.
+    """
+    h, w = frames[0].shape[:2]
+    for name, frame in zip(names, frames, strict=True):
+        if frame.shape[:2] != (h, w):
+            raise ValueError(f"{name}: {frame.shape[1]}×{frame.shape[0]} pixels, unlike the {w}×{h} of {names[0]}")
     return frames

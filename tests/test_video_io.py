@@ -111,8 +111,8 @@ def test_a_video_file_is_decoded_only_as_far_as_the_clip_needs(tmp_path, monkeyp
     decoded = []
     frames = video_io._frames
 
-    def counting(path):
-        for f in frames(path):
+    def counting(path, pillow):
+        for f in frames(path, pillow):
             decoded.append(1)
             yield f
 
