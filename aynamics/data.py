@@ -532,8 +532,8 @@ class SceneDataModule(L.LightningDataModule):
         self.splits = load_splits(self.dir)
         if len(self.splits["train"]) == 0:
             raise ValueError(f"data.dir = {self.dir!r}: the train split is empty")
-        n_stored = len(used_columns(self.splits["train"], ("frame_indices",))[0]["frame_indices"])  # no image decoded
-        self.prompt = with_clock(self.prompt, self.dir, self.splits["train"])
+        self.prompt = with_clock(self.prompt, self.dir, self.splits["train"])  # no image decoded
+        n_stored = len(self.prompt.clip_frames)  # the frames a record stores
         if self.prompt.num_frames > n_stored:
             raise ValueError(
                 f"data.num_frames = {self.prompt.num_frames}: the scenes in data.dir = {self.dir!r} store {n_stored} "
