@@ -255,20 +255,14 @@ def evaluate_videos(
     n = len(found) if num is None else min(num, len(found))
 
     def item(folder: Path) -> list[dict]:
-        try:
-            video = video_from_folder(folder, inputs=prompt.modality)  # read in its turn: --num reads only those
-        except (FileNotFoundError, ValueError) as e:  # one bad folder never stops the evaluation
+        try:  # read in its turn: --num reads only those
+            video = video_from_folder(folder, inputs=prompt.modality)
+            inputs = lm.prompt_inputs(processor, prompt, list(video.frames))
+        except (OSError, ValueError) as e:  # one bad folder never stops the evaluation (FileNotFoundError: OSError)
             reason = missing_file_message(e) if isinstance(e, FileNotFoundError) else str(e)
             warnings.warn(f"scene evaluation: video folder {str(folder)!r} is left out: {reason}", stacklevel=2)
             return []
-        frames = list(video.frames)
-        return [
-            {
-                "index": video.key,
-                "prompt": lm.prompt_inputs(processor, prompt, frames),
-                "observation": video.observation,
-            }
-        ]
+        return [{"index": video.key, "prompt": inputs, "observation": video.observation}]
 
     items = (item(folder) for folder in found[:n])
     records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, "evaluate videos", progress)

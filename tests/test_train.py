@@ -83,8 +83,10 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys)
 def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path, modality: str) -> None:
     """`aynamics evaluate --videos` on 2 folders written by `aynamics render` (frames/ and flow/ images,
     segmentation.npy): one row per video, named by its folder, no target, and the metrics that need no label; a
-    third folder missing one of the images the adapter reads (frames, or flow images) is named and left out."""
+    third folder missing one of the images the adapter reads (frames, or flow images) and a fourth whose images the
+    processor refuses (600x2 pixels) are named and left out."""
     import datasets
+    from PIL import Image
 
     from aynamics.cli import main
     from aynamics.render import gl_available
@@ -100,6 +102,11 @@ def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path, modalit
     shutil.copytree(videos / "v1", videos / "v2")
     images = "frames" if modality == "rgb" else "flow"
     sorted((videos / "v2" / images).iterdir())[5].unlink()  # one image missing: left out, named, the rest scored
+    shutil.copytree(videos / "v1", videos / "v3")  # 600x2 frames and masks: read, then refused by the processor
+    np.save(videos / "v3" / "segmentation.npy", np.zeros((30, 2, 600), np.int16))
+    (videos / "v3" / "flow.npy").unlink()
+    for f in (videos / "v3" / images).iterdir():
+        Image.new("RGB", (600, 2)).save(f)
     stdout, stderr = io.StringIO(), io.StringIO()
     args = ["evaluate", "--adapter", str(run / "adapter"), "--videos", str(videos), "--max-new-tokens", "16"]
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
@@ -107,7 +114,8 @@ def _evaluate_scores_videos_without_labels(run: Path, dataset_dir: Path, modalit
     assert f"evaluate: video folder {str(videos / 'v2')!r} is left out: " in stderr.getvalue()
     every = 30 if modality == "rgb" else 29  # the segmentation's frames, or the flow images between them
     assert f"{every - 1} images; need one for every video frame ({every}: the segmentation has 30" in stderr.getvalue()
-    assert json.loads(stdout.getvalue())["left_out"] == 1
+    assert f"evaluate: video folder {str(videos / 'v3')!r} is left out: absolute aspect ratio" in stderr.getvalue()
+    assert json.loads(stdout.getvalue())["left_out"] == 2
     table = json.loads(stdout.getvalue())["table"]
     assert set(table) == {"model"}  # no average scene without training scenes
     assert set(table["model"]) == {"yaml_valid", "sim_valid", "iou_first", "iou_full", "epe_first", "epe_full"}
