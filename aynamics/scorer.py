@@ -1,7 +1,7 @@
 """The fast scorer: K candidate scenes against one observed video, without OpenGL.
 
 Candidates are grouped by structure and simulated together on MuJoCo's threaded `Batch`; the same Batch then
-ray-casts every candidate's segmentation and depth (`Batch.ray`, one ray per pixel centre) at a reduced
+ray-casts every candidate's segmentation and depth (`Batch.ray`, one ray per scorer pixel) at a reduced
 resolution at the sampled frames (`scoring_size`: the video's aspect ratio at 80 rows, 120×80 for 480×320
 and for a scene), each candidate from its OWN camera; the exact motion field
 follows from depth and the poses at frames k and k + 1 (see `aynamics.raycast` and `aynamics.flow`). Metrics are
@@ -24,8 +24,9 @@ Observed folder layout (what `aynamics render --out DIR` writes; all frames are 
     occlusion.npy       optional (T-1, H, W) bool, True where the observed flow is occluded
     meta.json           optional {"names": [...], "fps": 30}: object names for matching by name
 The sampled frames are `sample_frames(T)`; masks and flow are resampled to the scorer's resolution by taking the
-pixel nearest each low-resolution pixel centre (flow vectors scaled by the width ratio); a video of fewer than 80
-rows is scored at its own size.
+pixel nearest each low-resolution pixel centre (flow vectors scaled by the width ratio), and candidates are cast
+through those video pixels' centres (`raycast.SampleGrid`), so a true scene meets its own masks exactly; a video
+of fewer than 80 rows is scored at its own size.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ import numpy as np
 from aynamics import metrics
 from aynamics import simulate as sim
 from aynamics.flow import sample_frames
-from aynamics.raycast import Cast, cast_group
+from aynamics.raycast import Cast, SampleGrid, cast_group
 from aynamics.scene import Scene, SceneError, parse
 from aynamics.video_io import image_files
 
@@ -89,6 +90,8 @@ class Observation:
         names: object names for matching by name, or None.
         fps: frames per second of the video.
         video_shape: (T, H, W) of the full video it was read from (`from_dir`: every frame's masks), or None.
+        grid: where each pixel was taken from a larger video (`raycast.SampleGrid`: candidates are cast at the same
+            points), or None: at its own pixel centres.
     """
 
     segmentation: np.ndarray
@@ -100,9 +103,12 @@ class Observation:
     names: tuple[str, ...] | None = None
     fps: int = sim.FPS
     video_shape: tuple[int, int, int] | None = None
+    grid: SampleGrid | None = None
 
     def __post_init__(self):
         f = len(self.frames)
+        if self.grid is not None and (len(self.grid.u), len(self.grid.v)) != (self.width, self.height):
+            raise ValueError(f"sample grid of {len(self.grid.u)}×{len(self.grid.v)} for {self.width}×{self.height}")
         if self.segmentation.shape != (f, self.height, self.width):
             raise ValueError(
                 f"segmentation shape {self.segmentation.shape} != (frames, h, w) = {(f, self.height, self.width)}"
@@ -156,9 +162,8 @@ class Observation:
         n_frames, full_h, full_w = seg.shape
         width, height = scoring_size(full_w, full_h, width, height)
         frames = sample_frames(n_frames)
-        rows = ((np.arange(height) + 0.5) * full_h / height).astype(int)
-        cols = ((np.arange(width) + 0.5) * full_w / width).astype(int)
-        sub = np.ix_(frames, rows, cols)
+        grid = SampleGrid.nearest(full_w, full_h, width, height)
+        sub = np.ix_(frames, grid.rows, grid.columns)
         flow = occluded = None
         if (root / "flow.npy").is_file():
             full_flow = _load_npy(root / "flow.npy", float)
@@ -199,7 +204,7 @@ class Observation:
                 raise ValueError(
                     f"{root / 'meta.json'}: fps = {fps!r}: must be a whole number of frames per second >= 1"
                 )
-        return cls(seg[sub].astype(np.int16), frames, width, height, flow, occluded, names, fps, seg.shape)
+        return cls(seg[sub].astype(np.int16), frames, width, height, flow, occluded, names, fps, seg.shape, grid)
 
 
 def scoring_size(full_w: int, full_h: int, width: int | None = None, height: int | None = None) -> tuple[int, int]:
@@ -385,6 +390,7 @@ def score(candidates: Sequence[Scene | str], observed: Observation, *, nthread: 
                 observed.height,
                 observed.config,
                 nthread,
+                grid=observed.grid,
             )
             bounds = np.searchsorted(cast.hits.c, np.arange(len(idx) + 1))  # hits are sorted by candidate
             for j, k in enumerate(idx):

@@ -28,6 +28,7 @@ import torch
 from PIL import Image
 
 from aynamics.flow import decode_flow_colors, on_own_scale
+from aynamics.raycast import SampleGrid
 from aynamics.scorer import Observation, scoring_size
 from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image, same_size
 
@@ -49,11 +50,6 @@ class UnlabeledVideo:
     key: str
     frames: tuple[Image.Image, ...]
     observation: Observation
-
-
-def _nearest(full: int, low: int) -> np.ndarray:
-    """Index of the full-resolution pixel nearest each low-resolution pixel centre (as `Observation.from_dir`)."""
-    return ((np.arange(low) + 0.5) * full / low).astype(int)
 
 
 def observation_from_record(
@@ -80,7 +76,8 @@ def observation_from_record(
         raise ValueError(f"record {key}: segmentation masks must be grey images of one size, got {masks[0].shape}")
     full_h, full_w = masks[0].shape
     width, height = scoring_size(full_w, full_h, width, height)
-    rows, cols = _nearest(full_h, height), _nearest(full_w, width)
+    grid = SampleGrid.nearest(full_w, full_h, width, height)  # as `Observation.from_dir`
+    rows, cols = grid.rows, grid.columns
     seg = np.stack(masks)[:, rows][:, :, cols].astype(np.int16) - 1  # (F, h, w), -1 background
     flow = None
     if use_flow and record.get("flow"):
@@ -91,7 +88,7 @@ def observation_from_record(
             raise ValueError(f"record {key}: flow images {images.shape[:3]} != masks {(len(frames), full_h, full_w)}")
         sub = images[:, rows][:, :, cols]
         flow = decode_flow_colors(sub, float(record.get("flow_max") or 0.0)) * (width / full_w)
-    return Observation(seg, frames, width, height, flow)
+    return Observation(seg, frames, width, height, flow, grid=grid)
 
 
 def video_from_record(

@@ -96,6 +96,24 @@ def test_observed_folder_flow_is_resampled_and_rescaled(tmp_path):
     assert err < 0.05 * np.linalg.norm(direct.flow[on], axis=-1).mean()
 
 
+@pytest.mark.parametrize("full", [(480, 320), (300, 200)])
+def test_true_scene_meets_its_own_masks_read_from_a_larger_video(tmp_path, full):
+    """A folder of the scene's masks and flow at 480×320 (or 300×200: 2.5 video pixels per scorer pixel), read at
+    the scorer's 120×80, keeps the video pixel nearest each scorer pixel; candidates are cast at those pixels'
+    centres, so the true scene scores IoU 1 and EPE 0 against it. Cast at the 120×80 pixel centres it scored full
+    IoU 0.961 / 0.957 and EPE 0.035 / 0.027 px (measured on this scene before the sample grid)."""
+    obs_full = scorer.Observation.from_scene(SCENE, width=full[0], height=full[1], frames=np.arange(30))
+    np.save(tmp_path / "segmentation.npy", obs_full.segmentation)
+    np.save(tmp_path / "flow.npy", obs_full.flow[:29])
+    np.save(tmp_path / "occlusion.npy", obs_full.occluded[:29])
+    obs = scorer.Observation.from_dir(tmp_path)
+    assert (obs.width, obs.height) == (120, 80)
+    np.testing.assert_array_equal(obs.grid.columns, ((np.arange(120) + 0.5) * full[0] / 120).astype(int))
+    (got,) = scorer.score([SCENE], obs)
+    assert got.valid and got.iou_first == got.iou_full == 1.0
+    assert got.epe_first < 1e-4 and got.epe_full < 1e-4
+
+
 def test_iou_falls_monotonically_with_position_error(observed):
     scores = scorer.score([_moved(SCENE, dx) for dx in (0.0, 0.05, 0.1, 0.2, 0.4, 0.8)], observed)
     ious = [s.iou_full for s in scores]
