@@ -393,6 +393,7 @@ def scorable_records(records: Sequence[dict], where: str = "records") -> list[di
     warning naming its index among `where` (e.g. "validation records of data.dir = 'DIR'"): it never stops a
     training run or an evaluation."""
     from aynamics.scorer import Observation, scoring_size
+    from aynamics.simulate import FPS
 
     out = []
     for r in records:
@@ -401,7 +402,9 @@ def scorable_records(records: Sequence[dict], where: str = "records") -> list[di
             # The video's aspect ratio: the camera's field of view is vertical, so at another width the scene
             # would be scored in a wider or narrower view than the model saw.
             width, height = scoring_size(*r["size"])
-            observation = Observation.from_scene(scene, width=width, height=height)
+            observation = Observation.from_scene(
+                scene, width=width, height=height, frames=r.get("frames"), fps=r.get("fps", FPS)
+            )
         except (SceneError, ValueError) as e:
             warnings.warn(
                 f"scene evaluation: record {r['index']} of the {where} is left out: its scene_yaml cannot be "

@@ -67,15 +67,10 @@ def with_clock(prompt: lm.PromptSpec, path: str | Path, split) -> lm.PromptSpec:
     """`prompt` with the frame rate and clip frames of a generated data set's videos (its manifest's `config.fps`,
     the first record's `frame_indices`): what `aynamics predict` picks from a user's video."""
     import dataclasses
-    import json
 
-    from aynamics.dataset_store import MANIFEST
+    from aynamics.dataset_store import dataset_fps
 
-    fps = prompt.fps
-    try:
-        fps = float(json.loads((Path(path) / MANIFEST).read_text())["config"]["fps"])
-    except (OSError, ValueError, KeyError, TypeError):  # a data set made otherwise: the generator's rate
-        pass
+    fps = float(dataset_fps(path) or prompt.fps)  # a data set made otherwise: the generator's rate
     frames = used_columns(split, ("frame_indices",))[0].get("frame_indices") if len(split) else None
     return dataclasses.replace(prompt, fps=fps, clip_frames=tuple(frames) if frames else prompt.clip_frames)
 
@@ -632,7 +627,7 @@ class SceneDataModule(L.LightningDataModule):
         """A fixed subset for generation: the first `n` records' prompt (unbatched), scene text and the frames'
         (width, height) in pixels (`size`: the view the scene is scored in). A record whose frames cannot be read is
         left out with a warning (`readable_eval_record`)."""
-        columns = ("index", "scene_yaml", self.prompt.modality)  # decode only these (a broken column unread)
+        columns = ("index", "scene_yaml", "frame_indices", self.prompt.modality)  # decode only these
         ds, where = used_columns(self.splits[split], columns), f"{split} records of data.dir = {self.dir!r}"
         found = (readable_eval_record(ds, i, self.processor, self.prompt, where) for i in range(min(n, len(ds))))
         return [r for r in found if r is not None]
@@ -650,14 +645,19 @@ def readable_eval_record(split, i: int, processor, prompt: lm.PromptSpec, where:
 
 def eval_record(record: dict[str, Any], processor, prompt: lm.PromptSpec, position: int = 0) -> dict[str, Any]:
     """What generating for and scoring one data-set record needs: its `index` (`position` in the split when the
-    record has none), the unbatched `prompt`, the `scene_yaml` and the frames' (width, height) `size` in pixels
-    (the view the scene is scored in)."""
+    record has none), the unbatched `prompt`, the `scene_yaml`, the frames' (width, height) `size` in pixels (the
+    view the scene is scored in), and when they were taken: the video `frames` the model sees (the record's
+    `frame_indices`, None when it has none: the scorer's default) at `fps` (the prompt's clock: `with_clock` sets
+    it to the data set's rate). The scene is scored at those frames, the times the model saw."""
     frames = frames_of(record, prompt.modality)
+    shown = record.get("frame_indices")
     return {
         "index": record.get("index", position),
         "prompt": lm.prompt_inputs(processor, prompt, frames),
         "scene_yaml": record["scene_yaml"],
         "size": tuple(frames[0].size),
+        "frames": None if shown is None else tuple(int(k) for k in shown),
+        "fps": round(prompt.fps),
     }
 
 

@@ -24,6 +24,16 @@ SPLITS = ("train", "validation", "test")
 MANIFEST = "generate.json"
 
 
+def dataset_fps(path: str | Path) -> int | None:
+    """The frame rate of a generated data set's videos (its manifest's `config.fps`), or None for a data set made
+    otherwise (no manifest, or one without it)."""
+    try:
+        fps = json.loads((Path(path) / MANIFEST).read_text())["config"]["fps"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return int(fps) if isinstance(fps, int | float) and not isinstance(fps, bool) and fps >= 1 else None
+
+
 def features():
     """The `datasets.Features` of a record (see `aynamics.generate` for what each column holds)."""
     from datasets import Features, Image, List, Value

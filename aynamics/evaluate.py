@@ -196,7 +196,8 @@ def evaluate_adapter(
             f"(trained with data.modality = {prompt.modality!r}) reads"
         )
     processor = lm.load_processor(spec, prompt)
-    rows = data.used_columns(splits[split], ("index", "scene_yaml", prompt.modality))  # decode only these
+    prompt = data.with_clock(prompt, data_dir, splits[split])  # the scenes are scored on the data set's clock
+    rows = data.used_columns(splits[split], ("index", "scene_yaml", "frame_indices", prompt.modality))
     n = len(rows) if num is None else min(num, len(rows))
     where = f"{split} records of --data {str(data_dir)!r}"
     found = (data.readable_eval_record(rows, i, processor, prompt, where) for i in range(n))

@@ -132,19 +132,21 @@ class Observation:
         width: int = WIDTH,
         height: int = HEIGHT,
         frames: Sequence[int] | None = None,
+        fps: int = sim.FPS,
         nthread: int | None = None,
     ) -> Observation:
-        """Observe a scene by the scorer's own ray casting (so a scene scored against itself is exact).
+        """Observe a scene by the scorer's own ray casting (so a scene scored against itself is exact), at video
+        `frames` (default `sample_frames(30)`) of a video at `fps`.
 
         Raises:
             ValueError: the scene's rollout is invalid (diverged), with the simulator's reason.
         """
         frames = sample_frames(VIDEO_FRAMES) if frames is None else np.asarray(frames, int)
-        shell = cls(np.zeros((len(frames), height, width), np.int16), frames, width, height)
+        shell = cls(np.zeros((len(frames), height, width), np.int16), frames, width, height, fps=fps)
         out = cast_group([scene], scene.structure, frames, width, height, shell.config, nthread, with_next=True)
         if out.reasons[0] is not None:
             raise ValueError(f"observed scene cannot be simulated: {out.reasons[0]}")
-        return cls(out.seg[0], frames, width, height, out.dense_flow[0], out.occluded[0], scene.names)
+        return cls(out.seg[0], frames, width, height, out.dense_flow[0], out.occluded[0], scene.names, fps)
 
     @classmethod
     def from_dir(cls, path: str | Path, *, width: int | None = None, height: int | None = None) -> Observation:

@@ -27,9 +27,11 @@ import numpy as np
 import torch
 from PIL import Image
 
+from aynamics.dataset_store import dataset_fps
 from aynamics.flow import decode_flow_colors, on_own_scale
 from aynamics.raycast import SampleGrid
 from aynamics.scorer import Observation, scoring_size
+from aynamics.simulate import FPS
 from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image, same_size
 
 # Columns of a generated record that the PRO stage may read; everything else (the labels) is dropped on loading.
@@ -53,9 +55,10 @@ class UnlabeledVideo:
 
 
 def observation_from_record(
-    record: dict, *, width: int | None = None, height: int | None = None, use_flow: bool = True
+    record: dict, *, width: int | None = None, height: int | None = None, use_flow: bool = True, fps: int = FPS
 ) -> Observation:
-    """The observation of a generated record from its `segmentation` masks (and `flow` images) alone.
+    """The observation of a generated record from its `segmentation` masks (and `flow` images) alone, of a video
+    at `fps` (the data set's rate: `dataset_store.dataset_fps`; candidates are simulated on that clock).
 
     Masks hold object index + 1 (0 = floor and sky) at the sampled video frames `frame_indices`; flow images
     are decoded with the record's `flow_max` and scaled to the scorer's width. Object names are not used
@@ -88,13 +91,20 @@ def observation_from_record(
             raise ValueError(f"record {key}: flow images {images.shape[:3]} != masks {(len(frames), full_h, full_w)}")
         sub = images[:, rows][:, :, cols]
         flow = decode_flow_colors(sub, float(record.get("flow_max") or 0.0)) * (width / full_w)
-    return Observation(seg, frames, width, height, flow, grid=grid)
+    return Observation(seg, frames, width, height, flow, fps=fps, grid=grid)
 
 
 def video_from_record(
-    record: dict, *, inputs: str = "rgb", width: int | None = None, height: int | None = None, use_flow: bool = True
+    record: dict,
+    *,
+    inputs: str = "rgb",
+    width: int | None = None,
+    height: int | None = None,
+    use_flow: bool = True,
+    fps: int = FPS,
 ) -> UnlabeledVideo:
-    """An `UnlabeledVideo` of a generated record; `inputs` picks the model's images ("rgb" or "flow")."""
+    """An `UnlabeledVideo` of a generated record of a video at `fps`; `inputs` picks the model's images ("rgb" or
+    "flow")."""
     if inputs not in INPUTS:
         raise ValueError(f"inputs = {inputs!r}: must be one of {INPUTS}")
     images = record.get(inputs)
@@ -103,7 +113,7 @@ def video_from_record(
     frames = tuple(
         im.convert("RGB") if isinstance(im, Image.Image) else Image.fromarray(np.asarray(im)) for im in images
     )
-    obs = observation_from_record(record, width=width, height=height, use_flow=use_flow)
+    obs = observation_from_record(record, width=width, height=height, use_flow=use_flow, fps=fps)
     return UnlabeledVideo(str(record.get("index", "?")), frames, obs)
 
 
@@ -153,13 +163,17 @@ class GeneratedVideos(torch.utils.data.Dataset):
         if limit is not None:
             ds = ds.select(range(min(limit, len(ds))))
         self.ds, self.inputs, self.width, self.height, self.use_flow = ds, inputs, width, height, use_flow
+        # the videos' rate (a split saved on its own: the manifest of the data set beside it, or the generator's)
+        self.fps = dataset_fps(root) or dataset_fps(root.parent) or FPS
 
     def __len__(self) -> int:
         return len(self.ds)
 
     def __getitem__(self, i: int) -> UnlabeledVideo:
         rec = self.ds[int(i)]
-        return video_from_record(rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow)
+        return video_from_record(
+            rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow, fps=self.fps
+        )
 
 
 def video_from_folder(

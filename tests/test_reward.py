@@ -124,6 +124,34 @@ def test_true_scene_scores_one_against_its_own_record(generated, tmp_path):
             assert s.iou_full > 0.98 and s.iou_first > 0.98 and s.epe_full < 0.3, (size, rec["index"], s)
 
 
+def test_videos_of_another_frame_rate_are_scored_on_their_clock(tmp_path):
+    """A data set generated at 60 fps: PRO's observations (`GeneratedVideos`) and the evaluation's (`eval_record`
+    -> `scorable_records`) are taken at 60 fps at the record's frames, so the true scene meets its own masks
+    (before: simulated at 30 fps, the true scenes of helper-37's 60 fps data set scored IoU 0.20-0.99)."""
+    import datasets
+
+    from aynamics import data, lm
+    from aynamics.callbacks import scorable_records
+    from aynamics.generate import GenerateConfig, generate_dataset
+
+    config = GenerateConfig(width=64, height=48, fps=60, workers=0)
+    path = generate_dataset(tmp_path / "d", num=3, seed=0, config=config)
+    name, split = next((n, s) for n, s in datasets.load_from_disk(str(path)).items() if len(s))
+    videos = GeneratedVideos(path, name)
+    prompt = data.with_clock(lm.PromptSpec(), path, split)
+    processor = lm.load_processor(lm.ModelSpec(kind="tiny"), prompt)
+    assert videos.fps == 60 and prompt.fps == 60.0
+    for i, rec in enumerate(split):
+        obs = videos[i].observation
+        assert obs.fps == 60 and obs.frames.tolist() == rec["frame_indices"]
+        s = rw.score_completions([[rec["scene_yaml"]]], [obs])[0][0]
+        assert s.iou_full > 0.98 and s.iou_first > 0.98 and s.epe_full < 0.3, (rec["index"], s)
+        (scored,) = scorable_records([data.eval_record(rec, processor, prompt, i)])
+        seen = scored["observation"]
+        assert seen.fps == 60 and seen.frames.tolist() == rec["frame_indices"]
+        assert (seen.segmentation == obs.segmentation).mean() > 0.98
+
+
 def test_reward_does_not_read_scene_yaml(generated, tmp_path, records):
     """A copy of the data set with every label blanked gives the same rewards for the same candidates."""
     import datasets
