@@ -46,10 +46,18 @@ LOSSES = ("soft", "ranking")
 MODES = ("online", "offline")
 
 
+# How the policy is trained, taken from the run's `model` config; the rest of a spec is what the adapter is.
+RUN_SETTINGS = ("gradient_checkpointing", "dtype", "attn_implementation", "lora_dropout")
+
+
 def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[torch.nn.Module, lm.ModelSpec]:
     """The policy: `lm.build_model(spec)` (fresh LoRA), or the SFT adapter at `init_adapter` loaded trainable.
 
-    An adapter carries its own model spec (`aynamics.json`); it must name the same base model as `spec`.
+    An adapter carries its own model spec (`aynamics.json`); it must name the same base model as `spec`. Its
+    architecture (base seed and size, LoRA rank, alpha and targets, trained modules) is the adapter's: a run value
+    that differs is named in a warning. How it is trained (`RUN_SETTINGS`: gradient checkpointing, dtype,
+    attention kernel, LoRA dropout) is the run's, as for a fresh LoRA: PRO samples N long responses per video, and
+    checkpointing is what fits them in memory.
 
     Raises:
         FileNotFoundError: `init_adapter` is not an adapter folder written by training.
@@ -57,7 +65,7 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
     """
     if init_adapter is None:
         return lm.build_model(spec), spec
-    from peft import PeftModel
+    from peft import PeftConfig, PeftModel
 
     if not Path(init_adapter, "adapter_config.json").is_file():
         raise FileNotFoundError(2, f"stage.init_adapter = {init_adapter!r} holds no adapter_config.json", init_adapter)
@@ -67,11 +75,26 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
             f"stage.init_adapter = {init_adapter!r} was trained on model kind={adapter_spec.kind!r} "
             f"path={adapter_spec.path!r}, but model is kind={spec.kind!r} path={spec.path!r}"
         )
-    from aynamics.model import float32_trained_tower
+    ignored = [
+        f"model.{f.name} = {getattr(spec, f.name)!r} (the adapter's: {getattr(adapter_spec, f.name)!r})"
+        for f in dataclasses.fields(spec)
+        if f.name not in RUN_SETTINGS and getattr(spec, f.name) != getattr(adapter_spec, f.name)
+    ]
+    if ignored:
+        warnings.warn(
+            f"stage.init_adapter = {init_adapter!r} defines the model: {'; '.join(ignored)} ignored", stacklevel=2
+        )
+    used = dataclasses.replace(adapter_spec, **{k: getattr(spec, k) for k in RUN_SETTINGS})
+    from aynamics.model import enable_gradient_checkpointing, float32_trained_tower
 
-    model = PeftModel.from_pretrained(lm.build_base(adapter_spec), str(init_adapter), is_trainable=True)
+    base = lm.build_base(used)
+    if used.gradient_checkpointing:
+        enable_gradient_checkpointing(base)  # before the adapter, as `apply_lora` does
+    config = PeftConfig.from_pretrained(str(init_adapter))
+    config.lora_dropout = used.lora_dropout
+    model = PeftModel.from_pretrained(base, str(init_adapter), is_trainable=True, config=config)
     float32_trained_tower(model)  # the adapter's tower is loaded in the base dtype: trained in float32, as in SFT
-    return model.train(), adapter_spec
+    return model.train(), used
 
 
 class ProModule(L.LightningModule):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -226,6 +227,29 @@ def test_module_arguments_are_checked():
             ProModule(SPEC, **kw)
     with pytest.raises(FileNotFoundError, match="no adapter_config.json"):
         ProModule(SPEC, init_adapter="/nonexistent/adapter")
+
+
+def test_policy_from_an_adapter_is_trained_with_the_runs_settings(tmp_path):
+    """An SFT adapter saved without checkpointing and dropout, loaded by a PRO run that asks for both (and names
+    another LoRA rank): checkpointing is on in the decoder and vision blocks and the LoRA dropout is the run's (both
+    were the adapter's before: helper-37), the rank stays the adapter's and the run's is named as ignored; in eval
+    mode the policy gives the adapter's outputs."""
+    from aynamics.pro import build_policy
+
+    saved = lm.build_model(SPEC).eval()
+    lm.save_adapter(saved, tmp_path / "adapter", SPEC, lm.PromptSpec(num_frames=2))
+    run = dataclasses.replace(SPEC, lora_rank=4, lora_dropout=0.3, gradient_checkpointing=True)
+    with pytest.warns(UserWarning, match=r"model.lora_rank = 4 \(the adapter's: 8\) ignored"):
+        policy, used = build_policy(run, str(tmp_path / "adapter"))
+    assert (used.lora_rank, used.lora_dropout, used.gradient_checkpointing) == (8, 0.3, True)
+    checkpointed = {type(m).__name__ for m in policy.modules() if getattr(m, "gradient_checkpointing", False) is True}
+    assert {"Qwen2_5_VLDecoderLayer", "Qwen2_5_VLVisionBlock"} <= checkpointed
+    drops = [m.lora_dropout["default"] for m in policy.modules() if hasattr(m, "lora_dropout")]
+    assert drops and all(isinstance(d, torch.nn.Dropout) and d.p == 0.3 for d in drops)
+    assert all(m.r["default"] == 8 for m in policy.modules() if hasattr(m, "lora_dropout"))
+    ids = torch.tensor([[1, 2, 3, 4]])
+    with torch.no_grad():
+        torch.testing.assert_close(policy.eval()(input_ids=ids).logits, saved(input_ids=ids).logits)
 
 
 def test_train_stage_pro_online_end_to_end(tmp_path, dataset_dir):
