@@ -230,7 +230,9 @@ def add_preferences_command(sub) -> None:
     p.add_argument("--pairs", type=int, default=3, help="pairs kept per video (default 3, as the paper)")
     p.add_argument("--temperature", type=float, default=0.1, help="sampling temperature (default 0.1)")
     p.add_argument("--top-p", type=float, default=1.0, help="nucleus sampling mass (default 1.0)")
-    p.add_argument("--max-new-tokens", type=int, default=512, help="response length limit (default 512)")
+    p.add_argument(
+        "--max-new-tokens", type=int, default=1800, help="response length limit (default 1800: the longest scene)"
+    )
     p.add_argument("--metric", default="iou", choices=rw.METRICS, help="reward metric (default iou)")
     p.add_argument("--span", default="full", choices=rw.SPANS, help="full sequence or first frame (default full)")
     p.add_argument(

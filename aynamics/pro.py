@@ -106,7 +106,8 @@ class ProModule(L.LightningModule):
         mode: "online" (sample and score in the loop) or "offline" (batches of stored candidates and rewards).
         num_samples: N responses sampled per video (online training and Best@N evaluation), >= 2.
         temperature, top_p: Sampling settings (the paper: N = 32 at temperature 0.1).
-        max_new_tokens: Response length limit in tokens.
+        max_new_tokens: Response length limit in tokens (an invalid response that reached it is counted as
+            "truncated": raise it when `reward/invalid_truncated` is not 0).
         loss: "soft" (reward-weighted soft-label CE) or "ranking" (the original hard-ranking PRO).
         tau: Temperature τ of the soft targets softmax(s / τ), >= 0 (0: all weight on the best).
         sft_weight: Weight of the SFT term on each video's best candidate (0: off).
@@ -128,7 +129,7 @@ class ProModule(L.LightningModule):
         num_samples: int = 4,
         temperature: float = 1.0,
         top_p: float = 1.0,
-        max_new_tokens: int = 256,
+        max_new_tokens: int = 1800,
         loss: str = "soft",
         tau: float = 0.1,
         sft_weight: float = 0.0,
@@ -236,6 +237,7 @@ class ProModule(L.LightningModule):
         scores = rw.score_completions(
             texts, [v.observation for v in videos], nthread=self.score_threads(), workers=hp.score_workers
         )
+        scores = rw.mark_truncated(scores, ids, hp.max_new_tokens, rw.eos_ids(self.model))
         return prompts, ids, scores, rw.rewards_of(scores, self.reward_config)
 
     def score_threads(self) -> int:

@@ -24,7 +24,7 @@ import os
 from collections import Counter
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -166,11 +166,17 @@ def simulator_rewards(
 # --------------------------------------------------------------------------------------------
 # Statistics
 # --------------------------------------------------------------------------------------------
+TRUNCATED = "truncated"  # the reason prefix of an invalid response that reached the token limit
+
+
 def reason_kind(reason: str | None) -> str:
-    """A countable kind of an invalid response's reason: "no_yaml" (none, a syntax error or not a list of items),
-    "invalid_scene" (fields missing or out of range) or "simulation" (failed or diverged)."""
+    """A countable kind of an invalid response's reason: "truncated" (cut off at the token limit: `mark_truncated`),
+    "no_yaml" (none, a syntax error or not a list of items), "invalid_scene" (fields missing or out of range) or
+    "simulation" (failed or diverged)."""
     if reason is None:
         return "valid"
+    if reason.startswith(TRUNCATED):
+        return TRUNCATED
     if reason.startswith("sim:"):
         return "simulation"
     text = reason.lower()
@@ -200,7 +206,7 @@ class RewardStats:
     def to_metrics(self, prefix: str = "reward/") -> dict[str, float]:
         """{prefix}mean, best, invalid and invalid_<kind> shares, ready for `LightningModule.log_dict`."""
         out = {f"{prefix}mean": self.mean, f"{prefix}best": self.best, f"{prefix}invalid": self.invalid}
-        for kind in ("no_yaml", "invalid_scene", "simulation"):
+        for kind in (TRUNCATED, "no_yaml", "invalid_scene", "simulation"):
             out[f"{prefix}invalid_{kind}"] = self.reasons.get(kind, 0) / max(self.count, 1)
         return out
 
@@ -245,7 +251,24 @@ def vision_token_ids(model: torch.nn.Module) -> list[int]:
     return [int(getattr(cfg, n)) for n in names if getattr(cfg, n, None) is not None]
 
 
-def _eos_ids(model: torch.nn.Module) -> list[int]:
+def mark_truncated(
+    scores: Sequence[Sequence[Score]], ids: Sequence[Sequence[Sequence[int]]], max_new_tokens: int, eos: Sequence[int]
+) -> list[list[Score]]:
+    """The B x N `scores` of the responses `ids` (as `sample_completions` trims them), each invalid one that reached
+    `max_new_tokens` without an end-of-turn id (`eos`) given the reason "truncated ...": it may be a right scene
+    cut off, which counts apart from scenes the model got wrong (`reason_kind`)."""
+    stop = set(eos)
+
+    def marked(s: Score, c: Sequence[int]) -> Score:
+        if s.valid or len(c) < max_new_tokens or (c and c[-1] in stop):
+            return s
+        return replace(s, reason=f"{TRUNCATED} at max_new_tokens = {max_new_tokens}: {s.reason}")
+
+    return [[marked(s, c) for s, c in zip(srow, crow, strict=True)] for srow, crow in zip(scores, ids, strict=True)]
+
+
+def eos_ids(model: torch.nn.Module) -> list[int]:
+    """The model's end-of-turn token ids (its generation config's)."""
     eos = model.generation_config.eos_token_id
     return [eos] if isinstance(eos, int) else list(eos or [])
 
@@ -323,7 +346,7 @@ def sample_completions(
     finally:
         model.train(was_training)
     gen = out[:, batch["input_ids"].shape[1] :].cpu()  # (B*N, T): rows of prompt b are b*N .. b*N + N - 1
-    eos = _eos_ids(model)
+    eos = eos_ids(model)
     rows = [trim_completion(r, pad_token_id=tok.pad_token_id, eos_token_ids=eos) for r in gen]
     texts = tok.batch_decode(rows, skip_special_tokens=True)
     n = num_samples

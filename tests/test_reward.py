@@ -206,6 +206,29 @@ def test_invalid_outputs_score_zero_with_their_reason(records):
     assert m["reward/best"] == pytest.approx(m["reward/mean"] * 6)
 
 
+def test_responses_cut_at_the_token_limit_count_as_truncated(records):
+    """The true scene's answer cut at 40 tokens scores as no YAML; at the limit without an end-of-turn id it is
+    "truncated" instead (its own share in the statistics). Not marked: the same cut with an end-of-turn id last,
+    an invalid one shorter than the limit (cut at 30 tokens), a valid one over it."""
+    from aynamics import lm
+
+    obs = observation_from_record(records[0])
+    tok = lm.load_processor(lm.ModelSpec(kind="tiny"), lm.PromptSpec()).tokenizer
+    full = tok(f"<answer>\n{records[0]['scene_yaml']}</answer>")["input_ids"]
+    eos = tok.convert_tokens_to_ids("<|im_end|>")
+    cut = full[:40]
+    ids = [[cut, cut[:39] + [eos], cut[:30], full]]
+    texts = [[tok.decode(c, skip_special_tokens=True) for c in ids[0]]]
+    raw = rw.score_completions(texts, [obs])
+    scores = rw.mark_truncated(raw, ids, 40, [eos])[0]
+    assert [s.valid for s in raw[0]] == [False, False, False, True] and scores[1:] == raw[0][1:]
+    assert scores[0].reason == f"truncated at max_new_tokens = 40: {raw[0][0].reason}"
+    assert [rw.reason_kind(s.reason) for s in scores] == ["truncated", "no_yaml", "invalid_scene", "valid"]
+    stats = rw.RewardStats.of(rw.rewards_of([scores]), [scores]).to_metrics()
+    assert stats["reward/invalid_truncated"] == pytest.approx(0.25)
+    assert stats["reward/invalid_no_yaml"] == stats["reward/invalid_invalid_scene"] == pytest.approx(0.25)
+
+
 def test_scoring_in_parallel_matches_serial(records):
     obs = [observation_from_record(r) for r in records]
     cands = [[r["scene_yaml"], dump(_moved(parse(r["scene_yaml"]), dx=0.2)), "junk"] for r in records]
