@@ -73,21 +73,21 @@ def soft_preference_loss(
 def pro_ranking_loss(seq_logps: torch.Tensor, rewards: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """The original hard-ranking PRO loss (Song et al., 2024): a Plackett-Luce likelihood of the reward ranking.
 
-    Order each row's candidates by reward, best first: π(1), ..., π(N). Then
+    Each candidate k is pushed above every candidate scored strictly below it:
 
-        L = -(1/B) Σ_b Σ_{k=1}^{N-1} log( exp(ℓ_bπ(k)) / Σ_{i≥k} exp(ℓ_bπ(i)) )
+        L = -(1/B) Σ_b Σ_k log( exp(ℓ_bk) / (exp(ℓ_bk) + Σ_{i: s_bi < s_bk} exp(ℓ_bi)) )
 
-    Each candidate is pushed above every candidate ranked below it. Ties keep the sampling order (stable sort).
+    Without ties this is the Plackett-Luce likelihood of the ranking π(1), ..., π(N), best first:
+    Σ_k log( exp(ℓ_bπ(k)) / Σ_{i≥k} exp(ℓ_bπ(i)) ). Candidates that score the same get no term against each other
+    (a ranking would invent an order among them: the many invalid responses at 0 pushed apart by sampling order),
+    and a candidate with none below it (the worst, or all tied) adds log 1 = 0.
     """
     keep = _check(seq_logps, rewards, mask)
-    order = torch.sort(rewards.detach().masked_fill(~keep, float("-inf")), dim=1, descending=True, stable=True)
-    lp = torch.gather(seq_logps, 1, order.indices)  # (B, N), best first
-    valid = torch.gather(keep, 1, order.indices)
-    lp = lp.masked_fill(~valid, float("-inf"))
-    # log Σ_{i≥k} exp(lp_i): reverse cumulative logsumexp
-    tail = torch.flip(torch.logcumsumexp(torch.flip(lp, [1]), dim=1), [1])
-    terms = (lp - tail).masked_fill(~valid, 0.0)
-    # the last valid candidate of a row contributes log 1 = 0; exclude it explicitly for clarity
+    s = rewards.detach()
+    below = (s[:, None, :] < s[:, :, None]) & keep[:, None, :] & keep[:, :, None]  # [b, k, i]: s_i < s_k
+    rivals = below | torch.eye(s.shape[1], dtype=torch.bool, device=s.device)  # with k itself
+    lp = seq_logps[:, None, :].expand(-1, s.shape[1], -1).masked_fill(~rivals, float("-inf"))
+    terms = (seq_logps - torch.logsumexp(lp, dim=2)).masked_fill(~keep, 0.0)  # (B, N)
     return -terms.sum(dim=1).mean()
 
 

@@ -66,6 +66,23 @@ def test_pro_ranking_hand_worked():
     assert pro_ranking_loss(LOGPS.flip(1), rewards.flip(1)).item() == pytest.approx(LN(6))
 
 
+def test_pro_ranking_ties_get_no_order():
+    """Rewards [1, 0, 0, 0] at equal likelihoods: one term, -log(1 / 4) (was log 4 + log 3 + log 2 with the tied
+    candidates ranked by sampling order); the gradient -3/4 on the best and 1/4 on each tied one alike (was
+    [-0.75, -0.42, 0.08, 1.08]: helper-37), and the loss does not change when the tied candidates are reordered."""
+    logps = torch.zeros(1, 4, requires_grad=True)
+    rewards = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    loss = pro_ranking_loss(logps, rewards)
+    loss.backward()
+    assert loss.item() == pytest.approx(LN(4))
+    torch.testing.assert_close(logps.grad, torch.tensor([[-0.75, 0.25, 0.25, 0.25]]))
+    other = torch.tensor([[0.3, -1.0, 0.5, 2.0]])
+    swapped = other[:, [0, 3, 1, 2]]
+    assert pro_ranking_loss(other, rewards).item() == pytest.approx(pro_ranking_loss(swapped, rewards).item())
+    two_levels = torch.tensor([[0.5, 0.5, 0.0]])  # two best tied above one: log 2 each (each over the worst alone)
+    assert pro_ranking_loss(torch.zeros(1, 3), two_levels).item() == pytest.approx(2 * LN(2))
+
+
 def test_gradient_descent_moves_probability_to_the_best_candidate():
     logps = torch.zeros(1, 4, requires_grad=True)
     rewards = torch.tensor([[0.1, 0.8, 0.4, 0.0]])
