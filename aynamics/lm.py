@@ -453,6 +453,19 @@ def keep_trainable_weights(checkpoint: dict, module: torch.nn.Module) -> None:
         checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
 
 
+def check_trainable_weights(checkpoint: dict, module: torch.nn.Module) -> None:
+    """Refuse a checkpoint that lacks some of `module`'s trainable weights: written for another model or LoRA
+    setting (modules load with `strict_loading = False`, since checkpoints hold only the trainable weights, so the
+    missing ones would silently keep their fresh values). DeepSpeed's dict has no `state_dict`: not checked."""
+    stored = checkpoint.get("state_dict")
+    missing = {k for k, p in module.named_parameters() if p.requires_grad} - set(stored or ())
+    if stored is not None and missing:
+        raise ValueError(
+            f"checkpoint lacks {len(missing)} trainable weights of this model (e.g. {sorted(missing)[0]!r}): "
+            "it was written for a different model.* / LoRA setting"
+        )
+
+
 def check_resume_checkpoint(path: str | Path) -> None:
     """Refuse, before a model is built, a `ckpt_path` that Lightning could not resume from: a missing path, a file
     torch cannot read (as Lightning reads it: `weights_only`) or a dict without Lightning's version key (Lightning

@@ -303,6 +303,8 @@ class ProModule(L.LightningModule):
         metrics = {f"val/{k}": v for k, v in modes.items()}
         metrics |= {f"val/{k.split('/')[1]}": v for k, v in modes.items() if k.startswith("greedy/")}
         metrics |= rw.RewardStats.of(rewards, scores).to_metrics("val/reward_")
+        if not getattr(self.trainer.datamodule, "val_flow", True):  # the same keys from every batch and process
+            metrics = {k: v for k, v in metrics.items() if "/epe_" not in k}
         self.log_dict(metrics, batch_size=len(batch), sync_dist=True)
 
     def on_train_start(self) -> None:
@@ -324,7 +326,12 @@ class ProModule(L.LightningModule):
         lm.keep_trainable_weights(checkpoint, self)  # all of them under self.model
         checkpoint["rng"] = rng.gathered_states()
 
+    def check_checkpoint(self, checkpoint: dict) -> None:
+        """Refuse a checkpoint written for another model (before anything loads under fsdp)."""
+        lm.check_trainable_weights(checkpoint, self)
+
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
         self._rng_to_restore = checkpoint.get("rng")
 
     def on_train_batch_start(self, batch, batch_idx: int) -> None:
@@ -332,6 +339,14 @@ class ProModule(L.LightningModule):
         if self._rng_to_restore is not None:
             rng.restore(self._rng_to_restore, self.global_rank)
             self._rng_to_restore = None
+
+
+def has_flow(videos: Sequence[UnlabeledVideo]) -> bool:
+    """Whether every video has observed flow (validation's EPE columns need it): a generated data set's flow column
+    read (`use_flow`), or each folder's flow.npy."""
+    if isinstance(videos, GeneratedVideos):
+        return videos.use_flow and "flow" in videos.ds.column_names
+    return all(v.observation.flow is not None for v in videos)
 
 
 def _margin(seq: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:
@@ -432,6 +447,7 @@ class ProDataModule(L.LightningDataModule):
                 stacklevel=2,
             )
             self.val_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_val or 1, **kw)
+        self.val_flow = has_flow(self.val_set)
 
     def transfer_batch_to_device(self, batch: list, device: torch.device, dataloader_idx: int) -> list:
         """Batches are videos / rows of PIL frames; the module builds the tensors and moves them itself."""

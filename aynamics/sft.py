@@ -355,13 +355,7 @@ class SFTModule(L.LightningModule):
 
     def check_checkpoint(self, checkpoint: dict) -> None:
         """Refuse a checkpoint written for another model or optimizer layout (before anything loads under fsdp)."""
-        stored = checkpoint.get("state_dict")  # None under DeepSpeed, which loads its own files
-        missing = {k for k, p in self.named_parameters() if p.requires_grad} - set(stored or ())
-        if stored is not None and missing:
-            raise ValueError(
-                f"checkpoint lacks {len(missing)} trainable weights of this model (e.g. {sorted(missing)[0]!r}): "
-                "it was written for a different model.* / LoRA setting"
-            )
+        lm.check_trainable_weights(checkpoint, self)
         saved = checkpoint.get("hyper_parameters", {}).get("vision_lr_scale", 1.0)
         if saved != self.hparams.vision_lr_scale:  # other parameter groups: the optimizer state would not fit
             raise ValueError(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -520,7 +521,39 @@ def test_folder_videos_validate_on_val_dir_or_say_they_do_not(tmp_path):
     dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), val_dir=str(tmp_path / "empty"), **kw)
     with pytest.raises(FileNotFoundError, match="empty"):
         dm.setup("fit")
+    _flow_logged_keys(tmp_path, kw)
     sorted((tmp_path / "held_out" / "c" / "frames").iterdir())[5].unlink()  # the reason, not "holds no videos"
     dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), val_dir=str(tmp_path / "held_out"), **kw)
     with pytest.raises(ValueError, match=r"frames': 29 images; need one for every video frame \(30"):
         dm.setup("fit")
+
+
+def _flow_logged_keys(tmp_path, kw) -> None:
+    """Held-out folders of which one has flow.npy: validation logs no EPE columns, also for a batch of the video
+    with flow (each process logged the keys its own batch had: under DDP's synced logging, a hang); with flow in
+    every folder, it logs them."""
+    import types
+
+    from aynamics.pro import ProDataModule
+    from aynamics.scorer import Score
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    _video_folder(tmp_path / "mixed" / "c", 30)
+    _video_folder(tmp_path / "mixed" / "d", 40)
+    np.save(tmp_path / "mixed" / "d" / "flow.npy", np.zeros((29, 16, 16, 2), np.float32))
+    logged = []
+    for drop in (False, True):
+        if drop:
+            shutil.rmtree(tmp_path / "mixed" / "c")
+        args = {**kw, "use_flow": True, "val_dir": str(tmp_path / "mixed")}
+        dm = ProDataModule(str(tmp_path / "train"), str(TINY_ASSET_DIR), **args)
+        dm.setup("fit")
+        assert dm.val_flow is drop
+        module = ProModule(SPEC, prompt=PROMPT, num_samples=2)
+        module._trainer = types.SimpleNamespace(datamodule=dm)
+        score = Score(0.5, 0.5, 1.0, 2.0, True)
+        module.sample_and_score = lambda videos, n, t: (None, None, [[score] * n], torch.ones(1, n))
+        module.log_dict = lambda metrics, **_: logged.append(set(metrics))
+        module.validation_step([v for v in dm.val_set if v.key == "d"], 0)
+    assert not any("epe" in k for k in logged[0]) and "val/iou_full" in logged[0]
+    assert {"val/epe_full", "val/bestN/epe_first"} <= logged[1]

@@ -1113,17 +1113,24 @@ def test_data_without_validation_or_with_a_broken_record_still_trains(tmp_path, 
     assert 0 <= metrics["val/yaml_valid"] <= 1  # the other record was evaluated
 
 
-def test_checkpoint_hooks_accept_deepspeed_checkpoints():
+@pytest.mark.parametrize("stage", ["sft", "pro"])
+def test_checkpoint_hooks_accept_deepspeed_checkpoints(stage):
     """DeepSpeed keeps the weights out of Lightning's checkpoint dict (it writes its own files, without the frozen
     base: exclude_frozen_parameters in conf/trainer/deepspeed.yaml): saving and loading such a dict works, RNG
-    states included; a plain checkpoint that lacks trainable weights is still refused."""
-    module = SFTModule(lm.ModelSpec(kind="tiny"))
+    states included; a plain checkpoint that lacks trainable weights is still refused (for PRO too: it loaded one,
+    the missing weights keeping their fresh values) and one of another LoRA rank names the setting."""
+    from aynamics.pro import ProModule
+
+    module = SFTModule(lm.ModelSpec(kind="tiny")) if stage == "sft" else ProModule(lm.ModelSpec(kind="tiny"))
     checkpoint = {"hyper_parameters": {"vision_lr_scale": 1.0}}
     module.on_save_checkpoint(checkpoint)
     assert "state_dict" not in checkpoint and set(checkpoint["rng"]["per_rank"][0]) >= {"torch", "numpy", "python"}
     module.on_load_checkpoint(checkpoint)
     with pytest.raises(ValueError, match="checkpoint lacks .* trainable weights"):
         module.on_load_checkpoint({**checkpoint, "state_dict": {}})
+    other = {k: v for k, v in module.state_dict().items() if "lora_A" not in k}
+    with pytest.raises(ValueError, match=r"lora_A.*written for a different model.\* / LoRA setting"):
+        module.on_load_checkpoint({**checkpoint, "state_dict": other})
 
 
 def test_rng_states_are_restored_per_rank():
