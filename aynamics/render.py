@@ -31,9 +31,8 @@ import numpy as np
 from aynamics import camera as camlib
 from aynamics import simulate as sim
 from aynamics.scene import MAX_OBJECTS, Scene
-from aynamics.video_io import image_files
+from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 FLOOR_TEXTURE = 512  # pixels per side of the floor photograph texture
 SKY_TEXTURE = 256
 OBJECT_TEXTURE = 64
@@ -224,15 +223,14 @@ def sample_appearance(
 
 @functools.lru_cache(maxsize=32)
 def _load_texture(path: Path, size: int) -> bytes:
-    """RGB bytes of an image, centre-cropped to a square and resized to size × size."""
+    """RGB bytes of an image (as `video_io.read_image` reads a photograph: EXIF rotation, 16-bit and CMYK
+    images), centre-cropped to a square and resized to size × size."""
     from PIL import Image
 
     try:
-        img = Image.open(path)
-        img.load()
-    except (OSError, ValueError) as e:
+        img = Image.fromarray(read_image(path))
+    except ValueError as e:
         raise ValueError(f"texture image {str(path)!r} cannot be read: {e}") from None
-    img = img.convert("RGB")
     w, h = img.size
     s = min(w, h)
     img = img.crop(((w - s) // 2, (h - s) // 2, (w - s) // 2 + s, (h - s) // 2 + s)).resize((size, size))

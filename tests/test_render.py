@@ -189,3 +189,25 @@ def test_ambient_light_reaches_the_picture(monkeypatch):
     black = lambda img: int((img[objects].max(-1) < 8).sum())  # noqa: E731
     assert black(dark) > 50 and black(lit) == 0
     assert (lit >= dark).all() and np.abs(lit - dark).max() > 50
+
+
+def test_texture_photographs_are_read_as_shown(tmp_path):
+    """A textures_dir takes WebP photographs too (the frames' image types: render kept a shorter list), and a phone
+    photograph is used as it shows (EXIF orientation applied: red on top, not on the left); a broken file is named."""
+    import numpy as np
+    from PIL import Image
+
+    from aynamics.render import _load_texture, texture_images
+
+    img = Image.new("RGB", (16, 16), (0, 0, 255))
+    img.paste((255, 0, 0), (0, 0, 8, 16))  # red left half; orientation 6 shows it rotated 90° clockwise: on top
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    img.save(tmp_path / "phone.jpg", exif=exif, quality=100)
+    Image.new("RGB", (4, 4), (0, 255, 0)).save(tmp_path / "leaf.webp", lossless=True)
+    assert [p.name for p in texture_images(tmp_path)] == ["leaf.webp", "phone.jpg"]
+    shown = np.frombuffer(_load_texture(tmp_path / "phone.jpg", 4), np.uint8).reshape(4, 4, 3)
+    assert shown[0, :, 0].min() > 200 and shown[3, :, 0].max() < 60  # red on top, not in the bottom row
+    (tmp_path / "broken.png").write_bytes(b"not an image")
+    with pytest.raises(ValueError, match="texture image .*broken.png.* cannot be read"):
+        _load_texture(tmp_path / "broken.png", 4)
