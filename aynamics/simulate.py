@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import logging
 import math
 import os
 import threading
@@ -56,6 +57,19 @@ MAX_DISTANCE = 1000.0  # m from the origin
 MAX_START_OVERLAP = 0.05
 RESTITUTION_STIFFNESS = 1e4  # k of the direct contact form used for `physics.restitution` at RESTITUTION_TIMESTEP
 RESTITUTION_TIMESTEP = 1.0 / 240  # s: the physics step at which that k was measured (REFERENCE.md)
+
+_log = logging.getLogger(__name__)
+
+
+def _mujoco_warning(message: str) -> None:
+    """MuJoCo's warnings (e.g. "Nan, Inf or huge value in QACC") as debug log lines: they were printed to stderr
+    and appended to MUJOCO_LOG.TXT in the working directory (files beside a user's data, many per PRO run of bad
+    candidates). A rollout that warned is invalid, its reason naming the count (`check_states`)."""
+    _log.debug("MuJoCo: %s", message.strip())
+
+
+if mujoco.get_mju_user_warning() is None:  # a handler the user installed is kept
+    mujoco.set_mju_user_warning(_mujoco_warning)
 
 _GEOM = {
     "box": mujoco.mjtGeom.mjGEOM_BOX,

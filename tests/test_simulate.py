@@ -557,3 +557,20 @@ def test_objects_starting_inside_each_other_or_the_floor_are_invalid():
 
     cast = raycast.cast_group([sunk], sunk.structure, np.array([0]), 16, 12, sim.SimConfig(), 1)
     assert cast.reasons[0].startswith("overlapping start: sphere_0 and the floor")
+
+
+def test_mujoco_warnings_are_log_lines_not_files(tmp_path, monkeypatch, capfd, caplog):
+    """A batch whose states blow up (velocities of 1e30) warns in MuJoCo's worker threads: the warnings are counted
+    as before (each simulation invalid) and logged at debug level, with nothing on stderr and no MUJOCO_LOG.TXT in
+    the working directory (both were written before)."""
+    import logging
+
+    monkeypatch.chdir(tmp_path)
+    s = S.load(str(ASSETS / "paper_example.yaml"))
+    b, _ = sim.prepare_batch([s] * 4, s.structure, nthread=2)
+    b.bind("qvel")[...] = 1e30
+    with caplog.at_level(logging.DEBUG, logger="aynamics.simulate"):
+        b.rollout(5, record=("qpos",))
+    assert np.array(b.warning).sum(axis=(1, 2)).tolist() == [1, 1, 1, 1]
+    assert sum("MuJoCo: Nan, Inf or huge value in QVEL" in r.getMessage() for r in caplog.records) == 4
+    assert "WARNING" not in capfd.readouterr().err and not (tmp_path / "MUJOCO_LOG.TXT").exists()
