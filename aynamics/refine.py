@@ -156,7 +156,7 @@ def _track_fits(
     if not tracks.visible.any():
         return [], None
     names, fps, config = observed.names, observed.fps, observed.config
-    rolling = bool(_groups(params, ("angular_velocity",)))
+    rolling = _groups(params, ("angular_velocity",))  # the spheres whose spin is searched roll with their fit
 
     def fit(trk: Tracks, heights: np.ndarray | None, usable: np.ndarray | None = None) -> Scene:
         return track_start(best, trk, names, params=kinematic, fps=fps, rolling=rolling, heights=heights, usable=usable)

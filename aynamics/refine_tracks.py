@@ -172,7 +172,7 @@ def track_start(
     *,
     params: Sequence[str] = ("position", "linear_velocity"),
     fps: float = 30.0,
-    rolling: bool = False,
+    rolling: Sequence[str] = (),
     heights: np.ndarray | None = None,
     usable: np.ndarray | None = None,
 ) -> Scene:
@@ -180,14 +180,15 @@ def track_start(
 
     Only the groups named in `params` change (`position`, `linear_velocity`, or `NAME.group` for one object);
     heights, vertical velocities and everything else are kept. Objects that are not matched or never visible keep
-    their values. With `rolling`, a sphere's angular velocity is set to roll without slipping at its new velocity
-    (ω = z × v / r), as the sampler draws them. `heights` (F, N) are the centre heights of the objects at the
+    their values. The spheres whose angular velocity is searched (`rolling`: `angular_velocity` for all or
+    `NAME.angular_velocity`, as in `params`) are set to roll without slipping at their new velocity (ω = z × v / r),
+    as the sampler draws them; the others keep their spin. `heights` (F, N) are the centre heights of the objects at the
     tracks' frames (from the scene's own rollout, `centre_heights`: a falling object's centroid moves down the
     image, which the initial height would read as motion towards the camera); default: the initial heights.
     `usable` (F, N) restricts the frames each object's fit uses (e.g. the fall before its first impact).
     """
-    allowed = {g: set() for g in ("position", "linear_velocity")}
-    for spec in params:
+    allowed = {g: set() for g in ("position", "linear_velocity", "angular_velocity")}
+    for spec in (*params, *rolling):
         name, _, group = spec.rpartition(".")
         if group in allowed:
             allowed[group] |= {name} if name else set(scene.names)
@@ -211,7 +212,7 @@ def track_start(
             state["position"][:2] = np.clip(p0, lo[:2], hi[:2]).round(4).tolist()
         if obj.name in allowed["linear_velocity"]:
             state["linear_velocity"][:2] = v0.round(4).tolist()
-            if rolling and obj.type == "sphere":
+            if obj.name in allowed["angular_velocity"] and obj.type == "sphere":
                 w = np.array([-v0[1], v0[0]]) / obj.radius
                 w *= min(1.0, w_max / max(np.abs(w).max(), 1e-12))
                 state["angular_velocity"] = [*w.round(4).tolist(), 0.0]

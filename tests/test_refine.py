@@ -313,11 +313,18 @@ def test_track_start_from_paper_level_error(truth):
     obs = Observation.from_scene(truth)
     pred = _shift(truth, (2.0, 1.5, 0.0), (-2.5, 2.0, 0.0))
     tracks = RTracks.from_segmentation(obs.segmentation, obs.frames, 1)
-    fitted = track_start(pred, tracks, None, params=["position", "linear_velocity"], fps=obs.fps, rolling=True)
+    kinematic = ["position", "linear_velocity"]
+    fitted = track_start(pred, tracks, None, params=kinematic, fps=obs.fps, rolling=["angular_velocity"])
     st, true = fitted.objects[0].state, truth.objects[0].state
     assert np.linalg.norm(np.subtract(st.position, true.position)) < 0.1
     assert np.linalg.norm(np.subtract(st.linear_velocity, true.linear_velocity)) < 0.5
     assert np.allclose(st.angular_velocity[:2], np.array([-1, 1]) * st.linear_velocity[1::-1] / 0.3, atol=1e-3)
+    name = pred.objects[0].name  # its spin searched by name: it rolls; another object's searched: it keeps its own
+    by_name = track_start(pred, tracks, None, params=kinematic, fps=obs.fps, rolling=[f"{name}.angular_velocity"])
+    assert by_name.objects[0].state.angular_velocity == st.angular_velocity
+    other = track_start(pred, tracks, None, params=kinematic, fps=obs.fps, rolling=["box_9.angular_velocity"])
+    assert other.objects[0].state.angular_velocity == pred.objects[0].state.angular_velocity
+    assert other.objects[0].state.linear_velocity == st.linear_velocity
     only_pos = track_start(pred, tracks, None, params=["position"], fps=obs.fps)
     assert only_pos.objects[0].state.linear_velocity == pred.objects[0].state.linear_velocity
 
