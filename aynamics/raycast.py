@@ -96,6 +96,7 @@ class Cast:
     shape: tuple[int, int, int, int]  # (n, F, h, w)
     reasons: list[str | None]
     occluded: np.ndarray | None = None  # (n, F, h, w), only when cast with_next
+    overlaps: list[float] | None = None  # per scene, the depth (m) of an overlapping start, else 0
 
     @property
     def seg(self) -> np.ndarray:
@@ -192,7 +193,8 @@ def cast_group(
 
     rot = quat_to_mat(np.where(np.isfinite(qpos[..., cols_p[:, 3:]]), qpos[..., cols_p[:, 3:]], 1.0))
     flow, uv, z = _motion(steps[0], cams, rays, pos, rot, frames, grid)
-    cast = Cast(steps[0], flow, (n, f_count, h, w), reasons)
+    overlaps = [0.0 if o is None else float(o[0]) for o in (raw.overlap or [None] * n)]
+    cast = Cast(steps[0], flow, (n, f_count, h, w), reasons, overlaps=overlaps)
     if with_next:
         cast.occluded = _occlusion(cast, steps[1], uv, z)
     return cast

@@ -303,8 +303,9 @@ def refine(
     trace: list[tuple[int, float, float, str]] = [(left.used, left.elapsed, best_v, "start")]
     restarts = 0
 
-    frozen = grounded_dims(start, observed.config) if fix_grounded else set()
-    left.used += int(fix_grounded)
+    ground = fix_grounded and left.left() > 0  # one simulation, within the budget
+    frozen = grounded_dims(start, observed.config) if ground else set()
+    left.used += int(ground)
     kinematic = _groups(params, KINEMATIC)
     if kinematic and before.iou_full < track_below and left.left() >= TRACK_STAGE_SIMS:
         scene, value, r = _track_stage(

@@ -82,6 +82,8 @@ def score_objective(observed, *, flow_weight: float = 0.01, nthread: int | None 
 
 
 def objective_value(s, flow_weight: float) -> float:
-    """Objective of one Score: IoU_full - flow_weight × EPE_full (invalid scores have IoU 0 and the EPE penalty)."""
+    """Objective of one Score: IoU_full - flow_weight × EPE_full (invalid scores have IoU 0 and the EPE penalty),
+    minus the depth in metres of an overlapping start (`Score.overlap`): every invalid candidate scored alike, so
+    the search had no way out of a start sunk into the floor or another object; shallower is now better."""
     epe = float(s.epe_full) if s.epe_full is not None else 0.0
-    return float(s.iou_full) - flow_weight * epe
+    return float(s.iou_full) - flow_weight * epe - float(s.overlap)

@@ -190,10 +190,13 @@ def param_space(scene: Scene, params: Sequence[str] = DEFAULT_PARAMS, frozen: Co
 def grounded_dims(scene: Scene, config=None) -> set[str]:
     """Names of the vertical position and velocity of the objects that start on the floor (touching it within the
     first frame, vertical speed < 0.05 m/s): a contact fixes them, and searching them only adds noise dimensions
-    whose every move makes the object hop or sink."""
+    whose every move makes the object hop or sink. None for a scene whose rollout is invalid: an object sunk into
+    the floor (an overlapping start) touches it too, and only its height can make the scene valid."""
     from aynamics.simulate import SimConfig, simulate
 
     rollout = simulate(scene, config or SimConfig())
+    if not rollout.valid:
+        return set()
     out = set()
     for i, obj in enumerate(scene.objects):
         if rollout.touching[:2, i, -1].any() and abs(obj.state.linear_velocity[2]) < 0.05:

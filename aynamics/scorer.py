@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -62,6 +62,7 @@ class Score:
     epe_full: float | None
     valid: bool
     reason: str | None = None
+    overlap: float = 0.0  # invalid for an overlapping start: its depth in m (a search's way out), else 0
 
     def to_json(self) -> dict:
         def r(x):
@@ -322,11 +323,11 @@ class _ObservedSums:
 
 
 def _score_hits(
-    cast: Cast, sel: slice, reason: str | None, scene: Scene, obs: Observation, sums: _ObservedSums
+    cast: Cast, sel: slice, reason: str | None, scene: Scene, obs: Observation, sums: _ObservedSums, overlap: float
 ) -> Score:
     """Metrics of one candidate from its hits alone; equal to `metrics` on the dense arrays (see tests)."""
     if reason is not None:
-        return _invalid(reason, obs.flow is not None)
+        return replace(_invalid(reason, obs.flow is not None), overlap=overlap)
     f_count = len(obs.frames)
     f, pix, p = cast.hits.f[sel], cast.hits.pix[sel], cast.hits.obj[sel].astype(np.int64)
     o = sums.seg[f, pix].astype(np.int64)  # observed id under each predicted object pixel
@@ -397,7 +398,7 @@ def score(candidates: Sequence[Scene | str], observed: Observation, *, nthread: 
             bounds = np.searchsorted(cast.hits.c, np.arange(len(idx) + 1))  # hits are sorted by candidate
             for j, k in enumerate(idx):
                 sel = slice(bounds[j], bounds[j + 1])
-                out[k] = _score_hits(cast, sel, cast.reasons[j], scenes[k], observed, sums)
+                out[k] = _score_hits(cast, sel, cast.reasons[j], scenes[k], observed, sums, cast.overlaps[j])
         except (mujoco.FatalError, RuntimeError, ValueError, FloatingPointError) as e:
             if len(idx) == 1:
                 out[idx[0]] = _invalid(f"simulation failed: {type(e).__name__}: {e}", observed.flow is not None)
