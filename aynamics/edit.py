@@ -12,8 +12,10 @@ joined with ";" or "then":
 Directions are world axes as the default camera sees them: "left" is -x, "right" +x, "forward"/"away" +y
 (the camera looks along +y), "back"/"toward the camera" -y, "up" +z, "down" -z. A percentage or factor on a
 vector without a component ("the velocity") scales the whole vector; an amount with a unit ("by 1 m/s") changes
-its magnitude along its direction. `damping` is log10 of a decay rate, so "double the damping" doubles the rate
-and "set the damping to 0.5 /s" sets the rate (a plain number sets the log10 value).
+its magnitude along its direction, and on a component of a velocity, spin or gravity its size along that axis
+("reduce the x-velocity by 0.5 m/s" takes -1 to -0.5, as "by 50%" does); on a position it moves along the axis.
+`damping` is log10 of a decay rate, so "double the damping" doubles the rate and "set the damping to 0.5 /s" sets
+the rate (a plain number sets the log10 value).
 
     result = apply_instruction(scene, "reduce the x-velocity of box_0 by 80%")
     result.scene, result.changes   # the validated edited scene; every leaf that changed
@@ -213,13 +215,17 @@ def _targets(text: str | None, scene: Scene) -> list[int]:
 
 
 def _subject(text: str) -> tuple[str, str | None]:
-    """Split 'x-velocity of box_0' / "box_0's x-velocity" into (quantity phrase, targets phrase or None)."""
+    """Split 'x-velocity of box_0' / "box_0's x-velocity" into (quantity phrase, targets phrase or None). A
+    quantity whose own name holds "of" ("field of view") is split at the first "of" / "for" after it."""
     m = re.fullmatch(r"(?:the )?(?P<t>[\w ,]+?)'s (?P<q>.+)", text)
     if m:
         return m.group("q"), m.group("t")
-    m = re.fullmatch(r"(?P<q>.+?) (?:of|for) (?P<t>.+)", text)
-    if m:
-        return m.group("q"), m.group("t")
+    for m in re.finditer(r" (?:of|for) ", text):
+        try:
+            _quantity(text[: m.start()])
+        except EditError:
+            continue
+        return text[: m.start()], text[m.end() :]
     return text, None
 
 
@@ -295,6 +301,8 @@ def _magnitude(vec: list[float], new: float, what: str) -> list[float]:
             f"{what}: its magnitude is {norm:.4g}, so this decrease would leave {new:.4g}, below zero; "
             "decrease by at most the magnitude, or set it to 0"
         )
+    if norm == 0.0 and new == 0.0:
+        return list(vec)
     if norm == 0.0:
         raise EditError(f"{what} is zero, so it has no direction to scale along; give [x, y, z] or a component")
     return [x * new / norm for x in vec]
@@ -314,7 +322,19 @@ def _relative(q: Quantity, comp: int | None, sign: float, amount: float | list[f
         return lambda d: d + sign * amount
     if q.dims == 3 and comp is None:
         return lambda v: _magnitude(v, math.sqrt(sum(x * x for x in v)) + sign * amount, what)
+    if comp is not None and q.key != "position":  # a speed along the axis, as "by N%" and whole vectors change
+        return lambda x: _along(_require(x, what), sign * amount, what)
     return lambda x: _require(x, what) + sign * amount
+
+
+def _along(x: float, delta: float, what: str) -> float:
+    """A vector component whose size changes by `delta`, its sign kept (a zero one grows along +)."""
+    if abs(x) + delta < 0:
+        raise EditError(
+            f"{what}: the component is {x:.4g}, so this decrease would take it past zero; decrease by at most "
+            f"{abs(x):.4g}, set it to 0, or reverse it"
+        )
+    return math.copysign(abs(x) + delta, x) if x != 0 else delta
 
 
 def _require(x: float | None, what: str) -> float:
@@ -484,6 +504,21 @@ def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
     return out
 
 
+# Words a free-form instruction uses for a quantity without naming it (for `named_fields` only: the deterministic
+# language above names quantities)
+DESCRIBED: tuple[tuple[str, tuple[str, ...]], ...] = (
+    (r"heav(?:y|ier|iest)|light(?:er|est)?|weigh(?:s|t)?", ("physics.mass",)),
+    (r"fast(?:er|est)?|slow(?:er|est)?|quick(?:er|ly)?|rapid(?:ly)?", ("state.linear_velocity",)),
+    (r"spin(?:s|ning)?|rotat(?:e|es|ing|ion)|roll(?:s|ing)?", ("state.angular_velocity",)),
+    (r"bounc(?:e|es|y|ier|iest|ing)|elastic", ("physics.restitution",)),
+    (r"slipp(?:ery|erier)|grip(?:py|pier)?|sticky|stickier|rough(?:er)?|smooth(?:er)?", ("physics.friction",)),
+    (
+        r"big(?:ger)?|large(?:r)?|small(?:er)?|tiny|tall(?:er)?|short(?:er)?|wide(?:r)?|grow|shrink",
+        ("size", "radius", "height"),
+    ),
+)
+
+
 def named_fields(instruction: str, scene: Scene) -> set[str]:
     """Path prefixes of the fields an instruction names (by the vocabulary above), for checking a free editor.
 
@@ -507,6 +542,9 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
             field = ".".join(q.path) + suffix
             fields.update(f"{h}.{field}" for h in (objs if q.scope == "object" else [q.scope]))
             text = text.replace(text_q, " ")  # "angular velocity" must not also count as "velocity"
+    for words, paths in DESCRIBED:
+        if re.search(rf"\b(?:{words})\b", text):
+            fields.update(f"{o}.{path}" for o in objs for path in paths)
     if re.search(r"\b(?:move|shift|push|translate)\b", text) or any(f" {d}" in text for d in DIRECTIONS):
         fields.update(f"{o}.state.position" for o in objs)
     if re.search(r"\b(?:stop|freeze)\b", text):

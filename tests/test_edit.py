@@ -59,6 +59,13 @@ CASES = [
         "decrease gravity by 50%; move box_0 1 m right",
         {"gravity.gravity[2]": -3.5, "box_0.state.position[0]": -4.0},
     ),
+    # a quantity named with "of" (it was split into "field" of "view": helper-38)
+    ("set the field of view to 60", {"camera.fovy": 60.0}),
+    ("increase the field of view by 10%", {"camera.fovy": 49.5}),
+    # an amount on a component changes its size, as N% does (-0.5 -> -0.7 and -7 -> -9 before: helper-38)
+    ("reduce the y-velocity of cylinder_0 by 0.2 m/s", {"cylinder_0.state.linear_velocity[1]": -0.3}),
+    ("reduce the z-gravity by 2 m/s^2", {"gravity.gravity[2]": -5.0}),
+    ("increase the z-velocity of box_0 by 1 m/s", {"box_0.state.linear_velocity[2]": 1.0}),  # from 0: along +z
 ]
 
 
@@ -94,6 +101,7 @@ REFUSED = [
     # |v| = |[4.3, 2.5, 0]| = 4.974: 6 m/s less would turn the velocity around (it did: -1.03 m/s backwards)
     ("decrease the velocity of box_0 by 6 m/s", "its magnitude is 4.974, so this decrease would leave -1.026"),
     ("", "empty instruction"),
+    ("reduce the y-velocity of cylinder_0 by 1 m/s", "the component is -0.5, so this decrease would take it past"),
 ]
 
 
@@ -195,6 +203,26 @@ def test_check_output_accepts_named_change(scene):
     text = _answer(scene, {(0, "physics", "mass"): 2.0})
     result = check_output(scene, "double the mass of box_0", text)
     assert [c.path for c in result.changes] == ["box_0.physics.mass"]
+
+
+def test_check_output_reads_words_for_quantities(scene):
+    """The free editor's instructions describe quantities ("twice as heavy", "faster"): the check lets those
+    fields change (it refused its own docstring's example: helper-38), and still nothing else."""
+    text = _answer(scene, {(1, "physics", "mass"): 2.0})
+    result = check_output(scene, "make the cylinder twice as heavy", text)
+    assert [c.path for c in result.changes] == ["cylinder_0.physics.mass"]
+    text = _answer(scene, {(0, "state", "linear_velocity"): [8.6, 5.0, 0.0]})
+    assert len(check_output(scene, "make box_0 go twice as fast", text).changes) == 2
+    with pytest.raises(EditError, match="box_0.physics.mass"):
+        check_output(scene, "make box_0 faster", _answer(scene, {(0, "physics", "mass"): 2.0}))
+
+
+def test_setting_a_zero_vector_to_zero_is_no_change(scene):
+    """The box's spin is [0, 0, 0]: setting its size to 0 changes nothing (it was refused as having no
+    direction); a size other than 0 still needs one."""
+    assert apply_instruction(scene, "set the spin of box_0 to 0").changes == ()
+    with pytest.raises(EditError, match="is zero, so it has no direction"):
+        apply_instruction(scene, "set the spin of box_0 to 2")
 
 
 def test_check_output_refuses_unnamed_fields(scene):
