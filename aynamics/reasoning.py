@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from aynamics.scene import Box, Cylinder, Scene, Sphere
-from aynamics.simulate import REST_LINEAR, Rollout
+from aynamics.simulate import REST_ANGULAR, REST_LINEAR, Rollout
 
 THRESHOLDS = (-2.0, -1.0, -0.5, 0.5, 1.0, 2.0)  # m, bin edges shared by x, y and z
 BIN_WORDS = {
@@ -137,6 +137,11 @@ _MOVES = (
     "Its initial speed is {speed} m/s ({dirs})",
 )
 _STILL = ("It starts at rest", "It is initially stationary", "It begins motionless")
+_SPINS = (
+    "It spins in place at {spin} rad/s",
+    "It starts turning on the spot at {spin} rad/s",
+    "It rotates in place at {spin} rad/s",
+)
 _STOPS = (", stops at t={t}s", ", comes to rest at t={t}s", ", halts at t={t}s")
 _NEVER_STOPS = (", keeps moving until the end", ", is still moving at the end", ", never comes to rest")
 _STAYS = (", stays at rest throughout", ", never moves", ", remains still the whole time")
@@ -221,8 +226,11 @@ def reasoning_text(scene: Scene, rollout: Rollout, visible: np.ndarray, frame_ti
         v0 = rollout.linear_velocity[0, i]
         dirs = direction_words(v0)
         rest = rollout.rest_time[i]
+        spin = float(np.linalg.norm(rollout.angular_velocity[0, i]))
         if dirs:
             text += " " + _pick(rng, _MOVES).format(speed=_f(float(np.linalg.norm(v0))), dirs=" and ".join(dirs))
+        elif spin > REST_ANGULAR:  # not "at rest": it turns where it stands (the flow shows it)
+            text += " " + _pick(rng, _SPINS).format(spin=_f(spin))
         else:
             text += " " + _pick(rng, _STILL)
         if rest is None:

@@ -10,7 +10,7 @@ import pytest
 from aynamics import reasoning as rs
 from aynamics.sampler import SamplerConfig, sample_scene, scene_seed
 from aynamics.scene import dump, load, parse
-from aynamics.simulate import simulate_batch
+from aynamics.simulate import REST_ANGULAR, simulate_batch
 
 FRAMES = np.arange(0, 30, 3)
 
@@ -71,6 +71,11 @@ def _check_facts(scene, rollout, visible, text):
                 assert d in line
         else:
             assert not speeds
+            spin = np.linalg.norm(rollout.angular_velocity[0, i])
+            in_place = re.search(r"in place at (\d+\.\d+) rad/s|on the spot at (\d+\.\d+) rad/s", line)
+            assert (in_place is not None) == (spin > REST_ANGULAR), line
+            still = re.search("starts at rest|initially stationary|begins motionless", line)
+            assert (still is None) == (spin > REST_ANGULAR), line
         rest = rollout.rest_time[i]
         stop = re.search(r"(?:stops|comes to rest|halts) at t=(\d+\.\d+)s", line)
         if rest is None or rest == 0.0:
@@ -99,6 +104,31 @@ def _check_facts(scene, rollout, visible, text):
                 assert f"t={times[j]:.2f}s" in sentence, (name, sentence)
     resting = sum(r is not None for r in rollout.rest_time)
     assert f"{resting} of {len(scene.objects)}" in text or f"{resting}/{len(scene.objects)}" in text
+
+
+def test_an_object_spinning_in_place_is_not_said_to_start_at_rest():
+    """A box with no linear velocity spinning at 2 rad/s about z: "spins in place at 2.00 rad/s" (or a paraphrase),
+    never "starts at rest" (helper-39 found 5 of 50 generated objects so described)."""
+    from aynamics.simulate import simulate
+
+    scene = parse(
+        """
+- type: box
+  size: [0.2, 0.1, 0.1]
+  state: {position: [0, 1, 0.1], orientation: [1, 0, 0, 0], linear_velocity: [0, 0, 0], angular_velocity: [0, 0, 2]}
+  physics: {mass: 1.0, friction: [0.5, 0.0], damping: -4}
+- type: camera
+  fovy: 45
+  orientation: 45
+  position: [0, -2, 3]
+"""
+    )
+    rollout = simulate(scene)
+    for seed in range(3):
+        text = rs.reasoning_text(scene, rollout, rollout.in_view[FRAMES], rollout.t[FRAMES], seed=seed)
+        first = text.split("\n")[0]
+        assert re.search(r"(?:in place|on the spot) at 2\.00 rad/s", first), first
+        _check_facts(scene, rollout, rollout.in_view[FRAMES], text)
 
 
 def test_facts_agree_with_the_simulation(simulated):
