@@ -664,9 +664,12 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
     angular = np.einsum("btnij,btnj->btni", quat_to_mat(orientation), v[..., 3:])  # body -> world
     t = np.arange(frames + 1) / config.fps
 
-    # contacts: the pair's sensor counts a contact at any physics step of the frame interval
+    # contacts: the pair's sensor counts a contact at any physics step of the frame interval; at frame 0, in the
+    # first half frame: an object placed exactly on the floor may meet it only at the second step (float rounding
+    # of a yawed box's corners: it read as landing at 1/30 s), and one that lands within 1/60 s starts ~1 mm up
     found = raw.sensor[:, : frames * sub] > 0  # (B, S, P)
-    per_frame = np.concatenate([found[:, :1], found.reshape(n_sim, frames, sub, -1).any(axis=2)], axis=1)
+    start = found[:, : max(1, sub // 2)].any(axis=1, keepdims=True)
+    per_frame = np.concatenate([start, found.reshape(n_sim, frames, sub, -1).any(axis=2)], axis=1)
     touching = np.zeros((n_sim, frames + 1, n, n + 1), dtype=bool)
     pi = np.array([i for i, _ in tpl.pairs], dtype=int)
     pj = np.array([n if j < 0 else j for _, j in tpl.pairs], dtype=int)
