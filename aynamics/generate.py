@@ -65,6 +65,7 @@ import numpy as np
 
 from aynamics import reasoning as rs
 from aynamics import sampler as smp
+from aynamics.camera import sphere_in_view
 from aynamics.dataset_store import (  # noqa: F401 - re-exported: the storage half of `generate`
     FORMAT_VERSION,
     MANIFEST,
@@ -80,7 +81,7 @@ from aynamics.dataset_store import (  # noqa: F401 - re-exported: the storage ha
 )
 from aynamics.png_encode import png_bytes
 from aynamics.scene import Scene, SceneError, dump, parse
-from aynamics.simulate import Rollout, SimConfig, simulate
+from aynamics.simulate import Rollout, SimConfig, bounding_radius, simulate
 
 if TYPE_CHECKING:  # rendering is imported inside the workers only
     from aynamics.render import Frames, Renderer
@@ -532,6 +533,8 @@ def make_record(index: int, seed: int, config: GenerateConfig, renderer, given: 
     text = rs.reasoning_text(scene, rollout, visible, times, seed=scene_seed)
     yaml_text = dump(scene)
     cam = fr["camera"]
+    radii = np.array([bounding_radius(o) for o in scene.objects])
+    in_view = sphere_in_view(cam, rollout.position, radii)  # in the rendered view (the rollout's is 480×320)
     return {
         "index": index,
         "seed": seed,
@@ -554,7 +557,7 @@ def make_record(index: int, seed: int, config: GenerateConfig, renderer, given: 
             "orientation": _arr(rollout.orientation),
             "linear_velocity": _arr(rollout.linear_velocity),
             "angular_velocity": _arr(rollout.angular_velocity),
-            "in_view": rollout.in_view.tolist(),
+            "in_view": in_view.tolist(),
             "visible": visible.tolist(),
             "rest_time": list(rollout.rest_time),
         },

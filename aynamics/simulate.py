@@ -360,8 +360,9 @@ class Rollout:
         position, linear_velocity, angular_velocity: (T, N, 3), world frame (angular velocity in world axes).
         orientation: (T, N, 4) unit quaternions w, x, y, z.
         touching: (T, N, N + 1) bool: object i touches object j (j < N) or the floor (j = N) at any physics step
-            in (t[k-1], t[k]] (frame 0: at the initial state after one step).
-        in_view: (T, N) bool: the object's bounding sphere meets the camera's view frustum.
+            in (t[k-1], t[k]] (frame 0: in the first half frame).
+        in_view: (T, N) bool: the object's bounding sphere meets the camera's view frustum (at a 480×320 image's
+            aspect, `camera.matrices`' default: a generated record stores it for its own size).
         rest_time: (N,) s at which each object is at rest for the rest of the rollout, or None.
         valid: False when the rollout diverged (NaN, blow-up, tunnelling); `reason` says where.
     """

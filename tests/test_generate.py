@@ -380,3 +380,22 @@ def test_scene_file_splits_and_resume_do_not_depend_on_how_paths_are_typed(tmp_p
     capsys.readouterr()
     assert main([*argv[:3], "--num", "2", "--workers", "0", "--quiet"]) == 2  # sampled scenes into this run
     assert "holds a run of scene files, this run makes sampled scenes" in capsys.readouterr().err
+
+
+@needs_gl
+def test_in_view_is_stored_for_the_records_own_view(tmp_path):
+    """A portrait data set (48×64): each record's `states.in_view` is the bounding-sphere test in its own camera
+    (the stored K, R, t at 48×64), not in the simulator's default 480×320 view (helper-39: 3 of 32 records said an
+    object was in view after it had left the picture)."""
+    from aynamics import camera as camlib
+    from aynamics.simulate import bounding_radius
+
+    config = dataclasses.replace(CFG, width=48, height=64)
+    dd = datasets.load_from_disk(str(gen.generate_dataset(tmp_path / "d", 4, 1, config)))
+    for r in (r for s in dd.values() for r in s):
+        c = r["camera"]
+        assert (c["width"], c["height"]) == (48, 64)
+        cam = camlib.CameraMatrices(np.array(c["K"]), np.array(c["R"]), np.array(c["t"]), 48, 64)
+        radii = np.array([bounding_radius(o) for o in parse(r["scene_yaml"]).objects])
+        expected = camlib.sphere_in_view(cam, np.array(r["states"]["position"]), radii)
+        assert r["states"]["in_view"] == expected.tolist()
