@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from aynamics.dataset_store import dataset_fps
 from aynamics.scene import Box, Cylinder, Scene, Sphere, parse
+from aynamics.simulate import FPS
 
 TOLERANCE = 0.05  # share of a parameter's span counted as "at" its minimum or maximum
 POOL = 40  # records kept for the exhaustive search over triples (40 choose 3 = 9,880)
@@ -107,11 +109,13 @@ def write_in_context(
     folder = Path(out) if out is not None else Path(dataset_path) / "in_context"
     folder.mkdir(parents=True, exist_ok=True)
     examples = []
+    shown = list(ds[int(chosen[0])]["frame_indices"]) if chosen else []
+    fps = dataset_fps(dataset_path) or FPS  # what the examples show, from the data set (it said 10 at 30 FPS)
     lines = [
         "# In-context examples",
         "",
-        "Each example shows 10 frames of a 1 s video (every third frame at 30 FPS) and their optical flow, then",
-        "the reasoning and the scene YAML. Answer a new video in the same format.",
+        f"Each example shows {len(shown)} frames of a video at {fps} FPS (video frames {shown}) and their optical",
+        "flow, then the reasoning and the scene YAML. Answer a new video in the same format.",
         "",
     ]
     for n, i in enumerate(chosen):

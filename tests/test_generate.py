@@ -217,6 +217,19 @@ def test_write_in_context(reference, tmp_path):
         assert (folder / ex["frames"][0]).is_file() and (folder / ex["flow"][9]).is_file()
         assert parse(ex["target"]) == parse(ex["scene_yaml"])
     assert (folder / "prompt.md").read_text().count("<answer>") == 3
+    assert (
+        "shows 10 frames of a video at 30 FPS (video frames [0, 3, 6, 9, 12, 15, 18, 21, 24, 27])"
+        in (folder / "prompt.md").read_text()
+    )
+
+
+@needs_gl
+def test_in_context_text_says_what_the_examples_show(tmp_path):
+    """At 20 fps with every sixth frame the examples hold 3 frames: the prompt says so (it always said 10 frames
+    at 30 FPS: helper-39)."""
+    config = dataclasses.replace(CFG, fps=20, stride=6)
+    folder = write_in_context(gen.generate_dataset(tmp_path / "d", 4, 3, config), tmp_path / "ic")
+    assert "shows 3 frames of a video at 20 FPS (video frames [0, 6, 12])" in (folder / "prompt.md").read_text()
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (5, 7), (48, 64), (6, 4, 1), (6, 4, 2), (32, 48, 3), (9, 3, 4)])
