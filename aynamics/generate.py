@@ -212,9 +212,17 @@ def config_from_dict(data: dict, base: GenerateConfig | None = None, where: str 
             updates[key] = _typed(f"{where}.{key}", getattr(base, key), value)
     try:
         sampler = dataclasses.replace(base.sampler, **sampler_updates)
-        return dataclasses.replace(base, sampler=sampler, **updates)
+        config = dataclasses.replace(base, sampler=sampler, **updates)
     except (TypeError, ValueError) as e:
         raise ValueError(f"{where}: {e}") from None
+    derived = {"aspect": (config.width / config.height, "width / height"), "duration": (config.duration, "duration")}
+    for key, (value, source) in derived.items():  # the sampler's copies follow these (it was silently replaced)
+        if key in sampler_updates and abs(sampler_updates[key] - value) > 1e-6:
+            raise ValueError(
+                f"{where}.sampler.{key} = {sampler_updates[key]:g}: it is set from {source} ({value:g}); "
+                f"set {source} instead"
+            )
+    return config
 
 
 def apply_overrides(config: GenerateConfig, overrides: list[str]) -> GenerateConfig:

@@ -146,6 +146,9 @@ def test_config_files_and_overrides(tmp_path):
         ("backdrop=3", "override.backdrop = 3: must be text"),
         ("textures_dir=[1]", r"override.textures_dir = \[1\]: must be a path or null"),
         ("width.x=1", "override 'width.x=1': width is a value, not a group of keys"),
+        # the sampler's copies of the view's aspect and the duration (an override was silently replaced: helper-39)
+        ("sampler.aspect=2", r"override.sampler.aspect = 2: it is set from width / height \(1.5\); set width"),
+        ("sampler.duration=3", r"override.sampler.duration = 3: it is set from duration \(1\); set duration"),
     ]:
         with pytest.raises(ValueError, match=message):
             gen.apply_overrides(cfg, ["width=96", override] if override.startswith("width.") else [override])
