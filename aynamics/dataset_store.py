@@ -25,13 +25,15 @@ MANIFEST = "generate.json"
 
 
 def dataset_fps(path: str | Path) -> int | None:
-    """The frame rate of a generated data set's videos (its manifest's `config.fps`), or None for a data set made
-    otherwise (no manifest, or one without it)."""
-    try:
-        fps = json.loads((Path(path) / MANIFEST).read_text())["config"]["fps"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    return int(fps) if isinstance(fps, int | float) and not isinstance(fps, bool) and fps >= 1 else None
+    """The frame rate of a generated data set's videos (its manifest's `config.fps`; for a split folder given on its
+    own, the manifest of the data set holding it), or None for a data set made otherwise."""
+    for folder in (Path(path), Path(path).parent):
+        try:
+            fps = json.loads((folder / MANIFEST).read_text())["config"]["fps"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        return int(fps) if isinstance(fps, int | float) and not isinstance(fps, bool) and fps >= 1 else None
+    return None
 
 
 def features():

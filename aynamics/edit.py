@@ -12,8 +12,9 @@ joined with ";" or "then":
 Directions are world axes as the default camera sees them: "left" is -x, "right" +x, "forward"/"away" +y
 (the camera looks along +y), "back"/"toward the camera" -y, "up" +z, "down" -z. A percentage or factor on a
 vector without a component ("the velocity") scales the whole vector; an amount with a unit ("by 1 m/s") changes
-its magnitude along its direction, and on a component of a velocity, spin or gravity its size along that axis
-("reduce the x-velocity by 0.5 m/s" takes -1 to -0.5, as "by 50%" does); on a position it moves along the axis.
+its magnitude along its direction; on a component ("the x-velocity", "the z-gravity") it adds along that axis,
+signs included: "increase the x-velocity by 1 m/s" takes -1 to 0 and "reduce the z-gravity by 2 m/s^2" takes -7
+to -9 (stronger), where "by 50%" scales the component's size (-1 to -0.5: "reduce ... by 50%").
 `damping` is log10 of a decay rate, so "double the damping" doubles the rate and "set the damping to 0.5 /s" sets
 the rate (a plain number sets the log10 value).
 
@@ -220,12 +221,17 @@ def _subject(text: str) -> tuple[str, str | None]:
     m = re.fullmatch(r"(?:the )?(?P<t>[\w ,]+?)'s (?P<q>.+)", text)
     if m:
         return m.group("q"), m.group("t")
-    for m in re.finditer(r" (?:of|for) ", text):
+    splits = [(text[: m.start()], text[m.end() :]) for m in re.finditer(r" (?:of|for) ", text)]
+    for q, t in splits:
         try:
-            _quantity(text[: m.start()])
+            _quantity(q)
         except EditError:
             continue
-        return text[: m.start()], text[m.end() :]
+        return q, t
+    try:
+        _quantity(text)
+    except EditError:
+        return splits[0] if splits else (text, None)  # its error names the quantity ("x-mass": no x component)
     return text, None
 
 
@@ -322,19 +328,7 @@ def _relative(q: Quantity, comp: int | None, sign: float, amount: float | list[f
         return lambda d: d + sign * amount
     if q.dims == 3 and comp is None:
         return lambda v: _magnitude(v, math.sqrt(sum(x * x for x in v)) + sign * amount, what)
-    if comp is not None and q.key != "position":  # a speed along the axis, as "by N%" and whole vectors change
-        return lambda x: _along(_require(x, what), sign * amount, what)
     return lambda x: _require(x, what) + sign * amount
-
-
-def _along(x: float, delta: float, what: str) -> float:
-    """A vector component whose size changes by `delta`, its sign kept (a zero one grows along +)."""
-    if abs(x) + delta < 0:
-        raise EditError(
-            f"{what}: the component is {x:.4g}, so this decrease would take it past zero; decrease by at most "
-            f"{abs(x):.4g}, set it to 0, or reverse it"
-        )
-    return math.copysign(abs(x) + delta, x) if x != 0 else delta
 
 
 def _require(x: float | None, what: str) -> float:

@@ -83,6 +83,7 @@ def pro_ranking_loss(seq_logps: torch.Tensor, rewards: torch.Tensor, mask: torch
     and a candidate with none below it (the worst, or all tied) adds log 1 = 0.
     """
     keep = _check(seq_logps, rewards, mask)
+    seq_logps = seq_logps.masked_fill(~keep, 0.0)  # a masked candidate's value (-inf, NaN) never reaches a gradient
     s = rewards.detach()
     below = (s[:, None, :] < s[:, :, None]) & keep[:, None, :] & keep[:, :, None]  # [b, k, i]: s_i < s_k
     rivals = below | torch.eye(s.shape[1], dtype=torch.bool, device=s.device)  # with k itself

@@ -255,7 +255,7 @@ def run_preferences(args) -> int:
     from aynamics import lm
     from aynamics.cli import UsageError, _print_json
     from aynamics.pro import ProModule
-    from aynamics.unlabeled import open_videos
+    from aynamics.unlabeled import GeneratedVideos, open_videos
 
     if args.limit is not None and args.limit < 1:
         raise UsageError(f"preferences: --limit {args.limit}: must be >= 1")
@@ -271,6 +271,10 @@ def run_preferences(args) -> int:
         videos = open_videos(
             args.data, args.split, inputs=prompt.modality, use_flow=args.metric != "iou", limit=args.limit
         )
+        if isinstance(videos, GeneratedVideos):  # the recorded prompt holds the videos' clock, as in PRO
+            from aynamics.data import with_clock
+
+            prompt = with_clock(prompt, args.data, videos.ds)
         module = ProModule(
             spec,
             init_adapter=args.adapter,

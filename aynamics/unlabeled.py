@@ -163,8 +163,7 @@ class GeneratedVideos(torch.utils.data.Dataset):
         if limit is not None:
             ds = ds.select(range(min(limit, len(ds))))
         self.ds, self.inputs, self.width, self.height, self.use_flow = ds, inputs, width, height, use_flow
-        # the videos' rate (a split saved on its own: the manifest of the data set beside it, or the generator's)
-        self.fps = dataset_fps(root) or dataset_fps(root.parent) or FPS
+        self.fps = dataset_fps(root) or FPS  # the videos' rate (a data set made otherwise: the generator's)
 
     def __len__(self) -> int:
         return len(self.ds)

@@ -62,10 +62,10 @@ CASES = [
     # a quantity named with "of" (it was split into "field" of "view": helper-38)
     ("set the field of view to 60", {"camera.fovy": 60.0}),
     ("increase the field of view by 10%", {"camera.fovy": 49.5}),
-    # an amount on a component changes its size, as N% does (-0.5 -> -0.7 and -7 -> -9 before: helper-38)
-    ("reduce the y-velocity of cylinder_0 by 0.2 m/s", {"cylinder_0.state.linear_velocity[1]": -0.3}),
-    ("reduce the z-gravity by 2 m/s^2", {"gravity.gravity[2]": -5.0}),
-    ("increase the z-velocity of box_0 by 1 m/s", {"box_0.state.linear_velocity[2]": 1.0}),  # from 0: along +z
+    # an amount on a component adds along the axis, signs included (documented: no jump at zero)
+    ("reduce the y-velocity of cylinder_0 by 0.2 m/s", {"cylinder_0.state.linear_velocity[1]": -0.7}),
+    ("reduce the z-gravity by 2 m/s^2", {"gravity.gravity[2]": -9.0}),
+    ("increase the z-velocity of box_0 by 1 m/s", {"box_0.state.linear_velocity[2]": 1.0}),
 ]
 
 
@@ -101,7 +101,7 @@ REFUSED = [
     # |v| = |[4.3, 2.5, 0]| = 4.974: 6 m/s less would turn the velocity around (it did: -1.03 m/s backwards)
     ("decrease the velocity of box_0 by 6 m/s", "its magnitude is 4.974, so this decrease would leave -1.026"),
     ("", "empty instruction"),
-    ("reduce the y-velocity of cylinder_0 by 1 m/s", "the component is -0.5, so this decrease would take it past"),
+    ("increase the x-mass of box_0 by 1 kg", "'x-mass': mass has no x component"),
 ]
 
 

@@ -83,6 +83,18 @@ def test_pro_ranking_ties_get_no_order():
     assert pro_ranking_loss(torch.zeros(1, 3), two_levels).item() == pytest.approx(2 * LN(2))
 
 
+def test_pro_ranking_masked_candidate_has_no_gradient_even_if_not_finite():
+    """A masked (padding) candidate whose score is -inf or NaN: the loss and every gradient stay finite, its own 0
+    (the tie-aware loss gave NaN there: helper-40)."""
+    for bad in (float("-inf"), float("nan")):
+        logps = torch.tensor([[0.0, 0.0, 0.0, bad]], requires_grad=True)
+        mask = torch.tensor([[True, True, True, False]])
+        loss = pro_ranking_loss(logps, torch.tensor([[1.0, 0.0, 0.0, 0.0]]), mask)
+        loss.backward()
+        assert loss.item() == pytest.approx(LN(3))
+        torch.testing.assert_close(logps.grad, torch.tensor([[-2 / 3, 1 / 3, 1 / 3, 0.0]]))
+
+
 def test_gradient_descent_moves_probability_to_the_best_candidate():
     logps = torch.zeros(1, 4, requires_grad=True)
     rewards = torch.tensor([[0.1, 0.8, 0.4, 0.0]])

@@ -141,6 +141,8 @@ def test_videos_of_another_frame_rate_are_scored_on_their_clock(tmp_path):
     prompt = data.with_clock(lm.PromptSpec(), path, split)
     processor = lm.load_processor(lm.ModelSpec(kind="tiny"), prompt)
     assert videos.fps == 60 and prompt.fps == 60.0
+    alone = GeneratedVideos(path / name)  # a split folder given on its own: the manifest beside it (helper-40)
+    assert alone.fps == 60 and data.with_clock(lm.PromptSpec(), path / name, split).fps == 60.0
     for i, rec in enumerate(split):
         obs = videos[i].observation
         assert obs.fps == 60 and obs.frames.tolist() == rec["frame_indices"]
