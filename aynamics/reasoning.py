@@ -137,10 +137,10 @@ _MOVES = (
     "Its initial speed is {speed} m/s ({dirs})",
 )
 _STILL = ("It starts at rest", "It is initially stationary", "It begins motionless")
-_SPINS = (
-    "It spins in place at {spin} rad/s",
-    "It starts turning on the spot at {spin} rad/s",
-    "It rotates in place at {spin} rad/s",
+_SPINS = (  # no linear velocity at the start, but turning (it may still fall: no "in place")
+    "It starts with no linear velocity, spinning at {spin} rad/s",
+    "It has no initial speed but spins at {spin} rad/s",
+    "It starts without moving along, turning at {spin} rad/s",
 )
 _STOPS = (", stops at t={t}s", ", comes to rest at t={t}s", ", halts at t={t}s")
 _NEVER_STOPS = (", keeps moving until the end", ", is still moving at the end", ", never comes to rest")
@@ -229,7 +229,7 @@ def reasoning_text(scene: Scene, rollout: Rollout, visible: np.ndarray, frame_ti
         spin = float(np.linalg.norm(rollout.angular_velocity[0, i]))
         if dirs:
             text += " " + _pick(rng, _MOVES).format(speed=_f(float(np.linalg.norm(v0))), dirs=" and ".join(dirs))
-        elif spin > REST_ANGULAR:  # not "at rest": it turns where it stands (the flow shows it)
+        elif spin > REST_ANGULAR:  # not "at rest": it turns (the flow shows it)
             text += " " + _pick(rng, _SPINS).format(spin=_f(spin))
         else:
             text += " " + _pick(rng, _STILL)
