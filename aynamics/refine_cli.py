@@ -109,6 +109,14 @@ def run_refine_command(args) -> int:
         raise UsageError(f"refine: --sigma-scale {args.sigma_scale:g} must be a finite number > 0")
     if args.stop_at is not None and math.isnan(args.stop_at):
         raise UsageError("refine: --stop-at nan: must be a number (an objective value such as 0.95)")
+    if args.animation:  # before the search, not after its whole budget (helper-38)
+        from aynamics.render import gl_available
+
+        if Path(args.animation).suffix.lower() not in (".gif", ".mp4"):
+            raise UsageError(f"refine --animation {args.animation!r}: the suffix must be .gif or .mp4")
+        ok, why = gl_available()
+        if not ok:
+            raise UsageError(f"refine --animation {args.animation!r}: needs headless OpenGL, which fails here: {why}")
     preds = [load(p) for p in args.pred]
     obs_path = Path(args.observed)
     try:

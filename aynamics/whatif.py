@@ -246,6 +246,8 @@ def run_edit_command(args) -> int:
     else:
         for c in result.changes:
             sys.stderr.write(f"changed {c}\n")
+        if not result.changes:  # e.g. doubling a zero spin: said, not passed over in silence
+            sys.stderr.write(f"edit: {args.instruction!r} changes no value of the scene\n")
         if not args.out:
             sys.stdout.write(text)
     for which, reason in invalid:

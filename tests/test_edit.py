@@ -138,6 +138,8 @@ def test_cli_edit_writes_out(tmp_path, capsys):
     assert rc == 0
     record = json.loads(capsys.readouterr().out)
     assert record["changes"] == [{"path": "box_0.state.linear_velocity[0]", "before": 4.3, "after": 0.86}]
+    assert cli.main(["edit", str(ASSET), "double the spin of box_0", "--out", str(out)]) == 0  # its spin is zero
+    assert "edit: 'double the spin of box_0' changes no value of the scene" in capsys.readouterr().err
     assert load(str(out)).object("box_0").state.linear_velocity[0] == 0.86
 
 

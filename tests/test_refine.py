@@ -447,6 +447,11 @@ def test_cli_refine_animation(tmp_path, capsys, truth):
     record = json.loads(capsys.readouterr().out)
     frames = iio.imread(gif)  # (F, H, W, 3)
     assert record["animation"] == str(gif) and frames.shape[0] == 10 and frames.shape[2] >= 3 * 360
+    # a bad suffix is refused before the search (it came after the whole budget, and after --out was written)
+    out = tmp_path / "refined.yaml"
+    bad = ["refine", str(pred_path), "--observed", str(path), "--out", str(out), "--animation", str(tmp_path / "a.png")]
+    assert cli.main(bad) == 2 and not out.exists()
+    assert "the suffix must be .gif or .mp4" in capsys.readouterr().err
 
 
 @pytest.mark.slow
