@@ -242,10 +242,28 @@ def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None
     shutil.rmtree(tmp, ignore_errors=True)
     with quiet_datasets():
         dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 empty file
-    (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
-    for s in SPLITS:
-        shutil.rmtree(out / s, ignore_errors=True)
-        os.replace(tmp / s, out / s)
-    os.replace(tmp / "dataset_dict.json", out / "dataset_dict.json")
+    with _exclusive(out / ".assemble.lock"):  # shards that finish together move their (equal) splits in turn
+        (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
+        for s in SPLITS:
+            shutil.rmtree(out / s, ignore_errors=True)
+            os.replace(tmp / s, out / s)
+        os.replace(tmp / "dataset_dict.json", out / "dataset_dict.json")
     shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+@contextlib.contextmanager
+def _exclusive(path: Path):
+    """Hold an exclusive lock on `path` (POSIX `flock`; processes and threads alike) for the block; where `fcntl`
+    is missing (Windows) the block runs unlocked."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

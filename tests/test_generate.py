@@ -415,3 +415,38 @@ def test_in_view_is_stored_for_the_records_own_view(tmp_path):
         radii = np.array([bounding_radius(o) for o in parse(r["scene_yaml"]).objects])
         expected = camlib.sphere_in_view(cam, np.array(r["states"]["position"]), radii)
         assert r["states"]["in_view"] == expected.tolist()
+
+
+@needs_gl
+def test_shards_finishing_together_assemble_in_turn(reference, monkeypatch):
+    """Three assembles of one folder at once (shards finishing together), each move of a split slowed down so that
+    they would interleave: they take turns, and the folder ends as the data set (interleaved, one split folder was
+    replaced while another process filled it: OSError ENOTEMPTY, helper-39)."""
+    import os
+    import threading
+    import time
+
+    from aynamics import dataset_store
+
+    real = os.replace
+
+    def slow(a, b):
+        time.sleep(0.05)
+        return real(a, b)
+
+    monkeypatch.setattr(dataset_store.os, "replace", slow)
+    before, errors = _rows(reference), []
+    monkeypatch.setattr(dataset_store.os, "getpid", lambda: threading.get_ident())  # a temporary folder each
+
+    def run():
+        try:
+            dataset_store.assemble(reference)
+        except Exception as e:  # noqa: BLE001 - collected for the assertion
+            errors.append(e)
+
+    threads = [threading.Thread(target=run) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and _rows(reference) == before
