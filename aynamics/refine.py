@@ -152,7 +152,7 @@ def _track_fits(
     each object from the fit whose projected centres follow its track best.
     """
     kinematic = _groups(params, KINEMATIC)
-    tracks = Tracks.from_segmentation(observed.segmentation, observed.frames, _n_observed(observed))
+    tracks = Tracks.from_segmentation(observed.segmentation, observed.frames, _n_observed(observed), observed.grid)
     if not tracks.visible.any():
         return [], None
     names, fps, config = observed.names, observed.fps, observed.config

@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 
 from aynamics import camera as camlib
 from aynamics.metrics import match_objects
+from aynamics.raycast import SampleGrid
 from aynamics.refine_objectives import by_structure, raw_positions
 from aynamics.refine_search import Objective
 from aynamics.scene import RANGES, Scene, from_items, to_items
@@ -47,11 +48,18 @@ class Tracks:
     border: np.ndarray | None = None
 
     @classmethod
-    def from_segmentation(cls, segmentation: np.ndarray, frames: Sequence[int], n_objects: int) -> Tracks:
-        """Centroids of each object's mask (object index i in `segmentation`, -1 background); >= 2 pixels = visible."""
+    def from_segmentation(
+        cls, segmentation: np.ndarray, frames: Sequence[int], n_objects: int, grid: SampleGrid | None = None
+    ) -> Tracks:
+        """Centroids of each object's mask (object index i in `segmentation`, -1 background); >= 2 pixels = visible.
+
+        With the `grid` of masks taken from a larger video (`Observation.grid`), centroids are in that video's
+        pixels, at the points the masks were taken from, and the tracks' size is the video's (its cameras see it).
+        """
         seg = np.asarray(segmentation)
         f, h, w = seg.shape
-        vv, uu = np.mgrid[0:h, 0:w] + 0.5  # pixel centres, as `CameraMatrices.project`
+        grid = SampleGrid.centres(w, h) if grid is None else grid
+        vv, uu = np.meshgrid(grid.v, grid.u, indexing="ij")  # pixel centres, as `CameraMatrices.project`
         cent = np.zeros((f, n_objects, 2))
         vis = np.zeros((f, n_objects), bool)
         border = np.zeros((f, n_objects), bool)
@@ -63,7 +71,7 @@ class Tracks:
             cent[:, i, 0] = (mask * uu).sum(axis=(1, 2)) / safe
             cent[:, i, 1] = (mask * vv).sum(axis=(1, 2)) / safe
             border[:, i] = mask[:, 0].any(1) | mask[:, -1].any(1) | mask[:, :, 0].any(1) | mask[:, :, -1].any(1)
-        return cls(cent, vis, np.asarray(frames, int), w, h, border)
+        return cls(cent, vis, np.asarray(frames, int), grid.full_w, grid.full_h, border)
 
     def first(self, k: int) -> Tracks:
         """The tracks at the first k sampled frames."""

@@ -329,6 +329,21 @@ def test_track_start_from_paper_level_error(truth):
     assert only_pos.objects[0].state.linear_velocity == pred.objects[0].state.linear_velocity
 
 
+def test_tracks_of_masks_taken_from_a_larger_video_are_in_its_pixels():
+    """Masks at 120×80 taken from a 480×320 video (video pixel 4i + 2 for scorer pixel i): an object covering scorer
+    columns 10-12 and rows 20-21 has its centroid at video pixel centres (4·11 + 2.5, 4·20.5 + 2.5) = (46.5, 84.5),
+    not 4 × the scorer centroid (46, 84), half a video pixel off; the tracks' view is the video's 480×320."""
+    from aynamics.raycast import SampleGrid
+    from aynamics.refine import Tracks as RTracks
+
+    seg = np.full((1, 80, 120), -1, np.int16)
+    seg[0, 20:22, 10:13] = 0
+    plain = RTracks.from_segmentation(seg, [0], 1)
+    assert plain.centroids[0, 0].tolist() == [11.5, 21.0] and (plain.width, plain.height) == (120, 80)
+    tracks = RTracks.from_segmentation(seg, [0], 1, SampleGrid.nearest(480, 320, 120, 80))
+    assert tracks.centroids[0, 0].tolist() == [46.5, 84.5] and (tracks.width, tracks.height) == (480, 320)
+
+
 def test_match_tracks_without_names():
     """Two spheres whose observed ids are in the other order are matched by ground-track distance."""
     from aynamics import camera as camlib
