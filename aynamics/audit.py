@@ -66,7 +66,7 @@ class AuditResult:
     verdict: str  # found | none | ambiguous | unexplained
     causes: list[str]
     parameters: dict[str, float]
-    held_out_error_before: float  # m, RMS over held-out frames
+    held_out_error_before: float  # m, RMS over held-out trajectories of each one's RMS (every trajectory counts alike)
     held_out_error_after: float
     gain_interval: tuple[float, float]  # 95 % bootstrap interval of before - after, m
     ratio_interval: tuple[float, float]  # of after / before
@@ -150,7 +150,7 @@ def _screened_row(res: FitResult, cur: FitResult, name: str, rnd: int) -> Candid
     vals = {p: res.values[p] for p in CANDIDATES[name].params}
     sigma = {p: res.sigma[p] for p in CANDIDATES[name].params}
     nan = float("nan")
-    return CandidateRow(name, rnd, vals, sigma, res.bic - cur.bic, nan, nan, res.mahalanobis(name), False, True)
+    return CandidateRow(name, rnd, vals, sigma, res.d_bic(cur), nan, nan, res.mahalanobis(name), False, True)
 
 
 def _candidate(
@@ -169,7 +169,7 @@ def _candidate(
         res = start
     err = track_errors(scene, val_t, res.values, res.active)
     val, drop, most = _validation(err, cur_err)
-    d_bic = res.bic - cur.bic
+    d_bic = res.d_bic(cur)
     z = res.mahalanobis(name)
     sig = d_bic < -BIC_MARGIN and drop >= VAL_DROP and most and z >= Z_MIN
     vals = {p: res.values[p] for p in CANDIDATES[name].params}
@@ -214,7 +214,7 @@ def _pairs(
         res = fit(scene, fit_t, starts[int(np.argmin(rss))], active)
         err = track_errors(scene, val_t, res.values, res.active)
         val, drop, most = _validation(err, cur_err)
-        d_bic = res.bic - cur.bic
+        d_bic = res.d_bic(cur)
         ok = d_bic < -BIC_MARGIN and drop >= VAL_DROP and most
         for name in (a, b):
             z = res.mahalanobis(name)
@@ -276,8 +276,9 @@ def _audit(
     for rnd in range(max_causes):
         tried = []
         screened = {name: _screen(scene, fit_t, cur, name) for name in candidates if name not in cur.active}
-        finalists = sorted(screened, key=lambda n: screened[n].bic)[:FINALISTS]
-        say(f"round {rnd} screening: " + ", ".join(f"{n} {screened[n].bic - cur.bic:.1f}" for n in screened))
+        by_bic = sorted(screened, key=lambda n: screened[n].d_bic(cur))
+        finalists = by_bic[:FINALISTS]
+        say(f"round {rnd} screening: " + ", ".join(f"{n} {screened[n].d_bic(cur):.1f}" for n in screened))
         for name in screened:
             if name not in finalists:
                 rows.append(_screened_row(screened[name], cur, name, rnd))
@@ -292,7 +293,7 @@ def _audit(
             )
         sig = sorted([tr for tr in tried if tr[0].significant], key=lambda tr: tr[0].val_rms)
         if not sig and rnd == 0 and max_causes >= 2:
-            pair = _pairs(scene, fit_t, val_t, cur, cur_err, sorted(screened, key=lambda n: screened[n].bic), rows, say)
+            pair = _pairs(scene, fit_t, val_t, cur, cur_err, by_bic, rows, say)
             if pair is not None:
                 causes += pair.active
                 cur, cur_val = pair, _rms(track_errors(scene, val_t, pair.values, pair.active))
@@ -362,7 +363,8 @@ def add_audit(sub) -> None:
         "--max-trajectories",
         type=int,
         default=0,
-        help="fit and validate on at most this many (0: all), evenly spaced; a --held-out-every split stays whole",
+        help="use at most this many trajectories besides a --held-out-every split, which stays whole (0: all; evenly "
+        "spaced); with the random split the held-out trajectories are cut from these too",
     )
     p.add_argument(
         "--held-out-every",

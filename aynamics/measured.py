@@ -108,7 +108,7 @@ def read_csv(path: str) -> Measured:
             raw = gzip.decompress(raw)
         except (OSError, EOFError, zlib.error) as e:  # not gzip, truncated, corrupt
             raise MeasuredError(f"--measured {path!r}: not a readable gzip file ({type(e).__name__}: {e})") from None
-    reader = csv.reader(io.StringIO(raw.decode("utf-8", errors="replace")))
+    reader = csv.reader(io.StringIO(raw.decode("utf-8-sig", errors="replace")))  # -sig: a spreadsheet's BOM
     header = [h.strip() for h in next(reader, [])]
     if "toss" in header and "trajectory" not in header and "object" not in header:
         # the cube tosses as published (../shared/data/cube_tosses/tosses.csv.gz): one object, "cube"
@@ -165,6 +165,13 @@ def _track(tid: str, rows: list, objects: list[str], has_q: bool, has_v: tuple[b
         if vel is not None:
             off = 7 if has_q else 3
             vel[k, i, vcols] = v[off : off + len(vcols)]
+    rows_of = np.isfinite(pos).all(-1).sum(0)  # (n,) measured rows of each object
+    for i, obj in enumerate(objects):
+        if rows_of[i] < 4:  # its initial state is a fit over its first rows (it crashed with an IndexError)
+            raise MeasuredError(
+                f"{path}: trajectory {tid!r}, object {obj!r}: {int(rows_of[i])} measured rows, at least 4 needed "
+                "(every object of the file must be measured in every trajectory)"
+            )
     return Track(tid, times - times[0], pos, quat, vel)
 
 

@@ -77,6 +77,14 @@ def test_csv_errors_name_row_column_and_value(tmp_path):
         read_csv(str(p))
     with pytest.raises(MeasuredError, match="No such file"):
         read_csv(str(tmp_path / "absent.csv"))
+    # an object missing from one trajectory is named (it crashed with an IndexError: helper-41)
+    rows = [f"{k},{t / 10},{o},{t},0,1" for k in (1, 2) for t in range(5) for o in ("a", "b") if (k, o) != (2, "b")]
+    p.write_text("trajectory,t,object,x,y,z\n" + "\n".join(rows) + "\n")
+    with pytest.raises(MeasuredError, match="trajectory '2', object 'b': 0 measured rows, at least 4 needed"):
+        read_csv(str(p))
+    # a byte-order mark (a CSV saved by a spreadsheet) is not part of the first column's name
+    p.write_bytes("\ufefftrajectory,t,object,x,y,z\n".encode() + "\n".join(r for r in rows if ",b," not in r).encode())
+    assert len(read_csv(str(p)).tracks) == 2
 
 
 def test_split_is_by_whole_trajectory_and_initial_state_recovers_a_parabola(tmp_path):
@@ -302,3 +310,36 @@ def test_cube_tosses_report_end_to_end(tmp_path, capsys):
     assert got["verdict"] in ("found", "none", "ambiguous", "unexplained")
     assert "110 held-out" in report and "First-impact vertical restitution" in report
     assert got["held_out_error_after"] <= got["held_out_error_before"] * 1.02
+
+
+def test_delta_bic_does_not_depend_on_the_length_unit():
+    """A candidate that lowers the fit split's rss by 2.4 % with one more parameter, its residuals a little less
+    correlated (n_eff 228.5 against the baseline's 224: helper-41's null magnus fit): ΔBIC on the baseline's n_eff
+    is 224·ln(0.976) + ln(224) = -0.03, in metres and in millimetres alike (each fit's own n_eff gave -51 in metres
+    and +11.5 in millimetres)."""
+    from aynamics.fit import FitResult
+
+    for scale in (1.0, 1e6):  # rss in m² and in mm²
+        base = FitResult({}, [], {}, rss=1e-3 * scale, n=2000, n_eff=224.0, k=1, evals=0)
+        new = FitResult({}, [], {}, rss=0.976e-3 * scale, n=2000, n_eff=228.5, k=2, evals=0)
+        assert new.d_bic(base) == pytest.approx(224 * math.log(0.976) + math.log(224), abs=1e-9)
+        assert abs(new.d_bic(base)) < 0.05
+
+
+def test_reported_mu_error_is_that_of_mu_at_rest():
+    """With speed-dependent friction the fit's μ is at V_REF = 1 m/s and the report gives μ(0) = μ − κ·V_REF: its
+    error is sqrt(σμ² + σκ² − 2 cov) = sqrt(4 + 9 − 2·5)·1e-4 = 1.73e-4, not μ's 2e-4 (helper-41)."""
+    import types
+
+    from aynamics.audit_report import parameter_sigma
+    from aynamics.effects import V_REF
+    from aynamics.fit import FitResult
+
+    cov = np.array([[4.0, 5.0], [5.0, 9.0]]) * 1e-8
+    final = FitResult(
+        {}, ["friction_slope"], {"mu": 2e-4, "friction_slope": 3e-4}, 1.0, 10, 10.0, 2, 0, cov, ["mu", "friction_slope"]
+    )
+    result = types.SimpleNamespace(final=final)
+    assert V_REF == 1.0
+    assert parameter_sigma(result, "mu") == pytest.approx(math.sqrt(3) * 1e-4)
+    assert parameter_sigma(result, "friction_slope") == 3e-4
