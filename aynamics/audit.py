@@ -150,7 +150,7 @@ def _screened_row(res: FitResult, cur: FitResult, name: str, rnd: int) -> Candid
     vals = {p: res.values[p] for p in CANDIDATES[name].params}
     sigma = {p: res.sigma[p] for p in CANDIDATES[name].params}
     nan = float("nan")
-    return CandidateRow(name, rnd, vals, sigma, res.d_bic(cur), nan, nan, res.mahalanobis(name), False, True)
+    return CandidateRow(name, rnd, vals, sigma, res.bic - cur.bic, nan, nan, res.mahalanobis(name), False, True)
 
 
 def _candidate(
@@ -169,7 +169,7 @@ def _candidate(
         res = start
     err = track_errors(scene, val_t, res.values, res.active)
     val, drop, most = _validation(err, cur_err)
-    d_bic = res.d_bic(cur)
+    d_bic = res.bic - cur.bic
     z = res.mahalanobis(name)
     sig = d_bic < -BIC_MARGIN and drop >= VAL_DROP and most and z >= Z_MIN
     vals = {p: res.values[p] for p in CANDIDATES[name].params}
@@ -214,7 +214,7 @@ def _pairs(
         res = fit(scene, fit_t, starts[int(np.argmin(rss))], active)
         err = track_errors(scene, val_t, res.values, res.active)
         val, drop, most = _validation(err, cur_err)
-        d_bic = res.d_bic(cur)
+        d_bic = res.bic - cur.bic
         ok = d_bic < -BIC_MARGIN and drop >= VAL_DROP and most
         for name in (a, b):
             z = res.mahalanobis(name)
@@ -276,9 +276,9 @@ def _audit(
     for rnd in range(max_causes):
         tried = []
         screened = {name: _screen(scene, fit_t, cur, name) for name in candidates if name not in cur.active}
-        by_bic = sorted(screened, key=lambda n: screened[n].d_bic(cur))
+        by_bic = sorted(screened, key=lambda n: screened[n].bic)
         finalists = by_bic[:FINALISTS]
-        say(f"round {rnd} screening: " + ", ".join(f"{n} {screened[n].d_bic(cur):.1f}" for n in screened))
+        say(f"round {rnd} screening: " + ", ".join(f"{n} {screened[n].bic - cur.bic:.1f}" for n in screened))
         for name in screened:
             if name not in finalists:
                 rows.append(_screened_row(screened[name], cur, name, rnd))
