@@ -40,6 +40,7 @@ class FitResult:
     evals: int
     cov: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
     names: list[str] = field(default_factory=list)
+    cov_by_track: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))  # `clustered_cov`
 
     @property
     def bic(self) -> float:
@@ -161,4 +162,22 @@ def fit(
     except np.linalg.LinAlgError:
         cov = np.full((k, k), np.inf)
     sigma = {p: float(math.sqrt(max(cov[i, i], 0.0))) for i, p in enumerate(names)}
-    return FitResult(values, list(active), sigma, rss, n, n_eff, k, evals, cov, names)
+    robust = clustered_cov(jac, r, [x.size for x in res])
+    return FitResult(values, list(active), sigma, rss, n, n_eff, k, evals, cov, names, robust)
+
+
+def clustered_cov(jac: np.ndarray, r: np.ndarray, sizes: list[int]) -> np.ndarray:
+    """Cluster-robust (sandwich) covariance of least-squares parameters with one cluster per trajectory (`sizes`
+    consecutive residuals each): B·(Σ_g J_gᵀ r_g r_gᵀ J_g)·B·G/(G − 1), B = (JᵀJ)⁻¹. Residuals along a trajectory
+    may be correlated in any way (the curvature errors assume lag-1 at most and came out ~80 times too small on a
+    hidden-effect case); trajectories are independent. NaN for fewer than 2 trajectories."""
+    k, g = jac.shape[1], len(sizes)
+    if g < 2:
+        return np.full((k, k), np.nan)
+    bounds = np.cumsum([0, *sizes])
+    scores = np.stack([jac[a:b].T @ r[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)])  # (G, k)
+    try:
+        bread = np.linalg.pinv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((k, k), np.inf)
+    return bread @ (scores.T @ scores) @ bread * g / (g - 1)

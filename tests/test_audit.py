@@ -322,10 +322,20 @@ def test_reported_mu_error_is_that_of_mu_at_rest():
     from aynamics.fit import FitResult
 
     cov = np.array([[4.0, 5.0], [5.0, 9.0]]) * 1e-8
-    final = FitResult(
-        {}, ["friction_slope"], {"mu": 2e-4, "friction_slope": 3e-4}, 1.0, 10, 10.0, 2, 0, cov, ["mu", "friction_slope"]
-    )
+    names = ["mu", "friction_slope"]
+    final = FitResult({}, ["friction_slope"], {}, 1.0, 10, 10.0, 2, 0, cov, names, cov * 100)
     result = types.SimpleNamespace(final=final)
     assert V_REF == 1.0
     assert parameter_sigma(result, "mu") == pytest.approx(math.sqrt(3) * 1e-4)
-    assert parameter_sigma(result, "friction_slope") == 3e-4
+    assert parameter_sigma(result, "friction_slope") == pytest.approx(3e-4)
+    assert parameter_sigma(result, "mu", by_track=True) == pytest.approx(math.sqrt(3) * 1e-3)
+
+
+def test_clustered_errors_count_trajectories_not_samples():
+    """A mean fitted to 4 residuals [1, 1, -1, -1] in two trajectories of 2: the clustered variance is
+    (1/4)·(2² + 2²)·(1/4)·2/1 = 1, where independent samples would give rss/(n − k)/n = (4/3)/4 = 1/3."""
+    from aynamics.fit import clustered_cov
+
+    jac, r = np.ones((4, 1)), np.array([1.0, 1.0, -1.0, -1.0])
+    assert clustered_cov(jac, r, [2, 2]) == pytest.approx(np.array([[1.0]]))
+    assert np.isnan(clustered_cov(jac, r, [4])).all()  # one trajectory: no spread between trajectories
