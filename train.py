@@ -41,10 +41,22 @@ def train(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
 
     from aynamics.callbacks import SceneEvaluation, format_table, json_safe
+    from aynamics.lm import TARGETS
 
     interval = cfg.trainer.get("val_check_interval")
-    if isinstance(interval, int | float) and not interval > 0:  # Lightning divided by it after the first step
-        raise ValueError(f"trainer.val_check_interval = {interval}: must be > 0 (steps, or a share of an epoch)")
+    if interval is not None and not (isinstance(interval, int) and not isinstance(interval, bool) and interval > 0):
+        # Lightning divided by 0 after the first step, and refused a share of an epoch with a traceback
+        raise ValueError(f"trainer.val_check_interval = {interval}: must be a whole number of steps > 0")
+    steps = cfg.trainer.get("max_steps")
+    if not (isinstance(steps, int) and (steps >= 1 or steps == -1)):  # 0 trained nothing and wrote no adapter
+        raise ValueError(f"trainer.max_steps = {steps}: must be >= 1 (or -1 with trainer.max_epochs > 0)")
+    every = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("every_n_train_steps")
+    if every is not None and not (isinstance(every, int) and every >= 1):
+        raise ValueError(f"callbacks.checkpoint.every_n_train_steps = {every}: must be a whole number >= 1")
+    if cfg.stage.target not in TARGETS:
+        raise ValueError(f"stage.target = {cfg.stage.target!r}: must be one of {TARGETS}")
+    if cfg.data.get("target", cfg.stage.target) != cfg.stage.target:  # the data take the stage's: one key
+        raise ValueError(f"data.target = {cfg.data.target!r}: set the target as stage.target={cfg.data.target}")
     if cfg.get("ckpt_path"):
         from aynamics.lm import check_resume_checkpoint
 
@@ -52,13 +64,18 @@ def train(cfg: DictConfig) -> dict[str, float]:
     L.seed_everything(cfg.seed, workers=True)
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    callbacks = _instantiate_group(cfg.get("callbacks"))
+    loggers = _instantiate_group(cfg.get("logger"))
+    # val_check_interval counts steps, as checkpoints do: Lightning counts batches, accumulation times as many
+    accumulate = int(cfg.trainer.get("accumulate_grad_batches") or 1)
+    batches = {} if interval is None else {"val_check_interval": interval * accumulate}
+    # before the model: a strategy or precision this machine lacks (deepspeed not installed) fails in seconds
+    trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, **batches)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)  # the model's random draws as before the trainer
     spec = hydra.utils.instantiate(cfg.model)
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
     datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
     module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
-    callbacks = _instantiate_group(cfg.get("callbacks"))
-    loggers = _instantiate_group(cfg.get("logger"))
-    trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     except Exception as error:
@@ -68,18 +85,28 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     metrics = {k: v for k, v in metrics.items() if math.isfinite(v) or k.startswith("val/")}
+    resumed = getattr(module, "resumed_step", None)
+    if resumed is not None and resumed >= trainer.global_step:  # nothing trained: the results stay as they were
+        logging.getLogger(__name__).warning(
+            f"ckpt_path = {cfg.ckpt_path!r} had reached step {resumed}, trainer.max_steps = "
+            f"{cfg.trainer.max_steps}: nothing trained, {out / 'metrics.json'} left as it was; give a larger "
+            "trainer.max_steps to continue"
+        )
+        return metrics
+    evaluation = next((c for c in callbacks if isinstance(c, SceneEvaluation)), None)
     if trainer.is_global_zero:
         overrides = OmegaConf.to_container(cfg, resolve=False) if cfg.get("save_config", True) else {}
         record = {"metrics": metrics, "global_step": trainer.global_step, "config": overrides}
+        if evaluation is not None and evaluation.step is not None:
+            record["val_step"] = evaluation.step  # the step of the val/ metrics (the last validation's)
         (out / "metrics.json").write_text(json.dumps(json_safe(record), indent=2, default=str, allow_nan=False))
-        evaluation = next((c for c in callbacks if isinstance(c, SceneEvaluation)), None)
         if cfg.get("print_table", True) and evaluation is not None and evaluation.last:
             rows = {"model": evaluation.last}
             if evaluation.last_baseline:
                 rows["average scene"] = evaluation.last_baseline
-            print(f"\nValidation ({evaluation.evaluated} held-out scenes, step {trainer.global_step}):")
+            print(f"\nValidation ({evaluation.evaluated} held-out scenes, step {evaluation.step}):")
             print(format_table(rows))
-            adapter = cfg.get("callbacks", {}).get("adapter", {}).get("dirpath")
+            adapter = ((cfg.get("callbacks") or {}).get("adapter") or {}).get("dirpath")
             if adapter and cfg.get("data", {}).get("dir"):  # the split training never read, in the same settings
                 command = ["aynamics", "evaluate", "--adapter", adapter, "--data", cfg.data.dir]
                 command += ["--batch-size", evaluation.batch_size, "--max-new-tokens", evaluation.max_new_tokens]
@@ -119,20 +146,22 @@ def input_error_message(error: BaseException) -> str | None:
     Once training has started, only those this project raised (a check of ours, e.g. a checkpoint that does not
     fit the config): a ValueError from inside torch or a full disk while saving keeps its traceback."""
     from hydra.errors import InstantiationException
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
     from omegaconf.errors import OmegaConfBaseException
 
     if getattr(error, "raised_in_fit", False) and not raised_here(error):
         return None
+    config_errors = ValueError | OSError | ImportError | MisconfigurationException  # ImportError: a missing package
     if isinstance(error, InstantiationException):
         cause = error.__cause__
         key = re.search(r"full_key: (\S+)", str(error))
-        if cause is None or not isinstance(cause, ValueError | OSError | TypeError | ModuleNotFoundError):
+        if cause is None or not isinstance(cause, config_errors | TypeError):
             return None
         return f"{cause} (config: {key.group(1)})" if key else str(cause)
     if isinstance(error, OmegaConfBaseException):  # its text goes on with full_key and object_type lines
         key = getattr(error, "full_key", None)
         return f"{str(error).splitlines()[0]} (config: {key})" if key else str(error).splitlines()[0]
-    if isinstance(error, ValueError | OSError | ModuleNotFoundError):
+    if isinstance(error, config_errors):  # flash-attn not installed: ImportError while the model loads
         return str(error)
     return None
 

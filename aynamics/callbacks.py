@@ -267,6 +267,7 @@ class SceneEvaluation(L.Callback):
         self._baseline: dict[str, float] | None = None
         self.last: dict[str, float] = {}  # the latest summary (model), for scripts and tests
         self.evaluated = 0  # records in the latest evaluation (num_samples, or fewer if the split is smaller)
+        self.step: int | None = None  # the training step of the latest evaluation
         self.last_baseline: dict[str, float] = {}
 
     def _prepare(self, trainer: L.Trainer, baseline: bool = True) -> None:
@@ -318,7 +319,7 @@ class SceneEvaluation(L.Callback):
             return {}
         texts, per = merge_parts(parts, len(records))
         summary = summarize(per)
-        self.last, self.evaluated = summary, len(records)
+        self.last, self.evaluated, self.step = summary, len(records), getattr(trainer, "global_step", None)
         self.last_baseline = dict(self._baseline or {})
         log = {f"val/{k}": v for k, v in summary.items()}
         log |= {f"val/baseline/{k}": v for k, v in self.last_baseline.items()}

@@ -37,16 +37,27 @@ DEFAULT_METRICS = (
 
 
 def run_folders(root: str | Path) -> list[Path]:
-    """Run folders under `root`: those holding `.hydra/overrides.yaml` or `metrics.json`, in name order."""
+    """Run folders under `root`: those holding `.hydra/overrides.yaml` or train.py's `metrics.json` (with its
+    `global_step`; `aynamics evaluate --out OUT/test` writes another kind inside a run), in name order."""
     root = Path(root)
     if root.exists() and not root.is_dir():
         raise FileNotFoundError(f"{str(root)!r} is a file, not a multirun folder (multirun/DATE/TIME)")
     if not root.is_dir():
         raise FileNotFoundError(f"multirun folder {str(root)!r} does not exist")
     found = {p.parent.parent for p in root.rglob(".hydra/overrides.yaml")} | {
-        p.parent for p in root.rglob("metrics.json")
+        p.parent for p in root.rglob("metrics.json") if _is_training_record(p)
     }
     return sorted(found, key=lambda p: [int(s) if s.isdigit() else s for s in p.relative_to(root).parts])
+
+
+def _is_training_record(path: Path) -> bool:
+    """False for another tool's record (a JSON object without `global_step`); an unreadable one is listed, and
+    said so."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return True
+    return not isinstance(record, dict) or "global_step" in record
 
 
 def collect(root: str | Path, metrics: tuple[str, ...] = DEFAULT_METRICS) -> list[dict]:
@@ -65,12 +76,18 @@ def collect(root: str | Path, metrics: tuple[str, ...] = DEFAULT_METRICS) -> lis
             try:
                 record = json.loads(metrics_file.read_text())
                 values = record.get("metrics", {})
-                row |= {"status": "done", "step": record.get("global_step")}
+                # val_step: the step of the val/ metrics (the last validation's; earlier records: the final step)
+                step = record.get("global_step")
+                row |= {"status": "done", "step": step, "val_step": record.get("val_step", step)}
                 row |= {m: values.get(m) for m in metrics}
             except (ValueError, AttributeError):  # not JSON, or not train.py's {"global_step", "metrics": {...}}
-                row |= {"status": "unreadable metrics.json", "step": None} | {m: None for m in metrics}
+                row |= {"status": "unreadable metrics.json", "step": None, "val_step": None}
+                row |= {m: None for m in metrics}
         else:
-            row |= {"status": "missing", "step": None} | {m: None for m in metrics}
+            log = folder / "train.log"
+            failed = log.is_file() and "Traceback" in log.read_text(errors="replace")
+            row |= {"status": "failed (train.log)" if failed else "missing", "step": None, "val_step": None}
+            row |= {m: None for m in metrics}
         rows.append(row)
     if not rows:
         raise ValueError(f"no runs under {str(root)!r}: expected folders with .hydra/overrides.yaml or metrics.json")

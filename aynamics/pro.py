@@ -164,6 +164,7 @@ class ProModule(L.LightningModule):
         self.processor, self.prompt = processor, prompt
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
         self._rng_to_restore: dict | None = None  # a resumed run's random states, set at its first batch
+        self.resumed_step: int | None = None  # the global step of the checkpoint a resumed run started from
 
     def configure_model(self) -> None:
         """Under `trainer=fsdp` (a device mesh is set): shard the policy (`aynamics.sharding`)."""
@@ -333,6 +334,7 @@ class ProModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
         self._rng_to_restore = checkpoint.get("rng")
+        self.resumed_step = checkpoint.get("global_step")
 
     def on_train_batch_start(self, batch, batch_idx: int) -> None:
         # Restored here, not at load: Lightning draws random numbers between loading and the first batch.

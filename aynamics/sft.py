@@ -188,6 +188,7 @@ class SFTModule(L.LightningModule):
             visual.register_forward_hook(self._keep_visual_tokens)
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
         self._rng_to_restore: dict | None = None
+        self.resumed_step: int | None = None  # the global step of the checkpoint a resumed run started from
 
     def configure_model(self) -> None:
         """Under `trainer=fsdp` (a device mesh is set): shard the model and the dense visual head."""
@@ -354,8 +355,14 @@ class SFTModule(L.LightningModule):
         checkpoint["rng"] = rng.gathered_states()  # every process's (each draws its own dropout masks)
 
     def check_checkpoint(self, checkpoint: dict) -> None:
-        """Refuse a checkpoint written for another model or optimizer layout (before anything loads under fsdp)."""
+        """Refuse a checkpoint written for another model, optimizer layout or prompt (target, modality, frames:
+        the adapter would have learnt two; before anything loads under fsdp)."""
         lm.check_trainable_weights(checkpoint, self)
+        stored = (checkpoint.get("aynamics_meta") or {}).get("prompt")
+        prompt = getattr(getattr(self._trainer, "datamodule", None), "prompt", None) if self._trainer else None
+        mismatch = lm.prompt_mismatch(stored, prompt) if isinstance(stored, dict) and prompt is not None else None
+        if mismatch:
+            raise ValueError(f"the checkpoint was trained with {mismatch[0]}, but the data are set to {mismatch[1]}")
         saved = checkpoint.get("hyper_parameters", {}).get("vision_lr_scale", 1.0)
         if saved != self.hparams.vision_lr_scale:  # other parameter groups: the optimizer state would not fit
             raise ValueError(
@@ -366,6 +373,17 @@ class SFTModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
         self._rng_to_restore = checkpoint.get("rng")
+        self.resumed_step = checkpoint.get("global_step")
+
+    def on_train_start(self) -> None:
+        # A resumed run restores the optimizer's rates of the step it stopped at, while the scheduler follows this
+        # run's schedule (a larger max_steps stretches the cosine): the first step takes the schedule's rate too
+        # (it took the old run's last one). A fresh run or one resumed on its own schedule: the same rates.
+        for config in self.trainer.lr_scheduler_configs:
+            sch = config.scheduler
+            if isinstance(sch, torch.optim.lr_scheduler.LambdaLR):
+                for group, fn, base in zip(sch.optimizer.param_groups, sch.lr_lambdas, sch.base_lrs, strict=True):
+                    group["lr"] = base * fn(sch.last_epoch)
 
     def on_before_optimizer_step(self, optimizer) -> None:
         # Before clipping: a group at lr 0 (vision_lr_scale = 0) is fixed, so its gradients must not count in the

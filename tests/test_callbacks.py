@@ -180,12 +180,16 @@ def test_collect_multirun_folder(tmp_path):
     for k, text in [(3, "[1, 2]"), (4, "{not json"), (5, '{"global_step": 3}')]:  # other metrics.json files
         (tmp_path / str(k)).mkdir()
         (tmp_path / str(k) / "metrics.json").write_text(text)
+    (tmp_path / "0" / "test").mkdir()  # `aynamics evaluate --out OUT/test`'s metrics.json is no run (helper-43)
+    (tmp_path / "0" / "test" / "metrics.json").write_text('{"table": {"model": {"iou_full": 0.1}}}')
+    (tmp_path / "2" / "train.log").write_text("Traceback (most recent call last):\n  ...\nValueError: x\n")
     rows = collect(tmp_path)
     assert [r["run"] for r in rows] == ["0", "1", "2", "3", "4", "5"]
     assert [r.get("data.modality") for r in rows] == ["rgb", "flow", "rgb", None, None, None]
     assert [r["val/iou_full"] for r in rows] == [0.5, 0.25, None, None, None, None]
-    assert [r["status"] for r in rows] == ["done", "done", "missing"] + ["unreadable metrics.json"] * 2 + ["done"]
-    assert rows[5]["step"] == 3
+    statuses = ["done", "done", "failed (train.log)"] + ["unreadable metrics.json"] * 2 + ["done"]
+    assert [r["status"] for r in rows] == statuses
+    assert rows[5]["step"] == rows[5]["val_step"] == 3  # a record without val_step: its final step
     assert "| 1 | flow | answer | done | 20 |" in to_markdown(rows)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         collect(tmp_path / "nope")

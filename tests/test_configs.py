@@ -90,6 +90,26 @@ def test_experiment_overrides_compose(tmp_path):
     assert cfg.data.visual_targets and cfg.stage.module.vision_aux_weight > 0  # the dense loss needs its targets
     cfg = _compose(tmp_path, "experiment=make_train", "trainer.max_steps=7")
     assert cfg.trainer.max_steps == 7
+    # debug comes last: a smoke test of an experiment stays a smoke test (the experiment's 32 scenes and 760
+    # tokens won: helper-43); the tiny base's seed is the run's (seed=0,1,2 sweeps had one random base)
+    cfg = _compose(tmp_path, "debug=fast_dev_run", "experiment=make_train", "seed=3")
+    assert (cfg.callbacks.evaluation.num_samples, cfg.callbacks.evaluation.max_new_tokens) == (2, 16)
+    assert cfg.trainer.fast_dev_run and cfg.model.seed == 3
+
+
+def test_a_missing_optional_package_is_an_input_error():
+    """flash-attn not installed (ImportError while the model loads) and a strategy Lightning cannot set up here
+    (MisconfigurationException, e.g. deepspeed not installed) end the run with status 2 and their message; they
+    kept a traceback and status 1 (helper-43)."""
+    from hydra.errors import InstantiationException
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+    from train import input_error_message
+
+    assert input_error_message(ImportError("FlashAttention2 needs flash_attn")) == "FlashAttention2 needs flash_attn"
+    wrapped = InstantiationException("Error in call to target 'Trainer':\nfull_key: trainer")
+    wrapped.__cause__ = MisconfigurationException("DeepSpeed is not installed")
+    assert input_error_message(wrapped) == "DeepSpeed is not installed (config: trainer)"
 
 
 def test_bad_values_are_named(tmp_path):

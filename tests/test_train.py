@@ -964,7 +964,13 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["data.eval_batch_size=0"], r"data.eval_batch_size = 0: must be >= 1"),
         (["data.num_frames=20"], r"data.num_frames = 20: the scenes in data.dir = .* store 10 frames each"),
         (["data.min_pixels=0"], r"min_pixels = 0: must be >= 784"),
-        (["trainer.val_check_interval=0"], r"trainer.val_check_interval = 0: must be > 0"),  # ZeroDivisionError
+        (["trainer.val_check_interval=0"], r"trainer.val_check_interval = 0: must be a whole number of steps > 0"),
+        (["trainer.val_check_interval=0.5"], r"val_check_interval = 0.5: must be a whole number"),  # Lightning's
+        # traceback; helper-43's: no adapter written, a traceback, a key ignored, a target named as data's
+        (["trainer.max_steps=0"], r"trainer.max_steps = 0: must be >= 1"),
+        (["callbacks.checkpoint.every_n_train_steps=-5"], r"every_n_train_steps = -5: must be a whole number >= 1"),
+        (["data.target=think_answer"], r"data.target = 'think_answer': set the target as stage.target=think"),
+        (["stage.target=foo"], r"stage.target = 'foo': must be one of \('answer', 'think_answer'\)"),
         (["stage.module.lr=inf"], r"lr = inf.*need finite lr > 0"),  # trained to NaN and saved the adapter
     ]
     from hydra.errors import InstantiationException  # hydra's wrapper of an error in a config's constructor
@@ -1160,3 +1166,44 @@ def test_rng_states_are_restored_per_rank():
         assert draws() == expected[want], rank
     rng.restore(saved[1], 0)  # a checkpoint written before the states were kept per rank
     assert draws() == expected[1]
+
+
+def test_runs_say_when_their_results_are_from(tmp_path, dataset_dir, caplog, capsys):
+    """helper-43's run-level findings, each on a 2-4 step run:
+    - 3 steps validated every 2: metrics.json's val/ metrics are step 2's, and say so (`val_step`; the table said
+      step 3), with callbacks.adapter=null (a crash after training);
+    - with 2 batches per step, validation every 2 steps is at step 2 only (it counted batches: steps 1, 2, 3);
+    - resuming the finished run at the same max_steps trains nothing and leaves metrics.json as it was (it was
+      overwritten empty); resuming under another modality is refused, naming both."""
+    import logging
+
+    common = [f"data.dir={dataset_dir}", "callbacks.evaluation.num_samples=1", "callbacks.evaluation.max_new_tokens=4"]
+    common += ["callbacks.evaluation.num_animations=0", "trainer.val_check_interval=2"]
+    out = tmp_path / "run"
+    train(_cfg(out, *common, "trainer.max_steps=3", "callbacks.adapter=null"))
+    record = json.loads((out / "metrics.json").read_text())
+    assert (record["global_step"], record["val_step"]) == (3, 2) and "val/yaml_valid" in record["metrics"]
+    assert "held-out scenes, step 2):" in capsys.readouterr().out
+    acc = tmp_path / "acc"
+    train(_cfg(acc, *common, "trainer.max_steps=3", "trainer.accumulate_grad_batches=2"))
+    assert sorted(p.name for p in (acc / "eval").glob("predictions_step*.jsonl")) == ["predictions_step000002.jsonl"]
+    before = (acc / "metrics.json").read_text()
+    with caplog.at_level(logging.WARNING):
+        train(_cfg(acc, *common, "trainer.max_steps=3", f"ckpt_path={acc / 'checkpoints' / 'last.ckpt'}"))
+    assert "had reached step 3" in caplog.text and (acc / "metrics.json").read_text() == before
+    again = [*common, "trainer.max_steps=4", f"ckpt_path={acc / 'checkpoints' / 'last.ckpt'}", "data.modality=flow"]
+    with pytest.raises(ValueError, match="trained with modality='rgb'.* set to modality='flow'"):
+        train(_cfg(tmp_path / "other", *again))
+
+
+def test_resumed_to_a_longer_run_steps_on_the_new_schedule(tmp_path, dataset_dir):
+    """3 cosine steps (no warm-up) resumed to 4: step 4 takes the 4-step schedule's rate, as a straight 4-step
+    run's step 4 does (it took the 3-step run's last rate: helper-43). The first three steps had the 3-step
+    schedule's rates, so the weights are not the straight run's: a longer schedule is a warm restart."""
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null"]
+    common += ["stage.module.warmup_steps=0", "trainer.val_check_interval=null", "trainer.check_val_every_n_epoch=100"]
+    train(_cfg(tmp_path / "short", *common, "trainer.max_steps=3"))
+    straight = train(_cfg(tmp_path / "long", *common, "trainer.max_steps=4"))
+    ckpt = tmp_path / "short" / "checkpoints" / "last.ckpt"
+    resumed = train(_cfg(tmp_path / "resumed", *common, "trainer.max_steps=4", f"ckpt_path={ckpt}"))
+    assert resumed["train/lr"] == pytest.approx(straight["train/lr"], rel=1e-6)
