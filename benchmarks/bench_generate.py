@@ -47,7 +47,7 @@ def _render_only(job: tuple) -> float:
 
 
 def _full(job: tuple[int, int]) -> dict:
-    return gen._worker_record(job)
+    return gen._worker_record((*job, None))  # (index, seed, no scene file): a sampled scene
 
 
 def _best(fn, repeats: int) -> tuple[float, object]:

@@ -129,10 +129,13 @@ def main(argv: list[str] | None = None) -> None:
     overrides += [f"data.batch_size={args.batch_size}"] if args.batch_size else []
     overrides += [f"data.num_frames={args.frames}"] if args.frames else []
     cfg = _compose(overrides, data)
+    import torch  # the thread count the spawned runs get (same environment)
+
     print(
         f"model {dict(cfg.model.tiny) if cfg.model.kind == 'tiny' else cfg.model.path}, LoRA r {cfg.model.lora_rank}, "
         f"vision trained {cfg.model.train_vision}, batch {cfg.data.batch_size}, {cfg.data.num_frames} frames, "
-        f"{args.steps} steps, overrides {args.overrides or 'none'}, CPU threads {os.cpu_count()}, data {data}"
+        f"{args.steps} steps, overrides {args.overrides or 'none'}, {os.cpu_count()} CPU cores, torch threads "
+        f"{torch.get_num_threads()}, data {data}"
     )
     results = {}
     ctx = mp.get_context("spawn")
