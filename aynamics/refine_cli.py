@@ -111,9 +111,12 @@ def run_refine_command(args) -> int:
         raise UsageError("refine: --stop-at nan: must be a number (an objective value such as 0.95)")
     if args.animation:  # before the search, not after its whole budget (helper-38)
         from aynamics.render import gl_available
+        from aynamics.whatif import animation_kind
 
-        if Path(args.animation).suffix.lower() not in (".gif", ".mp4"):
-            raise UsageError(f"refine --animation {args.animation!r}: the suffix must be .gif or .mp4")
+        try:
+            animation_kind(args.animation)
+        except ValueError as e:
+            raise UsageError(f"refine --animation {args.animation!r}: {e}") from None
         ok, why = gl_available()
         if not ok:
             raise UsageError(f"refine --animation {args.animation!r}: needs headless OpenGL, which fails here: {why}")

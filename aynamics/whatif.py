@@ -52,6 +52,18 @@ def _label(image: np.ndarray, text: str) -> np.ndarray:
     return out
 
 
+def animation_kind(path: str | Path) -> str:
+    """The animation format of `path` by its suffix, ".gif" or ".mp4" (checked before work that ends in one).
+
+    Raises:
+        ValueError: any other suffix.
+    """
+    kind = Path(path).suffix.lower()
+    if kind not in (".gif", ".mp4"):
+        raise ValueError(f"animation path {str(path)!r}: the suffix must be .gif or .mp4")
+    return kind
+
+
 def write_animation(path: str | Path, grid: list[list[np.ndarray]], labels: list[list[str]], fps: int = ANIMATION_FPS):
     """Tile videos into one animation, a looping GIF or an H.264 MP4 by the path's suffix: `grid[row][col]` is
     (T, H, W, 3) uint8 (T may differ: shorter ones hold their last frame); `labels` caption each tile. An MP4's
@@ -63,9 +75,7 @@ def write_animation(path: str | Path, grid: list[list[np.ndarray]], labels: list
     import imageio.v3 as iio
 
     path = Path(path)
-    kind = path.suffix.lower()
-    if kind not in (".gif", ".mp4"):
-        raise ValueError(f"animation path {str(path)!r}: the suffix must be .gif or .mp4")
+    kind = animation_kind(path)
     t = max(v.shape[0] for row in grid for v in row)
     rows = []
     for row, names in zip(grid, labels, strict=True):
