@@ -38,12 +38,15 @@ def sample_frames(n_frames: int, stride: int = FRAME_STRIDE) -> np.ndarray:
     return np.arange(max(1, n_frames // stride)) * stride
 
 
-def pixel_rays(cam: CameraMatrices) -> np.ndarray:
-    """(H, W, 3) world directions through the pixel centres, scaled so that their optical-axis component is 1.
+def pixel_rays(cam: CameraMatrices, u: np.ndarray | None = None, v: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 3) world directions through the pixel centres (or through the image points of columns `u` and rows
+    `v`, in pixels: `raycast.SampleGrid`), scaled so that their optical-axis component is 1.
 
     A point seen at depth z (along the optical axis) in pixel (v, u) is `cam.position + z * rays[v, u]`.
     """
-    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    u = np.arange(cam.width) + 0.5 if u is None else np.asarray(u, float)
+    v = np.arange(cam.height) + 0.5 if v is None else np.asarray(v, float)
+    u, v = np.meshgrid(u, v)
     pix = np.stack([u, v, np.ones_like(u)], axis=-1)  # (H, W, 3)
     cam_dirs = pix @ np.linalg.inv(cam.K).T  # z = 1 in camera coordinates
     return cam_dirs @ cam.R  # camera -> world: R^T x, written for row vectors

@@ -19,7 +19,7 @@ import numpy as np
 
 from aynamics import camera as camlib
 from aynamics import simulate as sim
-from aynamics.flow import OCCLUSION_TOLERANCE, quat_to_mat
+from aynamics.flow import OCCLUSION_TOLERANCE, pixel_rays, quat_to_mat
 from aynamics.scene import Scene
 
 
@@ -203,14 +203,13 @@ def cast_group(
 def _rays(cams: list[camlib.CameraMatrices], grid: SampleGrid) -> np.ndarray:
     """(n, h*w, 3) world rays of each camera through the grid's points (camera-frame rays shared by equal
     intrinsics)."""
-    local: dict[float, np.ndarray] = {}
+    local: dict[tuple, np.ndarray] = {}
     out = []
     for cam in cams:
-        key = float(cam.K[0, 0])
+        key = (cam.width, cam.height, float(cam.K[0, 0]))
         if key not in local:
-            u, v = np.meshgrid(grid.u, grid.v)
-            pix = np.stack([u, v, np.ones_like(u)], axis=-1).reshape(-1, 3)
-            local[key] = pix @ np.linalg.inv(cam.K).T  # camera-frame directions, z = 1
+            identity = camlib.CameraMatrices(cam.K, np.eye(3), np.zeros(3), cam.width, cam.height)
+            local[key] = pixel_rays(identity, grid.u, grid.v).reshape(-1, 3)  # camera-frame directions
         out.append(local[key] @ cam.R)
     return np.stack(out)
 
