@@ -104,7 +104,9 @@ def _add_simulate(sub) -> None:
     p.add_argument("--json", action="store_true", help="print final positions, rest times and contacts as JSON")
     p.add_argument("--duration", type=float, default=1.0, help="seconds to simulate (default 1.0)")
     p.add_argument("--fps", type=int, default=30, help="frames per second (default 30)")
-    p.add_argument("--substeps", type=int, default=8, help="physics steps per frame (default 8)")
+    p.add_argument(
+        "--substeps", type=int, default=None, help="physics steps per frame (default: round(240 / fps), 8 at 30 fps)"
+    )
     p.set_defaults(run=_run_simulate)
 
 

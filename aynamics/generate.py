@@ -94,7 +94,8 @@ class GenerateConfig:
     Attributes:
         sampler: scene sampler ranges and shares.
         width, height: image size in pixels.
-        duration, fps, substeps: simulation timing (1 s at 30 FPS gives 31 states, a 30-frame video).
+        duration, fps, substeps: simulation timing (1 s at 30 FPS gives 31 states, a 30-frame video; substeps
+            None: round(240 / fps), a physics step near 1/240 s).
         stride: every `stride`-th video frame is sampled (3: 10 of 30).
         splits: train / validation / test shares, summing to 1.
         chunk_size: scenes per stored chunk (the unit of resume and sharding).
@@ -110,7 +111,7 @@ class GenerateConfig:
     height: int = 320
     duration: float = 1.0
     fps: int = 30
-    substeps: int = 8
+    substeps: int | None = None
     stride: int = 3
     splits: tuple[float, float, float] = (0.8, 0.1, 0.1)
     chunk_size: int = 16
@@ -150,6 +151,7 @@ class GenerateConfig:
         """The fields that decide the records (not `workers`, which only changes speed)."""
         data = dataclasses.asdict(self)
         data.pop("workers")
+        data["substeps"] = self.sim.substeps  # the steps the records were made with (None: from fps)
         return data
 
 
@@ -158,6 +160,9 @@ class GenerateConfig:
 # --------------------------------------------------------------------------------------------
 def _is_number(v) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+OPTIONAL_INTEGERS = ("substeps",)  # config fields that are an integer or None (the others None by default: paths)
 
 
 def _typed(name: str, old, value):
@@ -179,6 +184,8 @@ def _typed(name: str, old, value):
         ok, kind = _is_number(value), "a number"
     elif isinstance(old, str):
         ok, kind = isinstance(value, str), "text"
+    elif name.rsplit(".", 1)[-1] in OPTIONAL_INTEGERS:
+        ok, kind = value is None or (isinstance(value, int) and not isinstance(value, bool)), "an integer or null"
     else:  # optional fields (None by default): a path or None
         ok, kind = value is None or isinstance(value, str), "a path or null"
     if not ok:

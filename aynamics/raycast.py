@@ -153,7 +153,9 @@ def cast_group(
     for k, scene in enumerate(scenes):
         q = qpos[k][:, cols_p]
         overlap = sim.overlap_of(raw, k, scene.names)
-        valid, reason = sim.check_states(scene, q[..., :3], qvel[k][:, cols_v], int(warnings[k]), t, overlap)
+        valid, reason = sim.check_states(
+            scene, q[..., :3], qvel[k][:, cols_v], int(warnings[k]), t, overlap, q[..., 3:]
+        )
         reasons.append(None if valid else reason)
 
     cams = [camlib.matrices(s.camera, grid.full_w, grid.full_h) for s in scenes]

@@ -96,8 +96,8 @@ RANGES: dict[str, Range] = {
         0.95,
         "-",
         "-",
-        "optional: normal bounce coefficient against the floor, and against another object (the bouncier of the "
-        "two wins); absent: MuJoCo's soft contact",
+        "optional: normal bounce coefficient against the floor; two objects take the less bouncy one's (an object "
+        "without one: the other's), and bounce off each other more than e at low e; absent: MuJoCo's soft contact",
     ),
     "physics.magnus": Range(
         -0.05,

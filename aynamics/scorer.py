@@ -50,6 +50,7 @@ WIDTH, HEIGHT = 120, 80  # scorer resolution: a quarter of 480×320 per side
 REFERENCE_WIDTH = 480  # EPE is reported in pixels of an image this wide
 EPE_INVALID = 100.0  # px (at 480 wide): the EPE of a candidate that cannot be parsed or simulated
 VIDEO_FRAMES = 30  # frames of an observed video (states 0..29 of a 1 s rollout at 30 FPS)
+MAX_OBJECT_ID = int(np.iinfo(np.int16).max) - 1  # observed masks are held as int16 (-1 background)
 
 
 @dataclass(frozen=True)
@@ -162,6 +163,13 @@ class Observation:
         if not root.is_dir():
             raise FileNotFoundError(2, f"observed folder {str(root)!r} does not exist", str(root))
         seg = _load_segmentation(root)  # (T, H, W)
+        lo, hi = int(seg.min(initial=-1)), int(seg.max(initial=-1))
+        if lo < -1 or hi > MAX_OBJECT_ID:  # the int16 masks below wrapped 40000 to -25536: silently background
+            bad = lo if lo < -1 else hi
+            raise ValueError(
+                f"{root / 'segmentation'}: object id {bad}: ids must be -1 (background) or 0..{MAX_OBJECT_ID} "
+                "(a grey PNG mask: 0 background, v = id + 1)"
+            )
         n_frames, full_h, full_w = seg.shape
         width, height = scoring_size(full_w, full_h, width, height)
         frames = sample_frames(n_frames)

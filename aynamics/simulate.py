@@ -44,7 +44,8 @@ from aynamics import camera as camlib
 from aynamics.scene import Box, Object, Scene, Sphere
 
 FPS = 30
-SUBSTEPS = 8  # physics steps per frame: dt = 1 / 240 s
+PHYSICS_HZ = 240  # physics steps per second of every rollout (contacts and restitution are tuned at 1/240 s)
+SUBSTEPS = PHYSICS_HZ // FPS  # physics steps per frame at FPS: dt = 1 / 240 s
 DURATION = 1.0
 REST_LINEAR = 0.02  # m/s: below this (and REST_ANGULAR) for every later frame, an object is at rest
 REST_ANGULAR = 0.2  # rad/s
@@ -266,7 +267,10 @@ def scene_params(scene: Scene, tpl: Template, timestep: float = RESTITUTION_TIME
         p["body_mass"][b] = obj.physics.mass
         moments = inertia(obj)
         p["body_inertia"][b] = moments
-        rate = 10.0**obj.physics.damping
+        # MuJoCo's Euler step treats damping implicitly: v <- v / (1 + c·dt) per step, a decay rate of
+        # ln(1 + c·dt) / dt, not c (at damping 2, dt = 1/240 s: 83.6/s instead of 100/s). c = expm1(k·dt) / dt
+        # makes every step decay by exactly exp(-k·dt), so v(t) = v0 exp(-k t) at the frames as documented.
+        rate = math.expm1(10.0**obj.physics.damping * timestep) / timestep
         p["dof_damping"][d : d + 6] = rate * np.concatenate([np.full(3, obj.physics.mass), moments])
     c = tpl.camera_id
     p["cam_pos"][c] = scene.camera.position
@@ -410,19 +414,37 @@ class Rollout:
 MAX_STEPS = 200_000  # physics steps of one rollout (each recorded): e.g. 60 s at 30 fps with 100 substeps
 
 
+def _whole(value, name: str) -> int:
+    """`value` as an int in [1, 1000] (30, 30.0 and numpy's 30 alike), else a ValueError naming it."""
+    try:
+        ok = float(value).is_integer() and 1 <= value <= 1000 and not isinstance(value, bool)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} = {value!r}: must be a whole number in [1, 1000]")
+    return int(value)
+
+
 @dataclass(frozen=True)
 class SimConfig:
-    """Timing of a rollout: `duration` s at `fps` frames per second, `substeps` physics steps per frame."""
+    """Timing of a rollout: `duration` s at `fps` frames per second, `substeps` physics steps per frame.
+
+    `substeps` None (the default) keeps the physics step near 1 / `PHYSICS_HZ` s at any frame rate:
+    round(240 / fps) steps per frame (8 at 30 fps, 16 at 15, 10 at 25). A fixed number of steps per frame would
+    simulate a 15 fps video at 1/120 s, another physics (softer contacts, other bounces and stops).
+    """
 
     duration: float = DURATION
     fps: int = FPS
-    substeps: int = SUBSTEPS
+    substeps: int | None = None
 
     def __post_init__(self):
         if not (0 < self.duration <= 60):
             raise ValueError(f"duration = {self.duration}: must be in (0, 60] s")
-        if not (1 <= self.fps <= 1000) or not (1 <= self.substeps <= 1000):
-            raise ValueError(f"fps = {self.fps}, substeps = {self.substeps}: must be in [1, 1000]")
+        object.__setattr__(self, "fps", _whole(self.fps, "fps"))
+        if self.substeps is None:
+            object.__setattr__(self, "substeps", max(1, round(PHYSICS_HZ / self.fps)))
+        object.__setattr__(self, "substeps", _whole(self.substeps, "substeps"))
         steps = self.frames * self.substeps
         if steps > MAX_STEPS:  # every step's state is recorded: 60 s at 1000 fps x 1000 substeps needed > 6 GB
             raise ValueError(
@@ -700,7 +722,9 @@ def assemble(scenes: list[Scene], raw: RawRollout, config: SimConfig = SimConfig
         radii = np.array([bounding_radius(o) for o in scene.objects])
         with np.errstate(invalid="ignore"):
             in_view = camlib.sphere_in_view(cam, position[k], radii)
-        valid, reason = check_states(scene, position[k], v[k], int(raw.warnings[k]), t, overlap_of(raw, k, names))
+        valid, reason = check_states(
+            scene, position[k], v[k], int(raw.warnings[k]), t, overlap_of(raw, k, names), orientation[k]
+        )
         rest = tuple(
             None if not valid or last == frames else (0.0 if last < 0 else float(t[last + 1]))
             for last in last_moving[k]
@@ -740,12 +764,14 @@ def check_states(
     nwarning: int,
     t: np.ndarray,
     overlap: str | None = None,
+    orientation: np.ndarray | None = None,
 ) -> tuple[bool, str | None]:
     """(valid, reason) of simulated states: objects that start inside each other or the floor (`overlap`, from
     `overlap_of`: the contact pushes them apart at any speed, a launch not in the scene), non-finite values,
-    blow-up speeds, MuJoCo warnings, tunnelling.
+    blow-up speeds, tunnelling, the camera inside an object (with `orientation`), MuJoCo warnings.
 
-    position (T, N, 3) and v (T, N, 6) per frame and object, nwarning the MuJoCo warning count, t (T,) seconds.
+    position (T, N, 3) and v (T, N, 6) per frame and object, orientation (T, N, 4) wxyz, nwarning the MuJoCo
+    warning count, t (T,) seconds.
     """
     if overlap is not None:
         return False, f"overlapping start: {overlap} at t=0 (more than {MAX_START_OVERLAP} m)"
@@ -766,18 +792,49 @@ def check_states(
         )
     floor = scene.environment.floor_offset if scene.environment is not None else 0.0
     tilt = scene.environment.floor_tilt if scene.environment is not None else (0.0, 0.0)
-    if tilt == (0.0, 0.0):
-        depth = np.array([half_extents(o).min() for o in scene.objects])
-        below = position[..., 2] < floor - depth  # the centre went through the floor
-        if below.any():
-            k, i = np.argwhere(below)[0]
-            return False, f"tunnelled: {names[i]} fell through the floor at t={t[k]:.3f}s (z={position[k, i, 2]:.3g} m)"
+    # signed height of each centre above the (possibly tilted) floor plane through (0, 0, floor_offset)
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, _tilt_quaternion(*tilt))
+    normal = rot.reshape(3, 3)[:, 2]  # the floor's z axis in world
+    height = (position - np.array([0.0, 0.0, floor])) @ normal
+    depth = np.array([half_extents(o).min() for o in scene.objects])
+    below = height < -depth  # the centre went through the floor
+    if below.any():
+        k, i = np.argwhere(below)[0]
+        return False, f"tunnelled: {names[i]} fell through the floor at t={t[k]:.3f}s (z={position[k, i, 2]:.3g} m)"
+    if orientation is not None:
+        inside = camera_inside(scene, position, orientation)
+        if inside.any():
+            k, i = np.argwhere(inside)[0]
+            return False, (
+                f"camera inside {names[i]} at t={t[k]:.3f}s (camera.position = {list(scene.camera.position)}): "
+                "a video cannot show that view (the renderer sees the object's inside, the scorer only the object)"
+            )
     if nwarning > 0:
         return (
             False,
             f"diverged: MuJoCo raised {nwarning} instability warning(s) (bad acceleration or contact overflow)",
         )
     return True, None
+
+
+def camera_inside(scene: Scene, position: np.ndarray, orientation: np.ndarray) -> np.ndarray:
+    """(T, N) bool: the scene's camera centre lies inside object i's solid at frame k.
+
+    position (T, N, 3), orientation (T, N, 4) wxyz body -> world.
+    """
+    rel = np.asarray(scene.camera.position, float) - position  # (T, N, 3) world
+    local = np.einsum("tnji,tnj->tni", quat_to_mat(orientation), rel)  # R^T (c - p): the body frame
+    out = np.zeros(position.shape[:2], dtype=bool)
+    for i, obj in enumerate(scene.objects):
+        g, d = geom_size(obj), local[:, i]
+        if isinstance(obj, Box):
+            out[:, i] = (np.abs(d) < g).all(-1)
+        elif isinstance(obj, Sphere):
+            out[:, i] = np.linalg.norm(d, axis=-1) < g[0]
+        else:
+            out[:, i] = (np.hypot(d[:, 0], d[:, 1]) < g[0]) & (np.abs(d[:, 2]) < g[1])
+    return out
 
 
 def quat_to_mat(q: np.ndarray) -> np.ndarray:

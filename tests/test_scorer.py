@@ -216,6 +216,22 @@ def test_observation_from_dir_errors(tmp_path):
     assert np.isfinite(obs.flow).all() and obs.occluded[1, 2, 2]
 
 
+def test_observed_ids_beyond_int16_are_refused(tmp_path):
+    """Ids the int16 masks cannot hold wrapped silently (40000 -> -25536: background; 65536 -> object 0)."""
+    for bad in (40000, 65536, -5):
+        seg = np.full((30, 8, 8), -1, np.int64)
+        seg[:, 2:4, 2:4] = bad
+        np.save(tmp_path / "segmentation.npy", seg)
+        with pytest.raises(ValueError, match=rf"segmentation: object id {bad}: ids must be -1"):
+            scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    (tmp_path / "segmentation.npy").unlink()
+    (tmp_path / "segmentation").mkdir()
+    for k in range(30):  # a 16-bit grey mask, v = id + 1
+        iio.imwrite(tmp_path / "segmentation" / f"{k:03d}.png", np.full((8, 8), 40001, np.uint16))
+    with pytest.raises(ValueError, match="object id 40000"):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+
+
 def test_unreadable_mask_png_is_named(tmp_path):
     import imageio.v3 as iio
 

@@ -191,12 +191,13 @@ def test_rolling_friction_shortens_the_roll():
 
 def test_damping_slows_free_flight_as_exp_minus_k_t():
     """Zero gravity: v(t) = v0 exp(-k t) with k = 10^damping, for any mass."""
-    for damping, mass in ((-1.0, 0.3), (0.0, 5.0)):
+    for damping, mass in ((-1.0, 0.3), (0.0, 5.0), (1.0, 2.0), (2.0, 0.05)):
         s = scene([sphere(z=3, v=(2, 0, 0), w=(0, 0, 5), damping=damping, mass=mass)], gravity=(0, 0, 0))
         r = run(s)
         k = 10.0**damping
-        assert abs(r.linear_velocity[-1, 0, 0] / (2 * math.exp(-k)) - 1) < 0.01
-        assert abs(r.angular_velocity[-1, 0, 2] / (5 * math.exp(-k)) - 1) < 0.01
+        t = r.t[3]  # 0.1 s: at damping 2 the speed was exp(-8.36) of v0, not exp(-10) (the implicit step)
+        assert abs(r.linear_velocity[3, 0, 0] / (2 * math.exp(-k * t)) - 1) < 0.01, damping
+        assert abs(r.angular_velocity[3, 0, 2] / (5 * math.exp(-k * t)) - 1) < 0.01, damping
     dist = [
         run(scene([sphere(z=3, v=(2, 0, 0), damping=d)], gravity=(0, 0, 0))).position[-1, 0, 0] for d in (-3, -1, 0, 1)
     ]
@@ -217,6 +218,23 @@ def test_restitution_raises_the_bounce():
         peaks.append(r.linear_velocity[:, 0, 2].max())
     assert _monotone(peaks)
     assert abs(peaks[-1] / math.sqrt(2 * 9.81 * 0.8) - 0.8) < 0.1  # rebound speed ≈ e × impact speed
+
+
+def test_restitution_between_two_objects_is_the_less_bouncy_ones():
+    """Two equal spheres meet head-on without gravity. MuJoCo takes the element-wise minimum of the two direct-form
+    solrefs: the less bouncy sphere's e governs (the README had "the bouncier wins"), a sphere without restitution
+    takes the other's, and the parting speed is above e at low e (the README's measured 0.38 / 0.61 / 0.84)."""
+
+    def parting(e1, e2):
+        kw1 = {} if e1 is None else {"restitution": e1}
+        kw2 = {} if e2 is None else {"restitution": e2}
+        s = scene([sphere(x=-0.5, z=1.0, v=(2, 0, 0), **kw1), sphere(x=0.5, z=1.0, v=(-2, 0, 0), **kw2)], (0, 0, 0))
+        v = run(s, duration=0.6).linear_velocity[-1, :, 0]
+        return (v[1] - v[0]) / 4.0
+
+    assert parting(0.8, 0.2) == pytest.approx(parting(0.2, 0.2), abs=1e-6)
+    assert parting(0.8, None) == pytest.approx(parting(0.8, 0.8), abs=1e-6)
+    assert [round(parting(e, e), 2) for e in (0.2, 0.5, 0.8)] == pytest.approx([0.38, 0.61, 0.84], abs=0.02)
 
 
 def test_restitution_holds_at_coarser_physics_steps():
@@ -432,6 +450,51 @@ def test_check_names_the_object_and_time():
     assert not ok and reason.startswith("tunnelled: a")
 
 
+def test_tunnelling_through_a_tilted_floor_is_invalid():
+    """A small fast sphere passes through the floor; with a tilted floor it was reported valid (z = -4.1 m)."""
+    for tilt in ((0.0, 0.0), (0.5, 0.0), (20.0, 0.0)):
+        s = scene(
+            [sphere(z=8.0, v=(0, 0, -20), r=0.05, mass=0.01)],
+            gravity=(0.0, 0.0, -30.0),
+            environment={"floor_tilt": list(tilt), "time_scale": 2.0},
+        )
+        r = sim.simulate(s)
+        assert not r.valid and r.reason.startswith("tunnelled"), (tilt, r.reason, r.position[-1, 0])
+    # resting on (or sliding down) a tilted, raised floor is not tunnelling
+    s = scene([sphere(z=0.45, r=0.2)], environment={"floor_tilt": [15.0, -10.0], "floor_offset": 0.2})
+    assert sim.simulate(s).valid
+
+
+def test_a_camera_inside_an_object_is_an_invalid_rollout():
+    """The renderer saw through a box around the camera (its back faces) while the ray-caster saw only the box: a
+    true scene scored IoU 0 against its own render. Such a scene is refused, by the simulator and the scorer."""
+    from aynamics import scorer
+
+    cam = {"type": "camera", "position": [0.0, 0.0, 1.0], "orientation": 30, "fovy": 60}
+    around = box(v=(0, 0, 0), size=(1.0, 1.0, 1.0))  # centre (0, 0, 1): the camera at its centre
+    r = sim.simulate(scene([around], camera=cam))
+    assert not r.valid and r.reason.startswith("camera inside box_0 at t=0.000s (camera.position = [0.0, 0.0, 1.0])")
+    # a 45°-turned box whose bounding box holds the camera but whose solid does not
+    turned = box(x=1.3, v=(0, 0, 0), size=(0.5, 0.5, 1.0)) | {}
+    turned["state"]["orientation"] = [math.cos(math.pi / 8), 0, 0, math.sin(math.pi / 8)]
+    assert sim.simulate(scene([turned], camera=cam)).valid  # the camera 1.3 m away, the corner at 0.71 m
+    ball = sphere(x=0.35, z=1.0, v=(-3, 0, 0), r=0.1)  # flies through the camera: inside at 0.1 s only
+    r = sim.simulate(scene([ball], gravity=(0, 0, 0), camera=cam))
+    assert not r.valid and r.reason.startswith("camera inside sphere_0 at t=0.100s")
+    cyl = {
+        "type": "cylinder",
+        "radius": 0.3,
+        "height": 2.4,
+        "state": {"position": [0, 0, 1.2]},
+        "physics": {"mass": 1.0, "friction": [0.5, 0], "damping": -8},
+    }
+    s = scene([cyl], camera=cam)
+    assert "camera inside cylinder_0" in sim.simulate(s).reason
+    observed = scorer.Observation.from_scene(scene([sphere(x=2.0)], camera=cam), width=12, height=8)
+    (got,) = scorer.score([s], observed)  # the scorer's ray-cast rollout says so too
+    assert not got.valid and got.iou_full == 0 and "camera inside cylinder_0" in got.reason
+
+
 def test_invalid_timing_is_refused():
     with pytest.raises(ValueError, match="duration"):
         sim.SimConfig(duration=-1)
@@ -441,6 +504,22 @@ def test_invalid_timing_is_refused():
     with pytest.raises(ValueError, match=r"fps = 1000 with substeps = 1000 is 60000000 physics steps: at most 200000"):
         sim.SimConfig(duration=60, fps=1000, substeps=1000)  # each factor in range; > 6 GB of recorded states
     assert sim.SimConfig(duration=60, fps=30, substeps=100).frames == 1800
+    for bad in ({"fps": 2.5}, {"substeps": 2.5}, {"substeps": "8"}, {"fps": True}):  # was a bare TypeError / 2.5 fps
+        with pytest.raises(ValueError, match="must be a whole number in"):
+            sim.SimConfig(**bad)
+
+
+def test_the_physics_step_stays_near_1_240_s_at_any_frame_rate():
+    """Steps per frame follow the frame rate: a 15 fps video is the 30 fps rollout's every other frame, bit for
+    bit (with 8 steps per frame at 15 fps it was simulated at 1/120 s: other bounces, a true scene scored 0.56)."""
+    assert [sim.SimConfig(fps=f).substeps for f in (30, 15, 25, 60, 240, 1000)] == [8, 16, 10, 4, 1, 1]
+    assert sim.SimConfig(fps=15).timestep == sim.SimConfig().timestep == 1 / 240
+    s = scene([sphere(z=1.0, v=(1, 0, 0), restitution=0.7), box(x=1.5, v=(-2, 0, 0))])
+    a = sim.simulate(s, sim.SimConfig(fps=30))
+    b = sim.simulate(s, sim.SimConfig(fps=15))
+    assert a.valid and b.valid and b.position.shape[0] == 16
+    np.testing.assert_array_equal(b.position, a.position[::2])
+    assert not np.array_equal(sim.simulate(s, sim.SimConfig(fps=15, substeps=8)).position, a.position[::2])
 
 
 def test_contact_intervals_of_interleaved_pairs():
