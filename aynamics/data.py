@@ -540,7 +540,11 @@ class SceneDataModule(L.LightningDataModule):
             self.prompt = lm.PromptSpec(**{**self.prompt.__dict__, "examples": examples})
         p = self.prompt
         self.processor = load_processor(
-            self.processor_path, min_pixels=p.min_pixels, max_pixels=p.max_pixels, num_frames=p.num_frames
+            self.processor_path,
+            min_pixels=p.min_pixels,
+            max_pixels=p.max_pixels,
+            num_frames=p.num_frames,
+            video_fps=p.shown_fps,  # the data's clock: a video's temporal positions in seconds
         )
 
     @property

@@ -195,8 +195,8 @@ def evaluate_adapter(
             f"--data {str(data_dir)!r}: its {split!r} split has no {prompt.modality!r} frames, which the adapter "
             f"(trained with data.modality = {prompt.modality!r}) reads"
         )
-    processor = lm.load_processor(spec, prompt)
     prompt = data.with_clock(prompt, data_dir, splits[split])  # the scenes are scored on the data set's clock
+    processor = lm.load_processor(spec, prompt)  # and a video's temporal positions follow it
     rows = data.used_columns(splits[split], ("index", "scene_yaml", "frame_indices", prompt.modality))
     n = len(rows) if num is None else min(num, len(rows))
     where = f"{split} records of --data {str(data_dir)!r}"

@@ -105,6 +105,14 @@ class PromptSpec:
         return tuple((k - self.clip_frames[0]) / self.fps for k in self.clip_frames)
 
     @property
+    def shown_fps(self) -> float:
+        """Frames per second of the frames handed to the model (`num_frames` of `clip_frames`, evenly, ends kept):
+        a video's temporal positions (Qwen2.5-VL's `second_per_grid_ts`) follow it. 2.0 (Qwen's default) when one
+        frame is shown."""
+        n = min(self.num_frames, len(self.clip_frames))
+        return (n - 1) / self.frame_times[-1] if n > 1 else 2.0
+
+    @property
     def user_prompt(self) -> str:
         return f"{MODALITY_NOTE[self.modality]} {USER_PROMPTS[self.target]}"
 
@@ -238,11 +246,16 @@ def build_model(spec: ModelSpec) -> torch.nn.Module:
 
 
 def load_processor(spec: ModelSpec, prompt: PromptSpec):
-    """The image-only processor of the model, with the prompt's frame count and pixel bounds."""
+    """The image-only processor of the model, with the prompt's frame count, frame rate and pixel bounds."""
     from aynamics.processor import load_processor as _load
 
+    p = prompt
     return _load(
-        spec.processor_path, min_pixels=prompt.min_pixels, max_pixels=prompt.max_pixels, num_frames=prompt.num_frames
+        spec.processor_path,
+        min_pixels=p.min_pixels,
+        max_pixels=p.max_pixels,
+        num_frames=p.num_frames,
+        video_fps=p.shown_fps,
     )
 
 

@@ -415,22 +415,30 @@ class ProDataModule(L.LightningDataModule):
             return
         from aynamics.processor import load_processor
 
-        hp, p = self.hparams, self.prompt
-        self.processor = load_processor(
-            hp.processor_path, min_pixels=p.min_pixels, max_pixels=p.max_pixels, num_frames=p.num_frames
-        )
+        hp = self.hparams
         kw = {"inputs": hp.modality, "use_flow": hp.use_flow}
         if hp.preferences_dir is not None:
-            from aynamics.preference_data import check_made_for, load_preferences
+            from aynamics.preference_data import load_preferences
 
             self.train_set = load_preferences(hp.preferences_dir)
-            check_made_for(hp.preferences_dir, self.prompt, self.processor.tokenizer)
         else:
             self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
             if isinstance(self.train_set, GeneratedVideos):  # video folders: every third of 30 frames, the default
                 from aynamics.data import with_clock
 
                 self.prompt = with_clock(self.prompt, hp.dir, self.train_set.ds)
+        p = self.prompt  # with the videos' clock: a video's temporal positions follow it
+        self.processor = load_processor(
+            hp.processor_path,
+            min_pixels=p.min_pixels,
+            max_pixels=p.max_pixels,
+            num_frames=p.num_frames,
+            video_fps=p.shown_fps,
+        )
+        if hp.preferences_dir is not None:
+            from aynamics.preference_data import check_made_for
+
+            check_made_for(hp.preferences_dir, self.prompt, self.processor.tokenizer)
         if len(self.train_set) == 0:
             raise ValueError(f"data.dir = {hp.dir!r}: split {hp.train_split!r} holds no videos")
         held_out = hp.val_dir if hp.val_dir is not None else hp.dir

@@ -53,6 +53,10 @@ MODEL_KEYS = (
 )
 
 
+class PixelBoundsError(ValueError):
+    """min_pixels above max_pixels: a setting to fix, not a checkpoint that could not be loaded."""
+
+
 class ImageOnlyQwenProcessor(Qwen2_5_VLProcessor):
     """Qwen2.5-VL processor whose videos are built from the PIL image processor (no torchvision).
 
@@ -112,7 +116,10 @@ class ImageOnlyQwenProcessor(Qwen2_5_VLProcessor):
         size["shortest_edge"] = min_pixels or size["shortest_edge"]
         size["longest_edge"] = max_pixels or size["longest_edge"]
         if size["shortest_edge"] > size["longest_edge"]:
-            raise ValueError(f"min_pixels = {size['shortest_edge']} > max_pixels = {size['longest_edge']}")
+            raise PixelBoundsError(
+                f"min_pixels = {size['shortest_edge']} > max_pixels = {size['longest_edge']} (a bound left null "
+                f"takes the value of {str(name_or_path)!r}'s preprocessor_config.json): need min_pixels <= max_pixels"
+            )
         image_processor.size = size
         template = _saved_chat_template(name_or_path) or tokenizer.chat_template
         if template is None:
@@ -261,6 +268,8 @@ def load_processor(
             video_fps=video_fps,
             local_files_only=local_files_only,
         )
+    except PixelBoundsError:
+        raise
     except (OSError, ValueError) as e:  # not found, no hub, not a repo id, broken files
         raise checkpoint_error(name_or_path, "processor", e) from None
 

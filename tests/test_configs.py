@@ -116,3 +116,16 @@ def test_bad_values_are_named(tmp_path):
     cfg = _compose(tmp_path, "model.kind=huge")
     with pytest.raises(Exception, match="model kind = 'huge'"):
         hydra.utils.instantiate(cfg.model)
+
+
+def test_run_and_sweep_folders_hold_microseconds():
+    """Two `python train.py` runs (or sweeps) started in the same second must get two folders: with Hydra's default
+    `outputs/DATE/HH-MM-SS` two single runs shared one and overwrote each other's adapter, metrics.json and
+    .hydra/ (their checkpoints became last.ckpt / last-v1.ckpt of either run)."""
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="config", return_hydra_config=True)
+    for key in ("run", "sweep"):
+        pattern = OmegaConf.to_container(cfg.hydra[key], resolve=False)["dir"]
+        assert pattern.endswith("${now:%H-%M-%S-%f}"), (key, pattern)

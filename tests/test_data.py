@@ -149,8 +149,13 @@ def test_modality_and_video(dataset_dir):
     """flow frames differ from rgb frames; as_video gives one video with half the visual tokens of 2 images."""
     rgb = _dm(dataset_dir, modality="rgb").dataset("train")[0]
     flow = _dm(dataset_dir, modality="flow").dataset("train")[0]
-    video = _dm(dataset_dir, modality="rgb", as_video=True).dataset("train")[0]
+    dm = _dm(dataset_dir, modality="rgb", as_video=True)
+    video = dm.dataset("train")[0]
     assert not torch.equal(rgb["pixel_values"], flow["pixel_values"])
+    # the two frames shown are the first and last stored, 0.9 s apart at 30 fps: temporal patches (two frames each)
+    # are 2 × 0.9 s apart (Qwen2.5-VL's second_per_grid_ts = temporal patch / fps; it was 1.0 for any data)
+    assert video["second_per_grid_ts"].tolist() == pytest.approx([1.8])
+    assert dm.processor.video_fps == pytest.approx(dm.prompt.shown_fps)
     assert "pixel_values_videos" in video and "pixel_values" not in video
     n_img = int((rgb["mm_token_type_ids"] == IMAGE).sum())
     n_vid = int((video["mm_token_type_ids"] == VIDEO).sum())

@@ -94,6 +94,25 @@ def test_video_has_half_the_visual_tokens(proc, frames):
     assert "pixel_values" not in video and "pixel_values_videos" not in images
 
 
+def test_video_temporal_positions_follow_the_shown_frames_clock(frames):
+    """4 of the 10 stored frames (every third of 30 at 30 fps) are shown at 0, 0.3, 0.6, 0.9 s: the two temporal
+    patches (frames 0-1 and 2-3) start 0.6 s apart, which Qwen2.5-VL's temporal positions read from
+    `second_per_grid_ts` (it was 1.0 whatever the data: the processor's default 2 fps). Training, evaluation, PRO
+    and predict build it alike."""
+    from aynamics.lm import ModelSpec, PromptSpec
+    from aynamics.lm import load_processor as load_for
+
+    prompt = PromptSpec(as_video=True, num_frames=4)
+    assert prompt.shown_fps == pytest.approx(10 / 3)
+    four = frames + frames[:1]
+    video = build_prompt(load_for(ModelSpec(kind="tiny"), prompt), four, as_video=True, **PROMPTS)
+    assert video["second_per_grid_ts"].tolist() == pytest.approx([0.6])
+    # a 60 fps data set storing frames 0, 6, ..., 54 shows 4 frames 0.3 s apart too; 2 frames: 0.9 s apart
+    assert PromptSpec(num_frames=4, fps=60, clip_frames=tuple(range(0, 60, 6))).shown_fps == pytest.approx(10 / 3)
+    assert PromptSpec(num_frames=2).shown_fps == pytest.approx(1 / 0.9)
+    assert PromptSpec(num_frames=1).shown_fps == 2.0
+
+
 def test_video_patch_layout_matches_qwen_video_processor(proc, frames):
     """Rebuild the frames from image patches, then patchify them with the code of Qwen2VLVideoProcessor.patchify."""
     t, p, m = 2, 14, 2
@@ -268,3 +287,13 @@ def test_apply_chat_template_tokenize_matches_build_prompt(proc, frames):
     assert torch.equal(out["input_ids"][0], ref["input_ids"])
     assert torch.equal(out["mm_token_type_ids"][0], ref["mm_token_type_ids"])
     torch.testing.assert_close(out["pixel_values"], ref["pixel_values"])
+
+
+def test_pixel_bounds_out_of_order_are_named_as_a_setting_not_a_broken_checkpoint():
+    """min_pixels above max_pixels (or above the checkpoint's max when max is null) is the data.* setting's fault:
+    the error said 'cannot load the processor ... give a local folder holding a Qwen2.5-VL checkpoint'."""
+    with pytest.raises(ValueError, match=r"min_pixels = 20000 > max_pixels = 12544 .*need min_pixels <= max_pixels"):
+        load_processor(TINY_ASSET_DIR, min_pixels=20000)
+    with pytest.raises(ValueError) as info:
+        load_processor(TINY_ASSET_DIR, min_pixels=20000, max_pixels=10000)
+    assert "checkpoint" not in str(info.value) and not isinstance(info.value, OSError)
