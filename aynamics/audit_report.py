@@ -18,8 +18,8 @@ import numpy as np  # noqa: E402
 from aynamics.audit import VAL_DROP, VAL_MAJORITY, Z_MIN, AuditResult, bootstrap  # noqa: E402
 from aynamics.effects import CANDIDATES, V_REF, physics_rate, simulate_tracks  # noqa: E402
 from aynamics.fit import fit, lag1  # noqa: E402
-from aynamics.measured import PHASES, Measured, bounces, quat_to_mat, support_height  # noqa: E402
-from aynamics.residuals import _size, phase_errors  # noqa: E402
+from aynamics.measured import PHASES, Measured, bounces, object_size, quat_to_mat, support_height  # noqa: E402
+from aynamics.residuals import phase_errors  # noqa: E402
 from aynamics.scene import Scene, parse  # noqa: E402
 from aynamics.simulate import half_extents  # noqa: E402
 
@@ -30,7 +30,7 @@ def _first_bounce(scene: Scene, tracks, positions, orientations) -> list[float]:
     for tr, p, q in zip(tracks, positions, orientations, strict=True):
         ok = np.isfinite(p[:, 0]).all(-1)
         quat = q[ok, 0] if q is not None else None
-        b = bounces(tr.t[ok], p[ok, 0], support_height(p[ok, 0], quat, obj.type, _size(obj)))
+        b = bounces(tr.t[ok], p[ok, 0], support_height(p[ok, 0], quat, obj.type, object_size(obj)))
         if b:
             out.append(b[0])
     return out

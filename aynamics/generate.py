@@ -652,6 +652,13 @@ def generate(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {str(out)!r} is a file, not a folder")
+    if out.is_dir() and not (out / MANIFEST).is_file():  # not a run of ours: assembly replaces train/ test/ ...
+        other = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
+        if other:
+            raise ValueError(
+                f"--out {str(out)!r} holds other files ({other[0]!r}, ...) and no {MANIFEST}: give a new or empty "
+                "folder, or one an earlier generate wrote"
+            )
     mine = shard_chunks(num, config.chunk_size, shard, num_shards)  # checked before anything is written
     settings = config.to_json()
     manifest = {"format": FORMAT_VERSION, "num": num, "seed": seed, "config": settings}

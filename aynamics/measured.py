@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aynamics.simulate import quat_to_mat
+from aynamics.simulate import geom_size, quat_to_mat
 
 REQUIRED = ("trajectory", "t", "object", "x", "y", "z")
 ORIENTATION = ("qw", "qx", "qy", "qz")
@@ -264,6 +264,12 @@ def initial_state(track: Track, i: int, time_scale: float = 1.0) -> dict[str, np
         else:
             ang = quat_to_mat(quat) @ track.velocity[k0, i, 3:]
     return {"position": pos, "orientation": quat, "linear_velocity": lin / time_scale, "angular": ang / time_scale}
+
+
+def object_size(obj) -> np.ndarray:
+    """`support_height`'s size of a scene object: box half-extents, (r,) sphere, (r, full height) cylinder."""
+    g = geom_size(obj)
+    return g if obj.type == "box" else (g[:1] if obj.type == "sphere" else np.array([g[0], 2 * g[1]]))
 
 
 def support_height(position: np.ndarray, orientation: np.ndarray | None, kind: str, size: np.ndarray) -> np.ndarray:

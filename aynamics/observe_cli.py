@@ -114,6 +114,8 @@ def _write_outputs(out: Path, scene, rollout, frames, flow, occluded, colours, s
         pad = np.concatenate([colours, colours[-1:]]) if len(colours) else np.full_like(frames.rgb, 255)
         video = np.concatenate([frames.rgb, pad], axis=2)  # RGB | flow, side by side
         iio.imwrite(out / "video.gif", video, duration=1000 / meta["fps"], loop=0)
+    else:  # an earlier render's preview would show another scene beside these files
+        (out / "video.gif").unlink(missing_ok=True)
 
 
 def _add_score(sub) -> None:
@@ -132,7 +134,10 @@ def _run_score(args) -> int:
     from aynamics import scene as scenelib
     from aynamics import scorer
 
-    if not (8 <= (args.width or 8) <= 1920 and 8 <= (args.height or 8) <= 1280):
+    if not (
+        8 <= (8 if args.width is None else args.width) <= 1920
+        and 8 <= (8 if args.height is None else args.height) <= 1280
+    ):
         raise UsageError(f"score: --width {args.width} --height {args.height}: must be in [8, 1920] × [8, 1280]")
     missing = [p for p in args.predictions if not Path(p).exists()]
     if missing:  # a mistyped path, not a prediction to score 0 (a file that exists but cannot be read still is)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -173,8 +174,10 @@ def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
     from datasets import Dataset
 
     out = Path(out).resolve()
-    tmp = out.with_name(out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # a new folder beside: a fixed name (`OUT.tmp`) deleted whatever folder of that name was there
+    tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-", dir=out.parent))
+    tmp.rmdir()  # save_to_disk makes it
     columns = {c: [row[c] for row in rows] for c in COLUMNS}  # from_dict keeps the columns of 0 rows too
     Dataset.from_dict(columns, features=features()).save_to_disk(str(tmp))
     (tmp / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")

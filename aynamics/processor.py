@@ -274,11 +274,16 @@ def load_processor(
         raise checkpoint_error(name_or_path, "processor", e) from None
 
 
+class CheckpointError(FileNotFoundError):
+    """A model checkpoint that cannot be loaded (a folder without weights, a hub id out of reach, broken files):
+    a FileNotFoundError with a message only, which the `aynamics` commands report in one line, status 2."""
+
+
 def checkpoint_error(name_or_path: str | Path, what: str, error: Exception) -> OSError:
     """The error for a checkpoint `from_pretrained` could not load: the path named, the cause's first line, and
     what to give instead (the library's message alone says neither which setting nor what would work)."""
     cause = (str(error).strip().splitlines() or [type(error).__name__])[0]
-    return OSError(
+    return CheckpointError(
         f"model path {str(name_or_path)!r}: cannot load the {what} ({cause}); give a local folder holding a "
         "Qwen2.5-VL checkpoint (e.g. model.path=/models/Qwen2.5-VL-3B-Instruct), or a hub id on a machine that "
         "reaches the Hugging Face hub"

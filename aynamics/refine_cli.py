@@ -120,6 +120,12 @@ def run_refine_command(args) -> int:
         ok, why = gl_available()
         if not ok:
             raise UsageError(f"refine --animation {args.animation!r}: needs headless OpenGL, which fails here: {why}")
+    if args.out:  # before the search, not after its whole budget: a refined scene is not lost for a typo
+        out = Path(args.out)
+        if out.is_dir():
+            raise UsageError(f"refine: --out {args.out!r} is a folder: give the scene file to write (REFINED.yaml)")
+        if not out.parent.is_dir():
+            raise UsageError(f"refine: cannot write --out {args.out!r}: folder {str(out.parent)!r} does not exist")
     preds = [load(p) for p in args.pred]
     obs_path = Path(args.observed)
     try:

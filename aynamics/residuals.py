@@ -11,9 +11,8 @@ import math
 import numpy as np
 
 from aynamics.effects import simulate_tracks
-from aynamics.measured import Track, phases, quat_to_mat, support_height
+from aynamics.measured import Track, object_size, phases, quat_to_mat, support_height
 from aynamics.scene import Scene
-from aynamics.simulate import geom_size
 
 WINDOW = 7  # frames of the local quadratic fit for derivatives
 FLIGHT_GAP = 0.03  # m: lowest point this far above the floor counts as flight for the regression
@@ -34,11 +33,6 @@ def derivatives(t: np.ndarray, x: np.ndarray, window: int = WINDOW) -> tuple[np.
     return vel, acc
 
 
-def _size(obj) -> np.ndarray:
-    g = geom_size(obj)
-    return g if obj.type == "box" else (g[:1] if obj.type == "sphere" else np.array([g[0], 2 * g[1]]))
-
-
 def sparse_terms(scene: Scene, tracks: list[Track], values: dict, active: list[str]) -> list[dict]:
     """Terms that explain the residual acceleration in flight (sequential thresholded least squares).
 
@@ -54,7 +48,7 @@ def sparse_terms(scene: Scene, tracks: list[Track], values: dict, active: list[s
             if len(t) < 2 * WINDOW:
                 continue
             q = tr.orientation[ok, i] if tr.orientation is not None else None
-            gap = support_height(p, q, obj.type, _size(obj))
+            gap = support_height(p, q, obj.type, object_size(obj))
             v, a = derivatives(t, p)
             _, a_sim = derivatives(t, ps)
             flight = gap > FLIGHT_GAP
@@ -111,7 +105,7 @@ def phase_errors(scene: Scene, tracks: list[Track], sim_pos: list[np.ndarray]) -
             p = tr.position[:, i]
             ok = np.isfinite(p).all(-1)
             q = tr.orientation[ok, i] if tr.orientation is not None else None
-            ph = phases(tr.t[ok], p[ok], support_height(p[ok], q, obj.type, _size(obj)))
+            ph = phases(tr.t[ok], p[ok], support_height(p[ok], q, obj.type, object_size(obj)))
             err = np.sum((sp[ok, i] - p[ok]) ** 2, -1)
             for k, name in enumerate(PHASES):
                 sq[name].extend(err[ph == k])

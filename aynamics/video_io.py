@@ -114,8 +114,10 @@ class Video:
         end = self.end if self.end is not None else self.starts[-1] + tolerance  # constant rate: the nearest frame
         if (times > end + 1e-9).any():
             length = self.end if self.end is not None else self.starts[-1] + 1.0 / self.fps
+            # at a constant rate the frame nearest each time must exist: its last frame's start is what counts
+            last = "" if self.end is not None else f" (its last frame comes at {self.starts[-1]:.3g} s)"
             raise ValueError(
-                f"{self.describe()} lasts {length:.3g} s, but frames up to {times.max():.3g} s are "
+                f"{self.describe()} lasts {length:.3g} s{last}, but frames up to {times.max():.3g} s are "
                 "needed: give a longer video, or the right frame rate with --fps"
             )
         return [int(k) for k in np.maximum(picked, 0)]
@@ -129,7 +131,8 @@ class Video:
             cache, n = _decode(self.path, set(want), self.pillow)
             if max(want) not in cache:
                 raise ValueError(
-                    f"{self.describe()} has {n} frames ({n / self.fps:.3g} s), but frames up to {max(times):.3g} s "
+                    f"{self.describe()} has {n} frames ({n / self.fps:.3g} s, the last coming at "
+                    f"{(n - 1) / self.fps:.3g} s), but frames up to {max(times):.3g} s "
                     "are needed: give a longer video, or the right frame rate with --fps"
                 )
         return same_size([cache[k] for k in want], [self.name(k) for k in want])

@@ -221,7 +221,9 @@ def test_predict_cli_errors_are_clear(tmp_path, capsys):
     assert "holds no frames" in capsys.readouterr().err
     short = _clip_folder(tmp_path / "short", 20)  # 20 frames at 30 fps: 0.63 s
     assert main(["predict", "--adapter", str(tmp_path), str(short)]) == 2
-    assert "short' (20 frames at 30 fps) lasts 0.667 s, but frames up to 0.9 s are needed" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "short' (20 frames at 30 fps) lasts 0.667 s (its last frame comes at 0.633 s), but frames up" in err
+    assert "but frames up to 0.9 s are needed" in err
     for bad in ("0", "nan", "-30"):
         assert main(["predict", "--adapter", str(tmp_path), str(short), "--fps", bad]) == 2
         assert f"predict: --fps {float(bad)}: must be a finite number > 0" in capsys.readouterr().err

@@ -165,3 +165,10 @@ def test_score_reads_predictions_with_the_scene_loaders_limit(tmp_path, capsys):
         load(str(long))
     assert got[1]["reason"] == str(refused.value) and f"at most {MAX_TEXT_CHARS} characters" in got[1]["reason"]
     assert "not UTF-8" in got[2]["reason"]
+
+
+@pytest.mark.parametrize("flag", ["--width", "--height"])
+def test_score_refuses_a_zero_scoring_size(capsys, flag):
+    """0 is refused with the other sizes out of range (it passed the check as "not given" before)."""
+    assert cli.main(["score", ASSET, "--observed", ASSET, flag, "0"]) == 2
+    assert "must be in [8, 1920] × [8, 1280]" in capsys.readouterr().err

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import shutil
 import warnings
+from pathlib import Path
 
 import datasets
 import numpy as np
@@ -450,3 +451,18 @@ def test_shards_finishing_together_assemble_in_turn(reference, monkeypatch):
     for t in threads:
         t.join()
     assert errors == [] and _rows(reference) == before
+
+
+def test_cli_generate_refuses_a_folder_of_other_files(tmp_path, capsys):
+    """--out a folder that is not an earlier run (here the scene folder itself, whose test/ assembly would replace)
+    is refused before anything is written, and the user's files stay."""
+    folder = tmp_path / "mine"
+    (folder / "test").mkdir(parents=True)
+    scene = Path(__file__).parent / "assets" / "paper_example.yaml"
+    (folder / "test" / "c.yaml").write_text(scene.read_text())
+    argv = ["generate", "--scenes", str(folder), "--out", str(folder), "--workers", "0", "--quiet"]
+    assert main(argv) == 2
+    assert f"--out {str(folder)!r} holds other files ('test', ...)" in capsys.readouterr().err
+    assert sorted(p.name for p in folder.rglob("*")) == ["c.yaml", "test"]
+    assert main(["generate", "--num", "2", "--out", str(folder), "--workers", "0", "--quiet"]) == 2
+    assert (folder / "test" / "c.yaml").exists() and not (folder / "generate.json").exists()

@@ -344,7 +344,27 @@ def test_preferences_never_replace_another_folder(tmp_path, dataset_dir, capsys)
     with pytest.raises(ValueError, match="preferences are kept in") as err:
         _handmade_preferences(dataset_dir, mine)
     assert (mine / "notes.txt").read_text() == "keep"
-    assert str(tmp_path / "mine.tmp") in str(err.value) and (tmp_path / "mine.tmp" / "summary.json").is_file()
+    (kept,) = tmp_path.glob("mine.tmp-*")
+    assert str(kept) in str(err.value) and (kept / "summary.json").is_file()
+
+
+def test_preferences_leave_a_folder_named_like_their_temporary_one(tmp_path, dataset_dir):
+    """Writing --out prefs never deletes a folder of the user's called prefs.tmp (it did: a fixed scratch name)."""
+    (tmp_path / "prefs.tmp").mkdir()
+    (tmp_path / "prefs.tmp" / "keep.txt").write_text("keep")
+    _handmade_preferences(dataset_dir, tmp_path / "prefs")
+    assert (tmp_path / "prefs.tmp" / "keep.txt").read_text() == "keep"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["prefs", "prefs.tmp"]
+
+
+def test_preferences_with_a_model_folder_that_holds_no_checkpoint_is_one_line(tmp_path, dataset_dir, capsys):
+    """--model naming a folder without weights is a usage error (status 2, one line), not a traceback."""
+    (tmp_path / "empty").mkdir()
+    args = ["preferences", "--data", str(dataset_dir), "--out", str(tmp_path / "p"), "--model", str(tmp_path / "empty")]
+    assert cli_main([*args, "--num-samples", "2", "--limit", "1", "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert f"model path {str(tmp_path / 'empty')!r}: cannot load the model" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "p").exists()
 
 
 def test_preferences_command_and_offline_training(tmp_path, dataset_dir, capsys):

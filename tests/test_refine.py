@@ -269,6 +269,20 @@ def test_cli_refine_errors(tmp_path, capsys, truth, args, message):
     assert message in capsys.readouterr().err
 
 
+def test_cli_refine_bad_out_is_refused_before_the_search(tmp_path, capsys, truth, monkeypatch):
+    """--out in a missing folder, or a folder, is named before the search runs (its result was lost after it)."""
+    import aynamics.refine
+
+    path = tmp_path / "s.yaml"
+    path.write_text(dump(truth))
+    monkeypatch.setattr(aynamics.refine, "refine", lambda *a, **k: pytest.fail("searched before checking --out"))
+    bad = str(tmp_path / "nodir" / "r.yaml")
+    assert cli.main(["refine", str(path), "--observed", str(path), "--out", bad]) == 2
+    assert f"cannot write --out {bad!r}: folder {str(tmp_path / 'nodir')!r} does not exist" in capsys.readouterr().err
+    assert cli.main(["refine", str(path), "--observed", str(path), "--out", str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err
+
+
 def test_cli_refine_missing_observed(tmp_path, capsys, truth):
     path = tmp_path / "s.yaml"
     path.write_text(dump(truth))
@@ -553,7 +567,9 @@ def test_refine_recovers_mass_ratio_not_scale():
     mass with A's known. From 1 kg to the true 3 kg (measured 2.999)."""
     truth = _collision(1.0, 3.0)
     objective = trajectory_objective(truth, nthread=1)
-    assert objective([_collision(2.0, 6.0)])[0] == pytest.approx(0.0, abs=1e-3)  # same ratio, same motion
+    # same ratio, same motion up to float rounding that the impact amplifies (-0.0005 and -0.0012 measured with
+    # two damping formulas that are both proportional to the mass), against < -0.1 for another ratio
+    assert objective([_collision(2.0, 6.0)])[0] == pytest.approx(0.0, abs=3e-3)
     assert objective([_collision(1.0, 1.0)])[0] < -0.1
     v0, found = _recover(truth, _collision(1.0, 1.0), ["box_1.mass"])
     assert found.value > -0.01

@@ -145,6 +145,9 @@ def test_cli_render_then_score(tmp_path, capsys):
         assert (out / name).is_file(), name
     assert len(list((out / "frames").glob("*.png"))) == 30 and len(list((out / "flow").glob("*.png"))) == 29
     assert json.loads((out / "camera.json").read_text())["K"][0][2] == 48.0
+    (out / "video.gif").write_bytes(b"an earlier render's preview")  # of another scene: not left beside these
+    assert _main(["render", PAPER, "--out", str(out), "--width", "96", "--height", "64", "--no-gif"]) == 0
+    assert not (out / "video.gif").exists()
     capsys.readouterr()
     bad = tmp_path / "bad.yaml"
     bad.write_text("- type: box\n  size: [1, -1, 1]\n")

@@ -76,9 +76,13 @@ def test_the_clip_is_the_frames_training_showed(tmp_path):
     v60 = _folder(tmp_path / "v60", 60, name=lambda k: f"f{k}.jpg")
     assert _stamps(clip_of(v60, prompt, fps=60)) == [k % 32 for k in range(0, 60, 6)]
     assert _stamps(clip_of(_folder(tmp_path / "v10", 10), prompt)) == list(range(10))
-    with pytest.raises(ValueError, match=r"v20' \(20 frames at 30 fps\) lasts 0.667 s, but frames up to 0.9 s"):
+    with pytest.raises(
+        ValueError, match=r"v20' \(20 frames at 30 fps\) lasts 0.667 s \(its last frame comes at 0.633 s\)"
+    ):
         clip_of(_folder(tmp_path / "v20", 20), prompt)
     assert _stamps(clip_of(tmp_path / "v20", prompt, fps=20)) == [0, 2, 4, 6, 8, 10, 12, 14, 16, 18]
+    with pytest.raises(ValueError, match=r"lasts 0.9 s \(its last frame comes at 0.867 s\), but frames up to 0.9 s"):
+        clip_of(_folder(tmp_path / "v27", 27), prompt)  # 0.9 s long, but the frame on screen at 0.9 s is the 28th
     gif = [Image.fromarray(_stamped(k)) for k in range(12)]  # 100 ms each: 10 fps, 1.2 s
     gif[0].save(tmp_path / "a.gif", save_all=True, append_images=gif[1:], duration=100, loop=0)
     assert _stamps(clip_of(tmp_path / "a.gif", prompt)) == list(range(10))
