@@ -585,12 +585,15 @@ def load_adapter(
     """
     from peft import PeftModel
 
+    from aynamics.model import peft_quietly
+
     target = inference_device(None if device is None else str(device))  # a bad name before the model loads
     spec, prompt = read_adapter_meta(adapter_dir)
     check_adapter_files(adapter_dir)
     base = build_base(runnable_kernel(spec, target))
     try:
-        model = PeftModel.from_pretrained(base, str(adapter_dir))
+        with peft_quietly():
+            model = PeftModel.from_pretrained(base, str(adapter_dir))
     except torch.OutOfMemoryError:
         raise
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:  # a peft config peft refuses, weights of

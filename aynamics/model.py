@@ -16,6 +16,7 @@ MLPs that share the projection names stay untouched) and freezes or trains the v
 
 from __future__ import annotations
 
+import contextlib
 import re
 import warnings
 from collections.abc import Sequence
@@ -258,11 +259,19 @@ def apply_lora(
         task_type="CAUSAL_LM",
     )
     try:
-        with warnings.catch_warnings():  # peft reads transformers' deprecated name: a warning on every run, not ours
-            warnings.filterwarnings("ignore", ".*is_gradient_checkpointing.* is deprecated", FutureWarning)
+        with peft_quietly():
             return get_peft_model(model, config)
     except ValueError as e:  # peft: "Target modules ... not found in the base model"
         raise ValueError(f"LoRA target_modules = {list(target_modules)}: no such module in language_model") from e
+
+
+@contextlib.contextmanager
+def peft_quietly():
+    """peft reads transformers' deprecated `is_gradient_checkpointing` when it wraps or loads a model: a
+    FutureWarning on every run and command, not ours to act on."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", ".*is_gradient_checkpointing.* is deprecated", FutureWarning)
+        yield
 
 
 def float32_trained_tower(model: torch.nn.Module) -> None:

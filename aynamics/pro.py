@@ -85,14 +85,15 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
             f"stage.init_adapter = {init_adapter!r} defines the model: {'; '.join(ignored)} ignored", stacklevel=2
         )
     used = dataclasses.replace(adapter_spec, **{k: getattr(spec, k) for k in RUN_SETTINGS})
-    from aynamics.model import enable_gradient_checkpointing, float32_trained_tower
+    from aynamics.model import enable_gradient_checkpointing, float32_trained_tower, peft_quietly
 
     base = lm.build_base(used)
     if used.gradient_checkpointing:
         enable_gradient_checkpointing(base)  # before the adapter, as `apply_lora` does
     config = PeftConfig.from_pretrained(str(init_adapter))
     config.lora_dropout = used.lora_dropout
-    model = PeftModel.from_pretrained(base, str(init_adapter), is_trainable=True, config=config)
+    with peft_quietly():
+        model = PeftModel.from_pretrained(base, str(init_adapter), is_trainable=True, config=config)
     float32_trained_tower(model)  # the adapter's tower is loaded in the base dtype: trained in float32, as in SFT
     return model.train(), used
 
