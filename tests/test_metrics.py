@@ -227,3 +227,37 @@ def test_state_mae_pairs_chosen_names():
     obs = _scene(obj.format("a", 0) + obj.format("b", 3))
     pred = _scene(obj.format("a", 3) + obj.format("b", 0))
     assert metrics.state_mae(pred, obs) == pytest.approx((1.0, 0.0))
+
+
+def test_iou_full_averages_every_frame_and_skips_a_pair_shown_by_neither_side():
+    """Frame 0: a and b exact on both sides: (1 + 1) / 2 = 1. Frame 1: b has left both views; a is predicted at
+    pixels {1, 2}, observed at {0, 1}: 1 / 3, and b, seen by neither side, neither scores nor counts: 1/3.
+    first = 1, full = (1 + 1/3) / 2 = 2/3."""
+    pred = _seg([[0, 0, 1, 1]], [[-1, 0, 0, -1]])
+    obs = _seg([[0, 0, 1, 1]], [[0, 0, -1, -1]])
+    np.testing.assert_allclose(metrics.iou_from_counts(metrics.overlap_counts(pred, obs, 2, 2)), [1.0, 1 / 3])
+    first, full = metrics.segmentation_iou(pred, obs)
+    assert first == 1.0 and full == pytest.approx(2 / 3)
+
+
+def test_epe_is_zero_when_no_frame_shows_an_object():
+    """No object on either side in any frame: nothing to get wrong, EPE (0, 0), not nan."""
+    none = _seg([[-1, -1]], [[-1, -1]])
+    flow = np.ones((2, 1, 2, 2))
+    assert metrics.flow_epe(flow, np.zeros_like(flow), none, none) == (0.0, 0.0)
+
+
+def test_state_mae_averages_absolute_components_not_distances():
+    """One object 0.3 m off in x and 0.4 m in y (0.5 m away), velocity off by (0, 0.6, 0.8): MAE over the three
+    components (0.3 + 0.4 + 0) / 3 = 0.7/3 m and (0.6 + 0.8) / 3 m/s (the distance / 3 would give 0.5/3 and 1/3)."""
+    obs = _scene("- {type: sphere, radius: 0.2, state: {position: [0, 0, 0.2]}}\n")
+    pred = _scene("- {type: sphere, radius: 0.2, state: {position: [0.3, 0.4, 0.2], linear_velocity: [0, 0.6, 0.8]}}\n")
+    assert metrics.state_mae(pred, obs) == pytest.approx((0.7 / 3, 1.4 / 3))
+
+
+def test_composition_shapes_are_a_multiset_not_a_set():
+    """[box, box, sphere] against [box, sphere, sphere]: same count (1), same set of shapes, different multiset (0)."""
+    box = "- {type: box, size: [0.2, 0.2, 0.2], state: {position: [1, 0, 0.2]}}\n"
+    sphere = "- {type: sphere, radius: 0.2, state: {position: [0, 0, 0.2]}}\n"
+    count, shapes = metrics.composition_accuracy([_scene(box * 2 + sphere)], [_scene(box + sphere * 2)])
+    assert count == [1.0] and shapes == [0.0]

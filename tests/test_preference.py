@@ -157,3 +157,27 @@ def test_sft_on_best_is_a_mean_over_rows():
     token_mask = torch.tensor([[[True, False], [True, True]], [[True, True], [True, True]]])
     rewards = torch.tensor([[0.9, 0.1], [0.2, 0.8]])
     assert sft_on_best(token_logps, token_mask, rewards).item() == pytest.approx(2.5)
+
+
+def test_soft_targets_leave_a_masked_candidate_out_at_a_positive_temperature():
+    """τ = 1/ln 3, rewards [1, 0, 5] with the third masked: w ∝ [3, 1, 0] = [0.75, 0.25, 0] (the masked 5 would
+    otherwise take most of the mass). q over the first two = [1/3, 2/3]: L = 0.75 ln 3 + 0.25 ln 3/2. The rewards
+    are constants: no gradient reaches them."""
+    rewards = torch.tensor([[1.0, 0.0, 5.0]], dtype=torch.float64, requires_grad=True)
+    mask = torch.tensor([[True, True, False]])
+    torch.testing.assert_close(
+        soft_targets(rewards, 1 / LN(3), mask), torch.tensor([[0.75, 0.25, 0.0]], dtype=torch.float64)
+    )
+    logps = LOGPS.clone().requires_grad_()
+    loss = soft_preference_loss(logps, rewards, 1 / LN(3), mask)
+    assert loss.item() == pytest.approx(0.75 * LN(3) + 0.25 * LN(1.5))
+    loss.backward()
+    assert rewards.grad is None
+
+
+def test_pro_ranking_is_a_mean_over_rows():
+    """Row 0: the hand-worked ln 6 (`test_pro_ranking_hand_worked`); row 1: equal likelihoods, rewards [1, 0, 0]:
+    one term -ln(1/3) = ln 3. Loss (ln 6 + ln 3) / 2."""
+    logps = torch.cat([LOGPS, torch.zeros(1, 3, dtype=torch.float64)])
+    rewards = torch.tensor([[1.0, 0.5, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+    assert pro_ranking_loss(logps, rewards).item() == pytest.approx((LN(6) + LN(3)) / 2)

@@ -297,3 +297,35 @@ def test_pixel_bounds_out_of_order_are_named_as_a_setting_not_a_broken_checkpoin
     with pytest.raises(ValueError) as info:
         load_processor(TINY_ASSET_DIR, min_pixels=20000, max_pixels=10000)
     assert "checkpoint" not in str(info.value) and not isinstance(info.value, OSError)
+
+
+def test_sft_loss_is_a_mean_over_the_batchs_tokens_not_its_rows():
+    """Row 0: the labels of `test_mean_token_logprob_hand_computed`, NLLs ln 2 and ln 4/3; row 1: one labelled token
+    of probability 1/4 (logits [ln 3, 0], label 1), NLL ln 4. Token mean (ln 2 + ln 4/3 + ln 4) / 3 = ln(32/3) / 3
+    = 0.7890, n = 3 (a mean of the row means would give (ln(8/3)/2 + ln 4) / 2 = 0.9383)."""
+    logits = torch.tensor(
+        [[[0.0, 0.0], [math.log(3.0), 0.0], [5.0, -5.0]], [[5.0, -5.0], [math.log(3.0), 0.0], [5.0, -5.0]]]
+    )
+    labels = torch.tensor([[IGNORE_INDEX, 1, 0], [IGNORE_INDEX, IGNORE_INDEX, 1]])
+    loss, n = sft_loss(logits, labels)
+    assert loss.item() == pytest.approx(math.log(32 / 3) / 3, abs=1e-6) and n.item() == 3
+
+
+def test_weighted_sft_loss_ignores_weights_on_unlabelled_tokens():
+    """Labels [-, -, 1, 0] (NLLs ln 2 and ln 4/3, `test_sft_loss_divides_by_labelled_tokens_only`), weight 1 on every
+    position, the unlabelled ones too: the plain mean (ln 2 + ln 4/3) / 2, not / 3."""
+    logits = torch.tensor([[[0.0, 0.0], [0.0, 0.0], [math.log(3.0), 0.0], [5.0, -5.0]]])
+    labels = torch.tensor([[IGNORE_INDEX, IGNORE_INDEX, 1, 0]])
+    loss, _ = sft_loss(logits, labels, torch.ones(1, 4))
+    assert loss.item() == pytest.approx((math.log(2) + math.log(4 / 3)) / 2, abs=1e-6)
+
+
+def test_token_accuracy_skips_unlabelled_tokens_inside_the_mask():
+    """Labels [-, 1, -, 1], mask all True: only tokens 1 (predicted 1 from logits[0]: right) and 3 (predicted 0 from
+    logits[2]: wrong) are scored: 0.5 over 2 tokens (with the unlabelled token 2 it would be 1/3 over 3)."""
+    from aynamics.lm import token_count
+
+    logits = torch.tensor([[[0.0, 1.0], [0.0, 2.0], [3.0, 0.0], [0.0, 0.0]]])
+    labels = torch.tensor([[IGNORE_INDEX, 1, IGNORE_INDEX, 1]])
+    mask = torch.ones(1, 4, dtype=torch.bool)
+    assert token_accuracy(logits, labels, mask).item() == 0.5 and token_count(labels, mask) == 2

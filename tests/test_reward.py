@@ -475,3 +475,40 @@ def test_candidate_and_sampling_arguments_checked_before_any_model_work():
         rw.candidate_batch([{}], [[[5, 7]]], 0, forbidden=[7, 8])
     with pytest.raises(ValueError, match="top_p = 0.0"):
         rw.sample_completions(None, None, [], num_samples=1, temperature=1.0, top_p=0.0)
+
+
+def test_reward_stats_by_hand():
+    """Two videos of two candidates, rewards [[0.2, 0.8], [0.5, 0.0]], the last one unparsable: mean 1.5 / 4 =
+    0.375, best = mean of the rows' maxima (0.8 + 0.5) / 2 = 0.65 (not the batch maximum 0.8), invalid 1/4."""
+    ok = Score(0.5, 0.5, None, None, True)
+    bad = Score(0.0, 0.0, None, None, False, "parse: invalid scene (1 problem): camera: the scene needs one camera")
+    rewards = torch.tensor([[0.2, 0.8], [0.5, 0.0]])
+    m = rw.RewardStats.of(rewards, [[ok, ok], [ok, bad]]).to_metrics()
+    assert m["reward/mean"] == pytest.approx(0.375) and m["reward/best"] == pytest.approx(0.65)
+    assert m["reward/invalid"] == 0.25 and m["reward/invalid_invalid_scene"] == 0.25
+    assert m["reward/invalid_no_yaml"] == m["reward/invalid_simulation"] == m["reward/invalid_truncated"] == 0.0
+
+
+def test_reason_kinds_by_hand():
+    """The kind comes from the reason's prefix and wording, not from words inside a field value: an invalid scene
+    whose object is named `sim_box` is not a simulation failure."""
+    assert rw.reason_kind(None) == "valid"
+    assert rw.reason_kind("sim: diverged at t = 0.3 s") == "simulation"
+    assert rw.reason_kind("truncated at max_new_tokens = 40: parse: ...") == "truncated"
+    assert rw.reason_kind("parse: invalid scene (1 problem): text: empty text: no YAML found") == "no_yaml"
+    named = "parse: invalid scene (1 problem): objects[1].name = 'sim_box': duplicate name (also objects[0])"
+    assert rw.reason_kind(named) == "invalid_scene"
+
+
+def test_unparsable_candidates_have_no_epe_without_observed_flow():
+    """Against a video without flow an unparsable response scores EPE None (like every other score there); with
+    flow, EPE_INVALID."""
+    seg = np.full((1, 4, 4), -1, np.int16)
+    plain = Observation(segmentation=seg, frames=np.array([0]), width=4, height=4)
+    s = rw.score_completions([["junk"]], [plain])[0][0]
+    assert (s.valid, s.epe_first, s.epe_full) == (False, None, None)
+    flowing = Observation(
+        segmentation=seg, frames=np.array([0]), width=4, height=4, flow=np.zeros((1, 4, 4, 2), np.float32)
+    )
+    s = rw.score_completions([["junk"]], [flowing])[0][0]
+    assert (s.valid, s.epe_first, s.epe_full) == (False, EPE_INVALID, EPE_INVALID)

@@ -164,3 +164,14 @@ def test_prompt_clock_checks_and_old_adapters(tmp_path):
     split = datasets.Dataset.from_dict({"frame_indices": [[0, 2, 4, 6]]})
     clocked = with_clock(lm.PromptSpec(), tmp_path, split)
     assert clocked.fps == 60 and clocked.clip_frames == (0, 2, 4, 6) and clocked.frame_times[-1] == 0.1
+
+
+def test_frame_times_count_from_the_first_stored_frame():
+    """Frames 3, 6, 9 of a 30 fps video: shown at 0, 0.1 and 0.2 s (not 0.1, 0.2, 0.3), so 3 frames over 0.2 s are
+    10 frames per second. Pixel bounds below one 28×28 block are refused, 784 is allowed."""
+    prompt = lm.PromptSpec(num_frames=3, fps=30, clip_frames=(3, 6, 9))
+    assert prompt.frame_times == pytest.approx((0.0, 0.1, 0.2))
+    assert prompt.shown_fps == pytest.approx(10.0)
+    assert lm.PromptSpec(min_pixels=28 * 28).min_pixels == 784
+    with pytest.raises(ValueError, match="min_pixels = 783: must be >= 784"):
+        lm.PromptSpec(min_pixels=783)

@@ -245,3 +245,36 @@ def test_dense_loss_takes_bfloat16_tokens(dataset_dir):
     module._visual_tokens = tokens.to(torch.bfloat16)
     half = module._vision_aux(batch, 2, "train")
     assert half.dtype == torch.float32 and half.item() == pytest.approx(full.item(), rel=2e-2)
+
+
+def test_centred_count_is_clipped_at_three():
+    """Four 3×3-pixel boxes all in the top-left token: count class 3 (3+), not 4 (which the 4-way cross-entropy
+    could not even take); box present; pixel share 4 (each object's pixels all in that token)."""
+    m = np.zeros((56, 56), np.uint8)
+    for k, (r, c) in enumerate([(2, 2), (2, 10), (10, 2), (10, 10)]):
+        m[r : r + 3, c : c + 3] = k + 1
+    t = token_targets([m], ["box"] * 4, torch.tensor([[1, 4, 4]]))
+    assert t.tolist() == [[3, 1, 0, 0, 4]] + [[0, 0, 0, 0, 0]] * 3
+    loss, _ = aux_loss(torch.zeros(4, NUM_OUTPUTS), t)
+    assert torch.isfinite(loss)
+
+
+def test_mask_labels_past_the_scenes_objects_are_refused():
+    """`_mask` holds labels 1..3; a scene of two objects has no object 3."""
+    with pytest.raises(ValueError, match="label 3 but the scene has 2 objects"):
+        token_targets([_mask()], ["box", "sphere"], torch.tensor([[1, 4, 4]]))
+
+
+def test_object_recall_and_frame_count_by_hand():
+    """Targets of `test_aux_loss_by_hand`; predicted count classes [0, 1, 1, 0]: tokens 1 and 2 hold centres, both
+    predicted to hold some (recall 1) though token 2's count (3) is wrong (count_acc 3/4). With share_weight 0 the
+    frame count is the predicted centres' (1 and 1 against 1 and 0 objects in view: 0.5), whatever the predicted
+    shares say (here the true ones, which would give 1.0)."""
+    targets = torch.tensor([[0, 0, 0, 0, 0], [1, 1, 0, 0, 1], [3, 1, 1, 1, 0.3], [0, 0, 0, 0, 0]])
+    logits = torch.zeros(4, NUM_OUTPUTS)
+    logits[torch.arange(4), torch.tensor([0, 1, 1, 0])] = 5.0
+    logits[:, -1] = targets[:, -1]
+    _, stats = aux_loss(logits, targets, frame_tokens=[2, 2], share_weight=0.0)
+    assert stats["object_recall"].item() == 1.0 and stats["count_acc"].item() == 0.75
+    assert stats["frame_count_acc"].item() == 0.5
+    assert aux_loss(logits, targets, frame_tokens=[2, 2])[1]["frame_count_acc"].item() == 1.0
