@@ -13,8 +13,8 @@ Physical meaning of the fields (see `aynamics.scene.RANGES`):
   c_rr mapped to MuJoCo's rolling friction c_rr·r (condim 6; torsional friction 0). Object geoms have
   priority 1 over the floor, so an object's own friction (and contact softness) governs its floor contacts;
   two objects in contact use the larger of each coefficient (MuJoCo's rule for equal priority).
-- damping d: free-joint damping of mass·10^d on the linear and I_i·10^d on the angular dofs, so that in free
-  motion v and ω decay as exp(-10^d t) whatever the mass.
+- damping d: free-joint damping of mass·c on the linear and I_i·c on the angular dofs, c = expm1(10^d·dt)/dt, so
+  that MuJoCo's implicit damping step decays v and ω by exp(-10^d dt) per step: exp(-10^d t) whatever the mass.
 - restitution e (optional): the direct contact form solref = (-k, -b) with k = 1e4 and b chosen so that
   a damped spring of that stiffness rebounds with coefficient e.
 - magnus k and friction_slope κ (optional): a spin lift k·ω×v (world force on the body's centre) and a sliding
