@@ -78,15 +78,17 @@ def track_errors(scene: Scene, tracks: list[Track], values: dict, active: list[s
 
 
 def lag1(res: list[np.ndarray]) -> float:
-    """Lag-1 autocorrelation of residuals along the tracks (pooled over coordinates)."""
+    """Lag-1 autocorrelation of residuals along the tracks (pooled over coordinates). A frame with a missing value
+    is left out, and so are the pairs across it: frames on either side of a gap are not neighbours."""
     num = den = 0.0
     for r in res:
         x = r.reshape(len(r), -1)
-        x = x[np.isfinite(x).all(1)]
-        if len(x) < 3:
+        ok = np.isfinite(x).all(1)
+        if ok.sum() < 3:
             continue
-        num += float(np.sum(x[1:] * x[:-1]))
-        den += float(np.sum(x * x))
+        pair = ok[1:] & ok[:-1]
+        num += float(np.sum(x[1:][pair] * x[:-1][pair]))
+        den += float(np.sum(x[ok] * x[ok]))
     return num / den if den > 0 else 0.0
 
 
@@ -151,8 +153,9 @@ def fit(
     )
     values = unpack(out.x)
     res = residuals(scene, tracks, values, active)
-    r = np.nan_to_num(np.concatenate([x.ravel() for x in res]), nan=0.0)
-    n, k = int(np.count_nonzero(r)) or 1, len(names)
+    r = np.concatenate([x.ravel() for x in res])
+    n, k = int(np.isfinite(r).sum()) or 1, len(names)  # measured values (a residual of exactly 0 is one too)
+    r = np.nan_to_num(r, nan=0.0)
     rho = min(max(lag1(res), 0.0), 0.999)
     n_eff = max(n * (1 - rho) / (1 + rho), float(len(tracks)), k + 2.0)
     rss = float(r @ r)

@@ -49,6 +49,10 @@ def test_lag1_by_hand():
     assert fitlib.lag1([a, b]) == pytest.approx(0.25)
     assert fitlib.lag1([a, b, np.ones((2, 1, 1))]) == pytest.approx(0.25)
     assert fitlib.lag1([np.ones((2, 1, 1))]) == 0.0
+    # a dropped frame inside a track: the frames on either side of it are not neighbours. [1, 1, nan, -1, -1]:
+    # pairs (1, 1) and (-1, -1) only, products 1 + 1 over squares 4: ρ = 0.5 (pairing across the gap gave 0.25)
+    gap = np.array([1.0, 1.0, np.nan, -1.0, -1.0]).reshape(5, 1, 1)
+    assert fitlib.lag1([gap]) == pytest.approx(0.5)
 
 
 def test_fit_statistics_by_hand(monkeypatch):
@@ -68,6 +72,15 @@ def test_fit_statistics_by_hand(monkeypatch):
     assert res.sigma["mu"] == pytest.approx(math.sqrt(0.6 / 331.2)) and res.sigma["mu"] == pytest.approx(0.042563, 1e-4)
     assert res.bic == pytest.approx(14.4 * math.log(0.025) + math.log(14.4))
     assert res.cov_by_track == pytest.approx(np.zeros((1, 1)), abs=1e-12)
+
+
+def test_fit_counts_a_residual_of_exactly_zero_as_measured(monkeypatch):
+    """Residuals [0.1, 0, -0.1, 0] and [-0.1, 0, 0.1, 0] in x, y, z: 24 measured values, 12 of them exactly 0 (they
+    were counted as missing: n = 12), rss = 3 · 4 · 0.01 = 0.12."""
+    _linear_model(monkeypatch)
+    tracks = [_track(0.5, [0.1, 0.0, -0.1, 0.0]), _track(0.5, [-0.1, 0.0, 0.1, 0.0])]
+    res = fitlib.fit(None, tracks, {"mu": 0.4}, [])
+    assert res.n == 24 and res.rss == pytest.approx(0.12)
 
 
 def test_fit_effective_size_is_at_least_the_number_of_tracks(monkeypatch):
