@@ -67,9 +67,13 @@ def with_clock(prompt: lm.PromptSpec, path: str | Path, split) -> lm.PromptSpec:
     """`prompt` with the frame rate and clip frames of a generated data set's videos (its manifest's `config.fps`,
     the first record's `frame_indices`): what `aynamics predict` picks from a user's video."""
     import dataclasses
+    import warnings
 
-    from aynamics.dataset_store import dataset_fps
+    from aynamics.dataset_store import dataset_fps, stale_physics
 
+    stale = stale_physics(path)
+    if stale:
+        warnings.warn(stale, stacklevel=2)
     fps = float(dataset_fps(path) or prompt.fps)  # a data set made otherwise: the generator's rate
     frames = used_columns(split, ("frame_indices",))[0].get("frame_indices") if len(split) else None
     return dataclasses.replace(prompt, fps=fps, clip_frames=tuple(frames) if frames else prompt.clip_frames)

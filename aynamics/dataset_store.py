@@ -24,16 +24,52 @@ SPLITS = ("train", "validation", "test")
 MANIFEST = "generate.json"
 
 
+def _manifest_setting(path: str | Path, key: str):
+    """`config[key]` of a generated data set's manifest (for a split folder given on its own, the manifest of the
+    data set holding it); None without a manifest or that key."""
+    for folder in (Path(path), Path(path).parent):
+        try:
+            return json.loads((folder / MANIFEST).read_text())["config"].get(key)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            continue
+    return None
+
+
+def _whole(value) -> int | None:
+    return int(value) if isinstance(value, int | float) and not isinstance(value, bool) and value >= 1 else None
+
+
 def dataset_fps(path: str | Path) -> int | None:
     """The frame rate of a generated data set's videos (its manifest's `config.fps`; for a split folder given on its
     own, the manifest of the data set holding it), or None for a data set made otherwise."""
+    return _whole(_manifest_setting(path, "fps"))
+
+
+def stale_physics(path: str | Path) -> str | None:
+    """Why a generated data set's records were simulated by other physics than this code's (its manifest's
+    `config.physics`, absent before version 2), or None (current, or no manifest: made otherwise)."""
+    from aynamics.simulate import PHYSICS_VERSION
+
     for folder in (Path(path), Path(path).parent):
         try:
-            fps = json.loads((folder / MANIFEST).read_text())["config"]["fps"]
+            config = json.loads((folder / MANIFEST).read_text())["config"]
         except (OSError, ValueError, KeyError, TypeError):
             continue
-        return int(fps) if isinstance(fps, int | float) and not isinstance(fps, bool) and fps >= 1 else None
+        made = config.get("physics", 1) if isinstance(config, dict) else 1
+        if made == PHYSICS_VERSION:
+            return None
+        return (
+            f"data set {str(path)!r} was simulated with physics version {made}, this code simulates version "
+            f"{PHYSICS_VERSION}: scenes re-simulated here (true scenes, candidates) can move apart from its videos "
+            "and stored states; generate it again into a new folder"
+        )
     return None
+
+
+def dataset_substeps(path: str | Path) -> int | None:
+    """The physics steps per frame a generated data set's videos were simulated with (its manifest's
+    `config.substeps`, written by every generate), or None for a data set made otherwise."""
+    return _whole(_manifest_setting(path, "substeps"))
 
 
 def features():

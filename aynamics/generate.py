@@ -81,7 +81,7 @@ from aynamics.dataset_store import (  # noqa: F401 - re-exported: the storage ha
 )
 from aynamics.png_encode import png_bytes
 from aynamics.scene import Scene, SceneError, dump, parse
-from aynamics.simulate import Rollout, SimConfig, bounding_radius, simulate
+from aynamics.simulate import PHYSICS_VERSION, Rollout, SimConfig, bounding_radius, simulate
 
 if TYPE_CHECKING:  # rendering is imported inside the workers only
     from aynamics.render import Frames, Renderer
@@ -152,6 +152,7 @@ class GenerateConfig:
         data = dataclasses.asdict(self)
         data.pop("workers")
         data["substeps"] = self.sim.substeps  # the steps the records were made with (None: from fps)
+        data["physics"] = PHYSICS_VERSION  # chunks simulated by other code are not mixed in (absent: before 2)
         return data
 
 

@@ -126,9 +126,24 @@ def build_preferences(
         **(stats.to_metrics("reward/") if stats else {}),
         # what the stored frames and token ids mean: offline training checks them against its own
         "prompt": {k: getattr(module.prompt, k) for k in lm.PROMPT_KEYS},
+        # the videos' clock the frames were shown on (second_per_grid_ts): offline training shows them alike
+        "clock": {"fps": module.prompt.fps, "clip_frames": list(module.prompt.clip_frames)},
         "tokenizer": lm.tokenizer_fingerprint(module.processor.tokenizer),
     }
     return rows, summary
+
+
+def stored_clock(path: str | Path) -> dict | None:
+    """{"fps", "clip_frames"} of the videos a stored preference data set was sampled from (the prompt's clock, which
+    sets a video's temporal positions), or None for one written without it."""
+    summary_path = Path(path) / "summary.json"
+    try:
+        clock = json.loads(summary_path.read_text()).get("clock")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(clock, dict) or not {"fps", "clip_frames"} <= set(clock):
+        return None
+    return {"fps": float(clock["fps"]), "clip_frames": tuple(int(k) for k in clock["clip_frames"])}
 
 
 def check_made_for(path: str | Path, prompt: Any, tokenizer) -> None:

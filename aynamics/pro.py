@@ -419,9 +419,17 @@ class ProDataModule(L.LightningDataModule):
         hp = self.hparams
         kw = {"inputs": hp.modality, "use_flow": hp.use_flow}
         if hp.preferences_dir is not None:
-            from aynamics.preference_data import load_preferences
+            from aynamics.preference_data import load_preferences, stored_clock
 
             self.train_set = load_preferences(hp.preferences_dir)
+            clock = stored_clock(hp.preferences_dir)  # the clock the rows were sampled on, as online mode would
+            if clock is None and is_generated(hp.dir):  # written before the clock was recorded: data.dir's
+                from aynamics.data import with_clock
+
+                ref = open_videos(hp.dir, hp.train_split, limit=1, **kw)
+                clock = dataclasses.asdict(with_clock(self.prompt, hp.dir, ref.ds))
+            if clock is not None:
+                self.prompt = dataclasses.replace(self.prompt, fps=clock["fps"], clip_frames=clock["clip_frames"])
         else:
             self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
             if isinstance(self.train_set, GeneratedVideos):  # video folders: every third of 30 frames, the default

@@ -91,6 +91,8 @@ class Observation:
         occluded: (F, h, w) bool, True where the observed flow is occluded, or None.
         names: object names for matching by name, or None.
         fps: frames per second of the video.
+        substeps: physics steps per frame candidates are simulated with (a generated data set's own), or None:
+            `SimConfig`'s default for `fps`.
         video_shape: (T, H, W) of the full video it was read from (`from_dir`: every frame's masks), or None.
         grid: where each pixel was taken from a larger video (`raycast.SampleGrid`: candidates are cast at the same
             points), or None: at its own pixel centres.
@@ -106,6 +108,7 @@ class Observation:
     fps: int = sim.FPS
     video_shape: tuple[int, int, int] | None = None
     grid: SampleGrid | None = None
+    substeps: int | None = None  # physics steps per frame of the video's simulation (None: round(240 / fps))
 
     def __post_init__(self):
         f = len(self.frames)
@@ -124,7 +127,7 @@ class Observation:
     def config(self) -> sim.SimConfig:
         """Simulation long enough for the last sampled frame and its flow target (frame + 1)."""
         frames = max(int(np.max(self.frames)) + 1, VIDEO_FRAMES)
-        return sim.SimConfig(duration=frames / self.fps, fps=self.fps)
+        return sim.SimConfig(duration=frames / self.fps, fps=self.fps, substeps=self.substeps)
 
     @classmethod
     def from_scene(

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from aynamics.dataset_store import dataset_fps
+from aynamics.dataset_store import dataset_fps, dataset_substeps
 from aynamics.flow import decode_flow_colors, on_own_scale
 from aynamics.raycast import SampleGrid
 from aynamics.scorer import Observation, scoring_size
@@ -55,10 +55,17 @@ class UnlabeledVideo:
 
 
 def observation_from_record(
-    record: dict, *, width: int | None = None, height: int | None = None, use_flow: bool = True, fps: int = FPS
+    record: dict,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    use_flow: bool = True,
+    fps: int = FPS,
+    substeps: int | None = None,
 ) -> Observation:
     """The observation of a generated record from its `segmentation` masks (and `flow` images) alone, of a video
-    at `fps` (the data set's rate: `dataset_store.dataset_fps`; candidates are simulated on that clock).
+    at `fps` (the data set's rate: `dataset_store.dataset_fps`; candidates are simulated on that clock, with the
+    data set's `substeps`: `dataset_store.dataset_substeps`, None: the default for `fps`).
 
     Masks hold object index + 1 (0 = floor and sky) at the sampled video frames `frame_indices`; flow images
     are decoded with the record's `flow_max` and scaled to the scorer's width. Object names are not used
@@ -91,7 +98,7 @@ def observation_from_record(
             raise ValueError(f"record {key}: flow images {images.shape[:3]} != masks {(len(frames), full_h, full_w)}")
         sub = images[:, rows][:, :, cols]
         flow = decode_flow_colors(sub, float(record.get("flow_max") or 0.0)) * (width / full_w)
-    return Observation(seg, frames, width, height, flow, fps=fps, grid=grid)
+    return Observation(seg, frames, width, height, flow, fps=fps, grid=grid, substeps=substeps)
 
 
 def video_from_record(
@@ -102,6 +109,7 @@ def video_from_record(
     height: int | None = None,
     use_flow: bool = True,
     fps: int = FPS,
+    substeps: int | None = None,
 ) -> UnlabeledVideo:
     """An `UnlabeledVideo` of a generated record of a video at `fps`; `inputs` picks the model's images ("rgb" or
     "flow")."""
@@ -113,7 +121,7 @@ def video_from_record(
     frames = tuple(
         im.convert("RGB") if isinstance(im, Image.Image) else Image.fromarray(np.asarray(im)) for im in images
     )
-    obs = observation_from_record(record, width=width, height=height, use_flow=use_flow, fps=fps)
+    obs = observation_from_record(record, width=width, height=height, use_flow=use_flow, fps=fps, substeps=substeps)
     return UnlabeledVideo(str(record.get("index", "?")), frames, obs)
 
 
@@ -164,6 +172,7 @@ class GeneratedVideos(torch.utils.data.Dataset):
             ds = ds.select(range(min(limit, len(ds))))
         self.ds, self.inputs, self.width, self.height, self.use_flow = ds, inputs, width, height, use_flow
         self.fps = dataset_fps(root) or FPS  # the videos' rate (a data set made otherwise: the generator's)
+        self.substeps = dataset_substeps(root)  # the physics they were made with (e.g. substeps=4 at 30 fps)
 
     def __len__(self) -> int:
         return len(self.ds)
@@ -171,7 +180,13 @@ class GeneratedVideos(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> UnlabeledVideo:
         rec = self.ds[int(i)]
         return video_from_record(
-            rec, inputs=self.inputs, width=self.width, height=self.height, use_flow=self.use_flow, fps=self.fps
+            rec,
+            inputs=self.inputs,
+            width=self.width,
+            height=self.height,
+            use_flow=self.use_flow,
+            fps=self.fps,
+            substeps=self.substeps,
         )
 
 

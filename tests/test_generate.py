@@ -466,3 +466,25 @@ def test_cli_generate_refuses_a_folder_of_other_files(tmp_path, capsys):
     assert sorted(p.name for p in folder.rglob("*")) == ["c.yaml", "test"]
     assert main(["generate", "--num", "2", "--out", str(folder), "--workers", "0", "--quiet"]) == 2
     assert (folder / "test" / "c.yaml").exists() and not (folder / "generate.json").exists()
+
+
+@needs_gl
+def test_a_run_made_by_other_physics_is_neither_resumed_nor_read_silently(tmp_path):
+    """A manifest written before the physics changed (5330873's exact damping moves chaotic rollouts by up to metres:
+    28 of make train's 171 validation records re-simulate > 1 mm off their stored states) has no `physics`: a resume
+    into it is refused (it mixed old and new chunks into one data set), and reading it for training warns."""
+    from aynamics.data import with_clock
+    from aynamics.lm import PromptSpec
+    from aynamics.simulate import PHYSICS_VERSION
+
+    out = tmp_path / "run"
+    assert gen.generate(out, 4, SEED, CFG, shard=0, num_shards=2, progress=False) is None
+    manifest = json.loads((out / "generate.json").read_text())
+    assert manifest["config"]["physics"] == PHYSICS_VERSION and manifest["config"]["substeps"] == 8
+    del manifest["config"]["physics"]  # as the code before wrote it
+    (out / "generate.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match=r"config physics = None \(this run: 2\)"):
+        gen.generate(out, 4, SEED, CFG, shard=1, num_shards=2, progress=False)
+    split = datasets.Dataset.from_dict({"frame_indices": [[0, 3]]})
+    with pytest.warns(UserWarning, match="simulated with physics version 1, this code simulates version 2"):
+        with_clock(PromptSpec(), out, split)

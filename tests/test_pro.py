@@ -577,3 +577,27 @@ def _flow_logged_keys(tmp_path, kw) -> None:
         module.validation_step([v for v in dm.val_set if v.key == "d"], 0)
     assert not any("epe" in k for k in logged[0]) and "val/iou_full" in logged[0]
     assert {"val/epe_full", "val/bestN/epe_first"} <= logged[1]
+
+
+def test_offline_pro_shows_the_frames_on_the_clock_they_were_sampled_on(tmp_path, dataset_dir):
+    """Preferences sampled from a data set's videos (`aynamics preferences`: the prompt takes the videos' clock) are
+    trained offline on the same clock: the offline data module kept the default 30 fps clip, so a video's temporal
+    positions (second_per_grid_ts) differed from sampling and SFT whenever the data were at another rate."""
+    from aynamics.pro import ProDataModule
+
+    tiny = lm.ModelSpec().processor_path
+    prefs = _handmade_preferences(dataset_dir, tmp_path / "prefs")
+    summary = json.loads((prefs / "summary.json").read_text())
+    summary["clock"] = {"fps": 15.0, "clip_frames": [0, 3, 6, 9, 12]}  # as sampled from a 15 fps data set
+    (prefs / "summary.json").write_text(json.dumps(summary))
+    dm = ProDataModule(str(dataset_dir), tiny, as_video=True, num_frames=4, preferences_dir=str(prefs))
+    dm.setup()
+    assert dm.prompt.fps == 15.0 and dm.prompt.clip_frames == (0, 3, 6, 9, 12)
+    assert dm.processor.video_fps == pytest.approx(dm.prompt.shown_fps) == pytest.approx(3 / 0.8)
+    del summary["clock"]  # written before the clock was recorded: data.dir's, as online mode takes
+    (prefs / "summary.json").write_text(json.dumps(summary))
+    online = ProDataModule(str(dataset_dir), tiny, as_video=True, num_frames=4)
+    online.setup()
+    dm = ProDataModule(str(dataset_dir), tiny, as_video=True, num_frames=4, preferences_dir=str(prefs))
+    dm.setup()
+    assert (dm.prompt.fps, dm.prompt.clip_frames) == (online.prompt.fps, online.prompt.clip_frames)

@@ -512,3 +512,24 @@ def test_unparsable_candidates_have_no_epe_without_observed_flow():
     )
     s = rw.score_completions([["junk"]], [flowing])[0][0]
     assert (s.valid, s.epe_first, s.epe_full) == (False, EPE_INVALID, EPE_INVALID)
+
+
+def test_generated_videos_score_candidates_with_the_data_sets_own_substeps(tmp_path):
+    """A data set generated with substeps=2 (recorded in generate.json) was scored by simulating candidates at the
+    default round(240 / fps) = 8: its true scenes got IoU 0.59-0.99 against their own masks."""
+    import datasets
+
+    from aynamics.generate import GenerateConfig, generate_dataset
+    from aynamics.render import gl_available
+
+    if not gl_available()[0]:
+        pytest.skip("no headless OpenGL")
+    config = GenerateConfig(width=64, height=48, substeps=2, workers=0, splits=(1.0, 0.0, 0.0))
+    path = generate_dataset(tmp_path / "d", num=3, seed=0, config=config)
+    videos = GeneratedVideos(path, "train")
+    assert videos.substeps == 2
+    for i, rec in enumerate(datasets.load_from_disk(str(path))["train"]):
+        obs = videos[i].observation
+        assert obs.config.substeps == 2
+        s = rw.score_completions([[rec["scene_yaml"]]], [obs])[0][0]
+        assert s.iou_full > 0.98, (rec["index"], s)

@@ -160,7 +160,7 @@ def test_prompt_clock_checks_and_old_adapters(tmp_path):
         del meta["prompt"][key]
     old = lm.specs_of_meta(meta)[1]
     assert old.fps == 30 and old.clip_frames == tuple(range(0, 30, 3))
-    (tmp_path / "generate.json").write_text('{"config": {"fps": 60}}')
+    (tmp_path / "generate.json").write_text('{"config": {"fps": 60, "physics": 2}}')
     split = datasets.Dataset.from_dict({"frame_indices": [[0, 2, 4, 6]]})
     clocked = with_clock(lm.PromptSpec(), tmp_path, split)
     assert clocked.fps == 60 and clocked.clip_frames == (0, 2, 4, 6) and clocked.frame_times[-1] == 0.1

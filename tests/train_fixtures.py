@@ -20,9 +20,10 @@ NUM_SCENES = 12
 def tiny_dataset(tmp_path_factory) -> Path:
     """Path of the shared tiny data set, generated on first use (a file lock serialises xdist workers)."""
     from aynamics.generate import GenerateConfig, generate_dataset
+    from aynamics.simulate import PHYSICS_VERSION
 
-    root = tmp_path_factory.getbasetemp().parent  # shared by every xdist worker of this session
-    path = root / "aynamics_tiny_dataset"
+    root = tmp_path_factory.getbasetemp().parent  # shared by every xdist worker, and kept between sessions:
+    path = root / f"aynamics_tiny_dataset_p{PHYSICS_VERSION}"  # so one made by other physics is not reused
     with FileLock(str(root / "aynamics_tiny_dataset.lock")):
         if not (path / "dataset_dict.json").is_file():
             config = GenerateConfig(width=64, height=48, workers=0, splits=(0.5, 0.25, 0.25))
