@@ -106,11 +106,18 @@ class PromptSpec:
 
     @property
     def shown_fps(self) -> float:
-        """Frames per second of the frames handed to the model (`num_frames` of `clip_frames`, evenly, ends kept):
-        a video's temporal positions (Qwen2.5-VL's `second_per_grid_ts`) follow it. 2.0 (Qwen's default) when one
-        frame is shown."""
-        n = min(self.num_frames, len(self.clip_frames))
-        return (n - 1) / self.frame_times[-1] if n > 1 else 2.0
+        """Frames per second of the frames handed to the model (`num_frames` of `clip_frames`, evenly, ends kept),
+        as a video's temporal positions read it: Qwen2.5-VL puts temporal patch g (frames 2g, 2g + 1) at
+        g · 2 / fps s (`second_per_grid_ts`), so this is 2 / the mean time between the shown patches' first
+        frames (1 / the frame spacing for evenly spaced frames; 4 of 5 stored frames are picked unevenly). One
+        patch: 1 / the mean frame spacing; one frame: 2.0, Qwen's default."""
+        from aynamics.processor import sample_frames
+
+        shown = sample_frames(self.frame_times, self.num_frames)
+        starts = shown[::2]
+        if len(starts) > 1:
+            return 2 * (len(starts) - 1) / (starts[-1] - starts[0])
+        return (len(shown) - 1) / (shown[-1] - shown[0]) if len(shown) > 1 else 2.0
 
     @property
     def user_prompt(self) -> str:

@@ -593,7 +593,7 @@ def test_offline_pro_shows_the_frames_on_the_clock_they_were_sampled_on(tmp_path
     dm = ProDataModule(str(dataset_dir), tiny, as_video=True, num_frames=4, preferences_dir=str(prefs))
     dm.setup()
     assert dm.prompt.fps == 15.0 and dm.prompt.clip_frames == (0, 3, 6, 9, 12)
-    assert dm.processor.video_fps == pytest.approx(dm.prompt.shown_fps) == pytest.approx(3 / 0.8)
+    assert dm.processor.video_fps == pytest.approx(dm.prompt.shown_fps) == pytest.approx(2 / 0.6)  # frames 0,3,9,12
     del summary["clock"]  # written before the clock was recorded: data.dir's, as online mode takes
     (prefs / "summary.json").write_text(json.dumps(summary))
     online = ProDataModule(str(dataset_dir), tiny, as_video=True, num_frames=4)

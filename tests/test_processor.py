@@ -111,6 +111,10 @@ def test_video_temporal_positions_follow_the_shown_frames_clock(frames):
     assert PromptSpec(num_frames=4, fps=60, clip_frames=tuple(range(0, 60, 6))).shown_fps == pytest.approx(10 / 3)
     assert PromptSpec(num_frames=2).shown_fps == pytest.approx(1 / 0.9)
     assert PromptSpec(num_frames=1).shown_fps == 2.0
+    # 4 of 5 stored frames (15 fps, every third): the processor shows 0, 3, 9, 12 (0, 0.2, 0.6, 0.8 s), patches
+    # starting at 0 and 0.6 s: 2 / 0.6 (the frames' mean spacing, 0.267 s, would put the second patch at 0.533 s)
+    uneven = PromptSpec(num_frames=4, fps=15, clip_frames=(0, 3, 6, 9, 12))
+    assert uneven.shown_fps == pytest.approx(2 / 0.6)
 
 
 def test_video_patch_layout_matches_qwen_video_processor(proc, frames):
