@@ -404,7 +404,12 @@ def scorable_records(records: Sequence[dict], where: str = "records") -> list[di
             # would be scored in a wider or narrower view than the model saw.
             width, height = scoring_size(*r["size"])
             observation = Observation.from_scene(
-                scene, width=width, height=height, frames=r.get("frames"), fps=r.get("fps", FPS)
+                scene,
+                width=width,
+                height=height,
+                frames=r.get("frames"),
+                fps=r.get("fps", FPS),
+                substeps=r.get("substeps"),
             )
         except (SceneError, ValueError) as e:
             warnings.warn(

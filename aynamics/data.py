@@ -637,26 +637,34 @@ class SceneDataModule(L.LightningDataModule):
         left out with a warning (`readable_eval_record`)."""
         columns = ("index", "scene_yaml", "frame_indices", self.prompt.modality)  # decode only these
         ds, where = used_columns(self.splits[split], columns), f"{split} records of data.dir = {self.dir!r}"
-        found = (readable_eval_record(ds, i, self.processor, self.prompt, where) for i in range(min(n, len(ds))))
+        from aynamics.dataset_store import dataset_substeps
+
+        steps = dataset_substeps(self.dir)
+        found = (readable_eval_record(ds, i, self.processor, self.prompt, where, steps) for i in range(min(n, len(ds))))
         return [r for r in found if r is not None]
 
 
-def readable_eval_record(split, i: int, processor, prompt: lm.PromptSpec, where: str) -> dict[str, Any] | None:
+def readable_eval_record(
+    split, i: int, processor, prompt: lm.PromptSpec, where: str, substeps: int | None = None
+) -> dict[str, Any] | None:
     """`eval_record` of row `i` of `split`, or None with a warning naming it among `where` when its frames cannot be
     read (none stored, a broken image): one bad record never stops a training run or an evaluation."""
     try:
-        return eval_record(split[i], processor, prompt, i)
+        return eval_record(split[i], processor, prompt, i, substeps)
     except (ValueError, OSError) as e:  # PIL's UnidentifiedImageError is an OSError
         warnings.warn(f"scene evaluation: record {i} of the {where} is left out: its frames cannot be read ({e})")
         return None
 
 
-def eval_record(record: dict[str, Any], processor, prompt: lm.PromptSpec, position: int = 0) -> dict[str, Any]:
+def eval_record(
+    record: dict[str, Any], processor, prompt: lm.PromptSpec, position: int = 0, substeps: int | None = None
+) -> dict[str, Any]:
     """What generating for and scoring one data-set record needs: its `index` (`position` in the split when the
     record has none), the unbatched `prompt`, the `scene_yaml`, the frames' (width, height) `size` in pixels (the
     view the scene is scored in), and when they were taken: the video `frames` the model sees (the record's
     `frame_indices`, None when it has none: the scorer's default) at `fps` (the prompt's clock: `with_clock` sets
-    it to the data set's rate). The scene is scored at those frames, the times the model saw."""
+    it to the data set's rate), simulated with the data set's `substeps` (`dataset_store.dataset_substeps`; None:
+    the default for `fps`). The scene is scored at those frames, the times the model saw."""
     frames = frames_of(record, prompt.modality)
     shown = record.get("frame_indices")
     return {
@@ -666,6 +674,7 @@ def eval_record(record: dict[str, Any], processor, prompt: lm.PromptSpec, positi
         "size": tuple(frames[0].size),
         "frames": None if shown is None else tuple(int(k) for k in shown),
         "fps": round(prompt.fps),
+        "substeps": substeps,
     }
 
 

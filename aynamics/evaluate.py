@@ -200,7 +200,10 @@ def evaluate_adapter(
     rows = data.used_columns(splits[split], ("index", "scene_yaml", "frame_indices", prompt.modality))
     n = len(rows) if num is None else min(num, len(rows))
     where = f"{split} records of --data {str(data_dir)!r}"
-    found = (data.readable_eval_record(rows, i, processor, prompt, where) for i in range(n))
+    from aynamics.dataset_store import dataset_substeps
+
+    steps = dataset_substeps(data_dir)  # the physics the videos were made with
+    found = (data.readable_eval_record(rows, i, processor, prompt, where, steps) for i in range(n))
     items = ([] if r is None else scorable_records([r], where) for r in found)
     records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, f"evaluate {split}", progress)
     average = None

@@ -139,19 +139,23 @@ class Observation:
         frames: Sequence[int] | None = None,
         fps: int = sim.FPS,
         nthread: int | None = None,
+        substeps: int | None = None,
     ) -> Observation:
         """Observe a scene by the scorer's own ray casting (so a scene scored against itself is exact), at video
-        `frames` (default `sample_frames(30)`) of a video at `fps`.
+        `frames` (default `sample_frames(30)`) of a video at `fps`, simulated with `substeps` physics steps per
+        frame (None: the default for `fps`; a generated data set's own: `dataset_store.dataset_substeps`).
 
         Raises:
             ValueError: the scene's rollout is invalid (diverged), with the simulator's reason.
         """
         frames = sample_frames(VIDEO_FRAMES) if frames is None else np.asarray(frames, int)
-        shell = cls(np.zeros((len(frames), height, width), np.int16), frames, width, height, fps=fps)
+        shell = cls(np.zeros((len(frames), height, width), np.int16), frames, width, height, fps=fps, substeps=substeps)
         out = cast_group([scene], scene.structure, frames, width, height, shell.config, nthread, with_next=True)
         if out.reasons[0] is not None:
             raise ValueError(f"observed scene cannot be simulated: {out.reasons[0]}")
-        return cls(out.seg[0], frames, width, height, out.dense_flow[0], out.occluded[0], scene.names, fps)
+        return cls(
+            out.seg[0], frames, width, height, out.dense_flow[0], out.occluded[0], scene.names, fps, substeps=substeps
+        )
 
     @classmethod
     def from_dir(cls, path: str | Path, *, width: int | None = None, height: int | None = None) -> Observation:

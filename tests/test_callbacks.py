@@ -575,3 +575,33 @@ def test_a_record_whose_frames_cannot_be_read_is_left_out_with_its_reason():
         match=r"record 0 of the test records of X is left out: its frames cannot be read \(cannot identify image",
     ):
         assert readable_eval_record(Broken(), 0, processor, lm.PromptSpec(), "test records of X") is None
+
+
+def test_scene_evaluation_simulates_with_the_data_sets_own_substeps(tmp_path):
+    """A data set generated with substeps=2 (1/60 s steps): the evaluation records carry that (the scene evaluation
+    re-simulated the truth at the default 8 per frame, other physics than the video's), and the observation, its
+    candidates' simulation and the true scene agree: IoU 1."""
+    import datasets
+
+    from aynamics import data, lm
+    from aynamics.callbacks import scorable_records
+    from aynamics.dataset_store import dataset_substeps
+    from aynamics.generate import GenerateConfig, generate_dataset
+    from aynamics.render import gl_available
+
+    if not gl_available()[0]:
+        pytest.skip("no headless OpenGL")
+    config = GenerateConfig(width=64, height=48, substeps=2, workers=0, splits=(1.0, 0.0, 0.0))
+    path = generate_dataset(tmp_path / "d", num=2, seed=0, config=config)
+    assert dataset_substeps(path) == 2
+    prompt = lm.PromptSpec(num_frames=2)
+    processor = lm.load_processor(lm.ModelSpec(kind="tiny"), prompt)
+    split = datasets.load_from_disk(str(path))["train"]
+    records = [data.readable_eval_record(split, i, processor, prompt, "test", dataset_substeps(path)) for i in (0, 1)]
+    assert [r["substeps"] for r in records] == [2, 2]
+    scored = scorable_records(records)
+    assert [r["observation"].config.substeps for r in scored] == [2, 2]
+    per = evaluate_texts(
+        [r["scene_yaml"] for r in scored], [r["scene"] for r in scored], [r["observation"] for r in scored]
+    )
+    assert per["iou_full"] == pytest.approx([1.0, 1.0])
