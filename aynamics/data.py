@@ -526,8 +526,6 @@ class SceneDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.splits is not None:
             return
-        from aynamics.processor import load_processor
-
         self.splits = load_splits(self.dir)
         if len(self.splits["train"]) == 0:
             raise ValueError(f"data.dir = {self.dir!r}: the train split is empty")
@@ -542,14 +540,7 @@ class SceneDataModule(L.LightningDataModule):
             stored = self.splits["train"].select(range(min(self.num_examples, len(self.splits["train"]))))["scene_yaml"]
             examples = tuple(lm.scene_text(y, self.decimals, self.object_names, self.objects_last) for y in stored)
             self.prompt = lm.PromptSpec(**{**self.prompt.__dict__, "examples": examples})
-        p = self.prompt
-        self.processor = load_processor(
-            self.processor_path,
-            min_pixels=p.min_pixels,
-            max_pixels=p.max_pixels,
-            num_frames=p.num_frames,
-            video_fps=p.shown_fps,  # the data's clock: a video's temporal positions in seconds
-        )
+        self.processor = lm.prompt_processor(self.processor_path, self.prompt)  # with the data's clock
 
     @property
     def pad_token_id(self) -> int:

@@ -24,14 +24,15 @@ SPLITS = ("train", "validation", "test")
 MANIFEST = "generate.json"
 
 
-def _manifest_setting(path: str | Path, key: str):
-    """`config[key]` of a generated data set's manifest (for a split folder given on its own, the manifest of the
-    data set holding it); None without a manifest or that key."""
+def _manifest_config(path: str | Path) -> dict | None:
+    """The `config` of a generated data set's manifest (for a split folder given on its own, the manifest of the
+    data set holding it), or None for a data set made otherwise (no readable manifest)."""
     for folder in (Path(path), Path(path).parent):
         try:
-            return json.loads((folder / MANIFEST).read_text())["config"].get(key)
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            config = json.loads((folder / MANIFEST).read_text())["config"]
+        except (OSError, ValueError, KeyError, TypeError):
             continue
+        return config if isinstance(config, dict) else {}
     return None
 
 
@@ -42,7 +43,7 @@ def _whole(value) -> int | None:
 def dataset_fps(path: str | Path) -> int | None:
     """The frame rate of a generated data set's videos (its manifest's `config.fps`; for a split folder given on its
     own, the manifest of the data set holding it), or None for a data set made otherwise."""
-    return _whole(_manifest_setting(path, "fps"))
+    return _whole((_manifest_config(path) or {}).get("fps"))
 
 
 def stale_physics(path: str | Path) -> str | None:
@@ -50,26 +51,23 @@ def stale_physics(path: str | Path) -> str | None:
     `config.physics`, absent before version 2), or None (current, or no manifest: made otherwise)."""
     from aynamics.simulate import PHYSICS_VERSION
 
-    for folder in (Path(path), Path(path).parent):
-        try:
-            config = json.loads((folder / MANIFEST).read_text())["config"]
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
-        made = config.get("physics", 1) if isinstance(config, dict) else 1
-        if made == PHYSICS_VERSION:
-            return None
-        return (
-            f"data set {str(path)!r} was simulated with physics version {made}, this code simulates version "
-            f"{PHYSICS_VERSION}: scenes re-simulated here (true scenes, candidates) can move apart from its videos "
-            "and stored states; generate it again into a new folder"
-        )
-    return None
+    config = _manifest_config(path)
+    if config is None:
+        return None
+    made = config.get("physics", 1)
+    if made == PHYSICS_VERSION:
+        return None
+    return (
+        f"data set {str(path)!r} was simulated with physics version {made}, this code simulates version "
+        f"{PHYSICS_VERSION}: scenes re-simulated here (true scenes, candidates) can move apart from its videos "
+        "and stored states; generate it again into a new folder"
+    )
 
 
 def dataset_substeps(path: str | Path) -> int | None:
     """The physics steps per frame a generated data set's videos were simulated with (its manifest's
     `config.substeps`, written by every generate), or None for a data set made otherwise."""
-    return _whole(_manifest_setting(path, "substeps"))
+    return _whole((_manifest_config(path) or {}).get("substeps"))
 
 
 def features():

@@ -254,11 +254,18 @@ def build_model(spec: ModelSpec) -> torch.nn.Module:
 
 def load_processor(spec: ModelSpec, prompt: PromptSpec):
     """The image-only processor of the model, with the prompt's frame count, frame rate and pixel bounds."""
+    return prompt_processor(spec.processor_path, prompt)
+
+
+def prompt_processor(path: str | Path, prompt: PromptSpec):
+    """The image-only processor at `path` (a tokenizer + preprocessor folder or hub id) set up for `prompt`: its
+    frame count, its shown frames' rate (a video's temporal positions) and its pixel bounds. The one place the
+    prompt's settings reach a processor (SFT, PRO, evaluate and predict alike)."""
     from aynamics.processor import load_processor as _load
 
     p = prompt
     return _load(
-        spec.processor_path,
+        path,
         min_pixels=p.min_pixels,
         max_pixels=p.max_pixels,
         num_frames=p.num_frames,

@@ -414,8 +414,6 @@ class ProDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.processor is not None:
             return
-        from aynamics.processor import load_processor
-
         hp = self.hparams
         kw = {"inputs": hp.modality, "use_flow": hp.use_flow}
         if hp.preferences_dir is not None:
@@ -423,27 +421,20 @@ class ProDataModule(L.LightningDataModule):
 
             self.train_set = load_preferences(hp.preferences_dir)
             clock = stored_clock(hp.preferences_dir)  # the clock the rows were sampled on, as online mode would
-            if clock is None and is_generated(hp.dir):  # written before the clock was recorded: data.dir's
+            if clock is not None:
+                self.prompt = dataclasses.replace(self.prompt, **clock)
+            elif is_generated(hp.dir):  # written before the clock was recorded: data.dir's
                 from aynamics.data import with_clock
 
                 ref = open_videos(hp.dir, hp.train_split, limit=1, **kw)
-                clock = dataclasses.asdict(with_clock(self.prompt, hp.dir, ref.ds))
-            if clock is not None:
-                self.prompt = dataclasses.replace(self.prompt, fps=clock["fps"], clip_frames=clock["clip_frames"])
+                self.prompt = with_clock(self.prompt, hp.dir, ref.ds)
         else:
             self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
             if isinstance(self.train_set, GeneratedVideos):  # video folders: every third of 30 frames, the default
                 from aynamics.data import with_clock
 
                 self.prompt = with_clock(self.prompt, hp.dir, self.train_set.ds)
-        p = self.prompt  # with the videos' clock: a video's temporal positions follow it
-        self.processor = load_processor(
-            hp.processor_path,
-            min_pixels=p.min_pixels,
-            max_pixels=p.max_pixels,
-            num_frames=p.num_frames,
-            video_fps=p.shown_fps,
-        )
+        self.processor = lm.prompt_processor(hp.processor_path, self.prompt)  # with the videos' clock
         if hp.preferences_dir is not None:
             from aynamics.preference_data import check_made_for
 

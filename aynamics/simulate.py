@@ -445,9 +445,8 @@ class SimConfig:
         if not (0 < self.duration <= 60):
             raise ValueError(f"duration = {self.duration}: must be in (0, 60] s")
         object.__setattr__(self, "fps", _whole(self.fps, "fps"))
-        if self.substeps is None:
-            object.__setattr__(self, "substeps", max(1, round(PHYSICS_HZ / self.fps)))
-        object.__setattr__(self, "substeps", _whole(self.substeps, "substeps"))
+        per_frame = max(1, round(PHYSICS_HZ / self.fps)) if self.substeps is None else self.substeps
+        object.__setattr__(self, "substeps", _whole(per_frame, "substeps"))
         steps = self.frames * self.substeps
         if steps > MAX_STEPS:  # every step's state is recorded: 60 s at 1000 fps x 1000 substeps needed > 6 GB
             raise ValueError(
