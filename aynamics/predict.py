@@ -8,9 +8,11 @@
 The adapter folder (written by training: peft files + `aynamics.json`) says which base model to rebuild and how
 the prompt was made (modality, number of frames, images or one video, target) and when the training frames were
 taken (`fps`, `clip_frames`: every third frame of a 30 fps video for generated data). The model reads the video's
-frames at those times from its first frame, whatever the video's own rate (`clip_of`), then the trained number
-of them evenly, as in training. Flow-trained adapters expect flow images (Middlebury colours), e.g. the `flow/`
-PNGs of `aynamics render`. The process exits 0 when the response holds a valid scene, 1 when it does not.
+frames at those times from its first frame, whatever the video's own rate (`clip_of`; a file's frames by their
+stored presentation times, so a phone's variable rate is followed, and upright as its rotation shows them), then
+the trained number of them evenly, as in training. Flow-trained adapters expect flow images (Middlebury
+colours), e.g. the `flow/` PNGs of `aynamics render`. The process exits 0 when the response holds a valid
+scene, 1 when it does not.
 """
 
 from __future__ import annotations
@@ -92,7 +94,8 @@ def add_predict_command(sub) -> None:
         type=float,
         default=None,
         help="the video's frame rate: for a folder of frames (default: the training videos' rate, 30 for generated "
-        "data), or a file that states none or a wrong one. The model reads the frames at the times training showed "
+        "data), or a file that states none or a wrong one (frame k is then at k / FPS; otherwise a file's frames "
+        "come at their stored times). The model reads the frames at the times training showed "
         "it (0 to 0.9 s of the video for generated data)",
     )
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")

@@ -6,9 +6,10 @@ frames of a video (a file or a folder of images) at given times.
     video = open_video("clip.mp4")                  # its frame rate from the file (or fps=... for a folder)
     frames = video.frames_at([0.0, 0.1, 0.2])       # the frames on screen at those times, decoding stops there
 
-Frame rates: a video file's own (FFmpeg through PyAV; a GIF's per-frame durations), or the `fps` passed, which
-a folder of images needs. Everything here raises `ValueError` naming the file and the problem, or
-`FileNotFoundError` for a missing path.
+Frame times: a video file's own (FFmpeg through PyAV: each frame's presentation time, so a phone's variable frame
+rate is followed; a GIF's per-frame durations), or a constant `fps` passed, which a folder of images needs and
+which overrides a file's timing. A file's display rotation (a phone held upright) is applied. Everything here
+raises `ValueError` naming the file and the problem, or `FileNotFoundError` for a missing path.
 """
 
 from __future__ import annotations
@@ -79,12 +80,14 @@ class Video:
     Attributes:
         path: The file or folder.
         starts: (N,) the time each frame comes on screen, s, from the first frame; None for a file whose frame
-            count is not known before decoding (`fps` then gives the times).
+            count is not known before decoding (its stored presentation times, or `fps`, give the times).
         fps: The nominal frame rate (frames per second).
         files: A folder's image files, in time order (None for a file).
         end: When the last frame leaves the screen, s (an animation's last duration); None: half a frame after
             it comes (a constant rate: the nearest frame must exist).
         pillow: A file Pillow reads (an image or an animation), else one FFmpeg decodes.
+        timed: A file FFmpeg decodes whose frames are placed by their stored presentation times (a variable rate
+            followed); False: frame k at k / `fps` (a rate given by the user).
     """
 
     path: Path
@@ -93,6 +96,7 @@ class Video:
     files: tuple[Path, ...] | None = None
     end: float | None = None
     pillow: bool = False
+    timed: bool = False
 
     def describe(self) -> str:
         n = len(self.starts) if self.starts is not None else None
@@ -124,6 +128,8 @@ class Video:
 
     def frames_at(self, times: Sequence[float]) -> list[np.ndarray]:
         """(H, W, 3) uint8 frames on screen at `times`; a file is decoded only up to the last one needed."""
+        if self.timed:
+            return self._timed_frames_at(times)
         want = self.indices_at(times)
         if self.files is not None:
             cache = {k: read_image(self.files[k]) for k in sorted(set(want))}
@@ -136,6 +142,43 @@ class Video:
                     "are needed: give a longer video, or the right frame rate with --fps"
                 )
         return same_size([cache[k] for k in want], [self.name(k) for k in want])
+
+    def _timed_frames_at(self, times: Sequence[float]) -> list[np.ndarray]:
+        """`frames_at` by the frames' presentation times: the frame on screen at t is the last one to come at or
+        before t + half a nominal frame (at a constant rate, the nearest). Decoding stops at the first frame that
+        comes after the last time needed; only the frames picked are kept."""
+        times = np.asarray(times, float)
+        tolerance = 0.5 / self.fps + 1e-9
+        order = list(np.argsort(times, kind="stable"))
+        out: list[np.ndarray | None] = [None] * len(times)
+        picked: list[int] = [0] * len(times)
+        first = last = None
+        n = 0
+        try:
+            for k, (start, frame) in enumerate(_frames(self.path, False)):
+                if start is None:  # a stream without presentation times: at the nominal rate
+                    start = k / self.fps
+                first = start if first is None else first
+                start -= first
+                while order and times[order[0]] + tolerance < start:  # on screen before this frame: the last one
+                    i = order.pop(0)  # (a time before the first frame: the first frame)
+                    out[i], picked[i] = (last[1], k - 1) if last is not None else (frame, k)
+                if not order:
+                    break
+                last, n = (start, frame), k + 1
+        except Exception as e:  # PyAV raises many types for a file it cannot decode
+            raise ValueError(f"cannot read video {str(self.path)!r}: {type(e).__name__}: {e}") from None
+        if order:
+            end = last[0] + tolerance if last is not None else 0.0
+            if last is None or times[order[-1]] > end:
+                came = f"the last coming at {last[0]:.3g} s" if last is not None else "none decoded"
+                raise ValueError(
+                    f"{self.describe()} has {n} frames ({came}), but frames up to {times.max():.3g} s "
+                    "are needed: give a longer video, or the right frame rate with --fps"
+                )
+            for i in order:
+                out[i], picked[i] = last[1], n - 1
+        return same_size(out, [self.name(k) for k in picked])
 
     def name(self, k: int) -> str:
         """Frame `k` as an error message names it: its file, or its place in the video file."""
@@ -178,9 +221,9 @@ def open_video(path: str | Path, fps: float | None = None) -> Video:
         starts = np.concatenate([[0.0], np.cumsum(durations[:-1])])
         rate = 1.0 / float(np.median(durations))
         return Video(path, starts, rate, end=float(starts[-1] + durations[-1]), pillow=True)
-    if fps is None:
-        fps = _file_rate(path)
-    return Video(path, None, float(fps))
+    if fps is not None:  # the user's constant rate: frame k at k / fps
+        return Video(path, None, float(fps))
+    return Video(path, None, _file_rate(path), timed=True)
 
 
 def read_frames(path: str | Path) -> list[np.ndarray]:
@@ -229,19 +272,25 @@ def _file_rate(path: Path) -> float:
     return float(fps)
 
 
-def _frames(path: Path, pillow: bool) -> Iterator[np.ndarray]:
-    """A video file's frames as (H, W, 3) uint8, one at a time (Pillow for images and animations, else PyAV)."""
-    import imageio.v3 as iio
-
+def _frames(path: Path, pillow: bool) -> Iterator[tuple[float | None, np.ndarray]]:
+    """A video file's frames as (H, W, 3) uint8, one at a time, in display order, each with the time it comes on
+    screen (s, on the file's clock; None where none is stored: Pillow's, or a stream without timestamps). Pillow
+    reads images and animations, PyAV the rest, with the stream's display rotation applied (a phone video filmed
+    upright is stored sideways with a rotation to show it)."""
     if pillow:
         from PIL import Image, ImageSequence
 
         with Image.open(path) as image:
             for frame in ImageSequence.Iterator(image):
-                yield rgb8(frame)
+                yield None, rgb8(frame)
         return
-    for frame in iio.imiter(path, plugin="pyav"):
-        yield np.ascontiguousarray(np.asarray(frame)[..., :3].astype(np.uint8))
+    import av
+
+    with av.open(str(path)) as container:
+        for frame in container.decode(container.streams.video[0]):
+            image = frame.to_ndarray(format="rgb24")
+            turns = round(frame.rotation / 90) % 4  # degrees counter-clockwise that the display turns it
+            yield frame.time, np.ascontiguousarray(np.rot90(image, turns) if turns else image)
 
 
 def _decode(path: Path, want: set[int] | None, pillow: bool) -> tuple[dict[int, np.ndarray], int]:
@@ -249,7 +298,7 @@ def _decode(path: Path, want: set[int] | None, pillow: bool) -> tuple[dict[int, 
     than the last of them, and how many frames were decoded."""
     last, got, n = (max(want) if want is not None else None), {}, 0
     try:
-        for k, frame in enumerate(_frames(path, pillow)):
+        for k, (_, frame) in enumerate(_frames(path, pillow)):
             n = k + 1
             if want is None or k in want:
                 got[k] = frame

@@ -18,7 +18,7 @@ def _stamped(k: int, size=(24, 32)) -> np.ndarray:
 
 
 def _stamps(frames) -> list[int]:
-    return [int(round(float(f.mean()) / 8)) for f in frames]
+    return [int(round(float(np.median(f)) / 8)) for f in frames]  # the median: a corner mark left out
 
 
 def _folder(path, n: int, name=lambda k: f"{k}.png"):
@@ -103,8 +103,8 @@ def test_the_clip_is_the_frames_training_showed(tmp_path):
 
 
 def test_a_video_file_is_decoded_only_as_far_as_the_clip_needs(tmp_path, monkeypatch):
-    """The clip of a 300-frame video ends at frame 27: decoding stops there (the whole file was decoded into memory
-    before: 1.7 GB for 10 s of 720p)."""
+    """The clip of a 300-frame video ends at frame 27: decoding stops at the next frame, the first to come after
+    the clip's last time (the whole file was decoded into memory before: 1.7 GB for 10 s of 720p)."""
     iio.imwrite(
         tmp_path / "long.mp4",
         np.stack([_stamped(k % 30, (48, 64)) for k in range(300)]),
@@ -122,8 +122,64 @@ def test_a_video_file_is_decoded_only_as_far_as_the_clip_needs(tmp_path, monkeyp
 
     monkeypatch.setattr(video_io, "_frames", counting)
     assert _stamps(clip_of(tmp_path / "long.mp4", lm.PromptSpec())) == list(range(0, 30, 3))
-    assert len(decoded) == 28
+    assert len(decoded) == 29
     assert len(video_io.read_frames(tmp_path / "long.mp4")) == 300
+
+
+def _write_timed(path, stamps_ms, size=(48, 64), matrix=None):
+    """An MP4 of `_stamped(k)` frames shown at `stamps_ms` (a variable rate; the stream states 30 fps), with the
+    track's display matrix set to `matrix` (9 ints, 16.16 fixed point: how a phone stores its rotation)."""
+    import struct
+    from fractions import Fraction
+
+    import av
+
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("libx264", rate=30)
+        stream.width, stream.height, stream.pix_fmt = size[1], size[0], "yuv420p"
+        stream.time_base = Fraction(1, 1000)
+        for k, ms in enumerate(stamps_ms):
+            image = _stamped(k, size)
+            image[:8, :8] = 255  # a corner mark that shows the rotation
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+            frame.pts, frame.time_base = ms, Fraction(1, 1000)
+            out.mux(stream.encode(frame))
+        out.mux(stream.encode())
+    if matrix is not None:  # the MP4 track header (version 0): 32 bytes after its type, then the 3x3 matrix
+        data = bytearray(path.read_bytes())
+        at = data.find(b"tkhd") + 4 + 4 + 20 + 8 + 8
+        data[at : at + 36] = struct.pack(">9i", *matrix)
+        path.write_bytes(data)
+    return path
+
+
+def test_a_variable_rate_video_is_read_by_its_frames_times(tmp_path):
+    """A phone records at a variable rate: frames at 0, 33, 67, 200, 233, 500, 533 ms while the stream states
+    30 fps. The frame on screen at 0.1 s is the one from 67 ms, at 0.3 s the one from 233 ms, at 0.5 s the one
+    from 500 ms (by frame count at 30 fps these were frames 3, 9 and 15: the one from 200 ms, then errors:
+    'has 7 frames'); a time before the next frame by less than half a nominal frame takes the next one, as at a
+    constant rate. A rate the user gives places frame k at k / fps. Past the last frame, the error names it."""
+    path = _write_timed(tmp_path / "vfr.mp4", [0, 33, 67, 200, 233, 500, 533])
+    video = video_io.open_video(path)
+    assert video.timed and video.fps == 30
+    assert _stamps(video.frames_at([0.0, 0.1, 0.3, 0.5, 0.19])) == [0, 2, 4, 5, 3]
+    assert _stamps(video.frames_at([0.5, 0.0])) == [5, 0]  # any order
+    assert _stamps(video_io.open_video(path, fps=10).frames_at([0.0, 0.1, 0.3])) == [0, 1, 3]
+    with pytest.raises(ValueError, match=r"has 7 frames \(the last coming at 0.533 s\), but frames up to 0.6 s"):
+        video.frames_at([0.0, 0.6])
+    assert _stamps(video.frames_at([0.545])) == [6]  # within half a frame of the last
+
+
+def test_a_phone_video_filmed_upright_is_read_upright(tmp_path):
+    """A phone stores an upright video's frames sideways with a display rotation; they are read as shown: a 64x48
+    stored frame with a mark in its top-left corner, rotated 90° clockwise for display, reads 48x64 with the mark
+    top-right (it was read sideways). Without a rotation it reads as stored."""
+    plain = video_io.read_frames(_write_timed(tmp_path / "plain.mp4", [0, 33]))[0]
+    assert plain.shape == (48, 64, 3) and plain[:8, :8].min() > 200
+    upright = _write_timed(tmp_path / "upright.mp4", [0, 33], matrix=(0, 65536, 0, -65536, 0, 0, 0, 0, 1 << 30))
+    shown = video_io.read_frames(upright)[0]
+    assert shown.shape == (64, 48, 3) and shown[:8, -8:].min() > 200 and shown[:8, :8].max() < 100
+    assert video_io.open_video(upright).frames_at([0.0])[0].shape == (64, 48, 3)
 
 
 def test_flow_clips_are_recoloured_on_their_own_scale(tmp_path):
