@@ -54,7 +54,8 @@ def clip_of(path: str | Path, prompt, fps: float | None = None) -> list[np.ndarr
     from aynamics.flow import on_own_scale
 
     path = Path(path)
-    video, times = video_io.open_video(path, fps=fps or (prompt.fps if path.is_dir() else None)), prompt.frame_times
+    own = prompt.fps if path.is_dir() else None  # a folder's rate unless given (a given 0 is refused, not dropped)
+    video, times = video_io.open_video(path, fps=own if fps is None else fps), prompt.frame_times
     if fps is None and video.files is not None and len(video.files) == len(prompt.clip_frames):
         times = video.starts  # the clip itself: every image
     frames = video.frames_at(times)

@@ -18,7 +18,7 @@ import errno
 import os
 import re
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -146,20 +146,25 @@ class Video:
     def _timed_frames_at(self, times: Sequence[float]) -> list[np.ndarray]:
         """`frames_at` by the frames' presentation times: the frame on screen at t is the last one to come at or
         before t + half a nominal frame (at a constant rate, the nearest). Decoding stops at the first frame that
-        comes after the last time needed; only the frames picked are kept."""
+        comes after the last time needed; only the frames picked are kept. Stored times that go backwards (an AVI
+        holds none: FFmpeg numbers H.264 frames with B-frames in decoding order) are no clock: the frames are then
+        read by count, frame k at k / `fps`."""
         times = np.asarray(times, float)
         tolerance = 0.5 / self.fps + 1e-9
         order = list(np.argsort(times, kind="stable"))
         out: list[np.ndarray | None] = [None] * len(times)
         picked: list[int] = [0] * len(times)
         first = last = None
-        n = 0
+        n, backwards = 0, False
         try:
             for k, (start, frame) in enumerate(_frames(self.path, False)):
                 if start is None:  # a stream without presentation times: at the nominal rate
                     start = k / self.fps
                 first = start if first is None else first
                 start -= first
+                if last is not None and start < last[0] - 1e-9:
+                    backwards = True
+                    break
                 while order and times[order[0]] + tolerance < start:  # on screen before this frame: the last one
                     i = order.pop(0)  # (a time before the first frame: the first frame)
                     out[i], picked[i] = (last[1], k - 1) if last is not None else (frame, k)
@@ -168,6 +173,8 @@ class Video:
                 last, n = (start, frame), k + 1
         except Exception as e:  # PyAV raises many types for a file it cannot decode
             raise ValueError(f"cannot read video {str(self.path)!r}: {type(e).__name__}: {e}") from None
+        if backwards:
+            return replace(self, timed=False).frames_at(times)
         if order:
             end = last[0] + tolerance if last is not None else 0.0
             if last is None or times[order[-1]] > end:
@@ -221,9 +228,12 @@ def open_video(path: str | Path, fps: float | None = None) -> Video:
         starts = np.concatenate([[0.0], np.cumsum(durations[:-1])])
         rate = 1.0 / float(np.median(durations))
         return Video(path, starts, rate, end=float(starts[-1] + durations[-1]), pillow=True)
+    rate = _file_rate(path)
     if fps is not None:  # the user's constant rate: frame k at k / fps
         return Video(path, None, float(fps))
-    return Video(path, None, _file_rate(path), timed=True)
+    if rate is None:
+        raise ValueError(f"video {str(path)!r} states no frame rate: give it with --fps")
+    return Video(path, None, rate, timed=True)
 
 
 def read_frames(path: str | Path) -> list[np.ndarray]:
@@ -258,18 +268,33 @@ def _pillow_durations(path: Path) -> np.ndarray | None:
         return None
 
 
-def _file_rate(path: Path) -> float:
-    """The frame rate a video file states (FFmpeg through PyAV)."""
-    import imageio.v3 as iio
+def _video_stream(container):
+    """The video stream of an open PyAV container to read, as FFmpeg picks it (`av_find_best_stream`: a stream of
+    several frames before a one-frame thumbnail), never an attached picture (an audio file's cover); None if none."""
+    import av
+
+    moving = [s for s in container.streams.video if not s.disposition & av.stream.Disposition.attached_pic]
+    best = container.streams.best("video")
+    return best if best in moving else (moving[0] if moving else None)
+
+
+def _file_rate(path: Path) -> float | None:
+    """The frame rate a video file states (FFmpeg through PyAV), None if it states none.
+
+    Raises:
+        ValueError: the file is no video FFmpeg reads, or holds no video stream (audio only), named.
+    """
+    import av
 
     try:
-        meta = iio.immeta(path, plugin="pyav")
+        with av.open(str(path)) as container:
+            stream = _video_stream(container)
+            fps = float(stream.guessed_rate) if stream is not None and stream.guessed_rate else None
     except Exception as e:  # PyAV raises its own error types for a file that is no video
         raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
-    fps = meta.get("fps")
-    if not fps or not np.isfinite(fps) or fps <= 0:
-        raise ValueError(f"video {str(path)!r} states no frame rate: give it with --fps")
-    return float(fps)
+    if stream is None:
+        raise ValueError(f"{str(path)!r} holds no video stream (audio only?)")
+    return fps if fps and np.isfinite(fps) and fps > 0 else None
 
 
 def _frames(path: Path, pillow: bool) -> Iterator[tuple[float | None, np.ndarray]]:
@@ -287,10 +312,32 @@ def _frames(path: Path, pillow: bool) -> Iterator[tuple[float | None, np.ndarray
     import av
 
     with av.open(str(path)) as container:
-        for frame in container.decode(container.streams.video[0]):
-            image = frame.to_ndarray(format="rgb24")
-            turns = round(frame.rotation / 90) % 4  # degrees counter-clockwise that the display turns it
-            yield frame.time, np.ascontiguousarray(np.rot90(image, turns) if turns else image)
+        stream = _video_stream(container)
+        if stream is None:
+            raise ValueError("no video stream")
+        for frame in container.decode(stream):
+            yield frame.time, np.ascontiguousarray(_upright(frame.to_ndarray(format="rgb24"), frame))
+
+
+def _upright(image: np.ndarray, frame) -> np.ndarray:
+    """A decoded frame's (H, W, 3) pixels as its display matrix shows them, turned and flipped as the `ffmpeg` tool
+    turns them (autorotate): quarter turns clockwise by the matrix's angle (`-av_display_rotation_get`; a phone
+    filmed upright: 90), the mirrored matrices (transposed, flipped) flipped too; a singular matrix turns nothing."""
+    from av.sidedata.sidedata import Type
+
+    data = frame.side_data.get(Type.DISPLAYMATRIX)
+    if data is None:
+        return image
+    m = np.frombuffer(bytes(data), np.int32)[:9] / 65536.0  # a, b, u, c, d, v, x, y, w: a..d in 16.16
+    scale = np.hypot(m[0], m[3]), np.hypot(m[1], m[4])
+    if not (scale[0] > 0 and scale[1] > 0):
+        return image
+    turns = int(round(np.degrees(np.arctan2(m[1] / scale[1], m[0] / scale[0])) / 90)) % 4  # clockwise
+    if turns == 1:
+        return image.transpose(1, 0, 2) if m[3] > 0 else np.rot90(image, -1)
+    if turns == 3:
+        return np.rot90(image, 2).transpose(1, 0, 2) if m[3] < 0 else np.rot90(image, 1)
+    return image[:: -1 if m[4] < 0 else 1, :: -1 if m[0] < 0 else 1]
 
 
 def _decode(path: Path, want: set[int] | None, pillow: bool) -> tuple[dict[int, np.ndarray], int]:

@@ -81,6 +81,8 @@ def test_the_clip_is_the_frames_training_showed(tmp_path):
     ):
         clip_of(_folder(tmp_path / "v20", 20), prompt)
     assert _stamps(clip_of(tmp_path / "v20", prompt, fps=20)) == [0, 2, 4, 6, 8, 10, 12, 14, 16, 18]
+    with pytest.raises(ValueError, match="fps = 0: must be"):  # --fps 0 was taken as no --fps
+        clip_of(tmp_path / "v20", prompt, fps=0)
     with pytest.raises(ValueError, match=r"lasts 0.9 s \(its last frame comes at 0.867 s\), but frames up to 0.9 s"):
         clip_of(_folder(tmp_path / "v27", 27), prompt)  # 0.9 s long, but the frame on screen at 0.9 s is the 28th
     gif = [Image.fromarray(_stamped(k)) for k in range(12)]  # 100 ms each: 10 fps, 1.2 s
@@ -180,6 +182,82 @@ def test_a_phone_video_filmed_upright_is_read_upright(tmp_path):
     shown = video_io.read_frames(upright)[0]
     assert shown.shape == (64, 48, 3) and shown[:8, -8:].min() > 200 and shown[:8, :8].max() < 100
     assert video_io.open_video(upright).frames_at([0.0])[0].shape == (64, 48, 3)
+
+
+def test_display_matrices_are_applied_as_ffmpeg_applies_them(tmp_path):
+    """The mark of the top-left stored corner lands where the `ffmpeg` tool's autorotate puts it: a 180° matrix
+    bottom-right, a 90° counter-clockwise one (270° clockwise) bottom-left; a mirrored matrix (-1, 0, 0, 1) only
+    flips left-right (mark top-right; it was turned 180°: bottom-right), a transposing one (0, 1, 1, 0) transposes
+    (mark top-left; it was turned clockwise: top-right); a singular (all-zero) matrix leaves the frame as stored (it
+    was turned clockwise: PyAV's rotation of it is INT_MIN)."""
+    u, w = 65536, 1 << 30
+    cases = {
+        "r180": ((-u, 0, 0, 0, -u, 0, 0, 0, w), (48, 64), np.s_[-8:, -8:]),
+        "r270": ((0, -u, 0, u, 0, 0, 0, 0, w), (64, 48), np.s_[-8:, :8]),
+        "hflip": ((-u, 0, 0, 0, u, 0, 0, 0, w), (48, 64), np.s_[:8, -8:]),
+        "transpose": ((0, u, 0, u, 0, 0, 0, 0, w), (64, 48), np.s_[:8, :8]),
+        "singular": ((0, 0, 0, 0, 0, 0, 0, 0, w), (48, 64), np.s_[:8, :8]),
+    }
+    for name, (matrix, shape, mark) in cases.items():
+        frame = video_io.read_frames(_write_timed(tmp_path / f"{name}.mp4", [0, 33], matrix=matrix))[0]
+        assert frame.shape[:2] == shape and frame[mark].min() > 200 and np.median(frame) < 100, name
+
+
+def test_an_avi_with_b_frames_is_read_by_count(tmp_path):
+    """An AVI stores no presentation times: FFmpeg numbers its H.264 frames in decoding order, so with B-frames
+    the times of the frames shown go 1, 4, 3, 5, 2, ... (/30 s). They are read by count at the stated rate,
+    frames 0, 3, ..., 27 (by those times: 0, 2, 4, 8, 12, 14, 17, 19, 23, 27)."""
+    import av
+
+    with av.open(str(tmp_path / "b.avi"), "w") as out:
+        stream = out.add_stream("libx264", rate=30)  # B-frames by default
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        for k in range(31):
+            out.mux(stream.encode(av.VideoFrame.from_ndarray(_stamped(k, (48, 64)), format="rgb24")))
+        out.mux(stream.encode())
+    assert video_io.open_video(tmp_path / "b.avi").timed
+    assert _stamps(clip_of(tmp_path / "b.avi", lm.PromptSpec())) == list(range(0, 30, 3))
+
+
+def test_the_moving_video_stream_is_read_and_audio_is_no_video(tmp_path):
+    """A file whose first video stream is a one-frame thumbnail gives the frames of its moving stream (it gave the
+    thumbnail: 'has 1 frames'); an audio file, with a cover picture or without, is named as holding no video (it
+    was 'has 1 frames at 9e+04 fps ... give a longer video', or 'unknown error ... initializing plugin')."""
+    import av
+
+    with av.open(str(tmp_path / "two.mkv"), "w") as out:
+        thumb = out.add_stream("mjpeg", rate=1)
+        thumb.width, thumb.height, thumb.pix_fmt = 32, 24, "yuvj420p"
+        stream = out.add_stream("libx264", rate=30)  # streams are added before any is written
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        out.mux(thumb.encode(av.VideoFrame.from_ndarray(_stamped(31), format="rgb24")))
+        out.mux(thumb.encode())
+        for k in range(31):
+            out.mux(stream.encode(av.VideoFrame.from_ndarray(_stamped(k, (48, 64)), format="rgb24")))
+        out.mux(stream.encode())
+    assert _stamps(clip_of(tmp_path / "two.mkv", lm.PromptSpec())) == list(range(0, 30, 3))
+    with av.open(str(tmp_path / "song.mp4"), "w", format="mp4") as out:
+        audio = out.add_stream("aac", rate=8000)
+        cover = out.add_stream("png")
+        cover.width, cover.height, cover.pix_fmt = 32, 24, "rgb24"
+        cover.disposition = av.stream.Disposition.attached_pic
+        for packet in cover.encode(av.VideoFrame.from_ndarray(_stamped(5), format="rgb24")):
+            packet.pts = packet.dts = 0
+            out.mux(packet)
+        for k in range(8):
+            samples = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp", layout="mono")
+            samples.sample_rate, samples.pts = 8000, 1024 * k
+            out.mux(audio.encode(samples))
+        out.mux(audio.encode())
+    with av.open(str(tmp_path / "song.wav"), "w") as out:
+        audio = out.add_stream("pcm_s16le", rate=8000)
+        samples = av.AudioFrame.from_ndarray(np.zeros((1, 800), np.int16), format="s16", layout="mono")
+        samples.sample_rate, samples.pts = 8000, 0
+        out.mux(audio.encode(samples))
+        out.mux(audio.encode())
+    for name in ("song.mp4", "song.wav"):
+        with pytest.raises(ValueError, match=rf"{name}' holds no video stream"):
+            clip_of(tmp_path / name, lm.PromptSpec())
 
 
 def test_flow_clips_are_recoloured_on_their_own_scale(tmp_path):
