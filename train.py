@@ -42,6 +42,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     from aynamics.callbacks import SceneEvaluation, format_table, json_safe
     from aynamics.lm import TARGETS
+    from aynamics.sharding import model_init_context
 
     interval = cfg.trainer.get("val_check_interval")
     if interval is not None and not (isinstance(interval, int) and not isinstance(interval, bool) and interval > 0):
@@ -75,7 +76,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     spec = hydra.utils.instantiate(cfg.model)
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
     datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
-    module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
+    with model_init_context(trainer):  # trainer=fsdp: only rank 0 loads the base, the others get its weights
+        module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     except Exception as error:

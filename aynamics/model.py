@@ -156,10 +156,17 @@ def load_pretrained(
         attn_implementation: "sdpa", "eager", "flash_attention_2" or None for transformers' default.
         device_map: Passed through (e.g. "auto" or "cuda:0"); None loads on the CPU.
         local_files_only: Never touch the network (the machines here have no hub access).
+
+    Under a meta device context (`with torch.device("meta")`) the model is built from the checkpoint's config and
+    generation config only, its weights neither read nor allocated (`from_pretrained` refuses that context): what
+    every process but rank 0 builds under `trainer=fsdp`, to be given rank 0's weights once sharded
+    (`aynamics.sharding`).
     """
     looks_local = str(name_or_path).startswith((".", "/", "~")) or isinstance(name_or_path, Path)
     if looks_local and not Path(name_or_path).expanduser().is_dir():
         raise FileNotFoundError(f"model path {str(name_or_path)!r} is not a directory (or pass a hub id)")
+    if torch.get_default_device().type == "meta":
+        return _empty_pretrained(name_or_path, dtype, attn_implementation, local_files_only)
     try:
         model = Qwen2_5_VLForConditionalGeneration.from_pretrained(
             str(name_or_path),
@@ -172,10 +179,38 @@ def load_pretrained(
         from aynamics.processor import checkpoint_error
 
         raise checkpoint_error(name_or_path, "model", e) from None
+    _default_pad_id(model)
+    return model
+
+
+def _empty_pretrained(
+    name_or_path: str | Path, dtype: str | torch.dtype, attn_implementation: str | None, local_files_only: bool
+) -> Qwen2_5_VLForConditionalGeneration:
+    """`load_pretrained`'s model on the meta device: its config and generation config as `from_pretrained` reads
+    them, no weights."""
+    from transformers import AutoConfig, GenerationConfig
+
+    try:
+        config = AutoConfig.from_pretrained(str(name_or_path), local_files_only=local_files_only)
+    except (OSError, ValueError) as e:
+        from aynamics.processor import checkpoint_error
+
+        raise checkpoint_error(name_or_path, "model", e) from None
+    dtype = (getattr(config, "dtype", None) or torch.float32) if dtype == "auto" else dtype
+    kernel = {} if attn_implementation is None else {"attn_implementation": attn_implementation}
+    model = Qwen2_5_VLForConditionalGeneration._from_config(config, dtype=dtype, **kernel)
+    try:  # as from_pretrained: the checkpoint's generation config, else the one made from the model config
+        model.generation_config = GenerationConfig.from_pretrained(str(name_or_path), local_files_only=local_files_only)
+    except OSError:
+        pass
+    _default_pad_id(model)
+    return model.eval()
+
+
+def _default_pad_id(model: Qwen2_5_VLForConditionalGeneration) -> None:
     gen = model.generation_config
     if gen.pad_token_id is None:
         gen.pad_token_id = model.config.text_config.pad_token_id or model.config.text_config.bos_token_id
-    return model
 
 
 def _set_generation_ids(model: Qwen2_5_VLForConditionalGeneration, tokenizer: PreTrainedTokenizerBase) -> None:

@@ -92,7 +92,10 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
         enable_gradient_checkpointing(base)  # before the adapter, as `apply_lora` does
     config = PeftConfig.from_pretrained(str(init_adapter))
     config.lora_dropout = used.lora_dropout
-    with peft_quietly():
+    with peft_quietly(), warnings.catch_warnings():
+        # a base on the meta device (a process but rank 0 under trainer=fsdp: `sharding.model_init_context`) takes
+        # no adapter weights here, but rank 0's once sharded: torch's note on each of them says nothing
+        warnings.filterwarnings("ignore", "for .*: copying from a non-meta parameter", UserWarning)
         model = PeftModel.from_pretrained(base, str(init_adapter), is_trainable=True, config=config)
     float32_trained_tower(model)  # the adapter's tower is loaded in the base dtype: trained in float32, as in SFT
     return model.train(), used

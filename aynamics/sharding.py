@@ -6,8 +6,10 @@
 Each decoder layer, each vision block, the vision tower, the model and the dense visual head become
 `torch.distributed.fsdp.fully_shard` units (FSDP2) in the modules' `configure_model`, on Lightning's
 `ModelParallelStrategy` with one data-parallel dimension over all processes (`FullyShardedDataParallel` below).
-A layer's weights are gathered for its forward and backward only, so no GPU holds the whole model at once
-(each process still builds the full base in host memory before sharding it: ~16 GB for the 7B in bfloat16).
+A layer's weights are gathered for its forward and backward only, so no GPU holds the whole model at once.
+Only rank 0 loads the base (host memory: ~16 GB for the 7B in bfloat16); every other process builds the model on
+the meta device (`model_init_context`, no weights read or allocated) and, once sharded, receives rank 0's weights
+and buffers, the LoRA weights' initialisation and an `init_adapter` included (`shard_from_rank0`).
 
 Why FSDP2 and not Lightning's `FSDPStrategy` (FSDP1): FSDP1 flattens a unit's parameters into one tensor and
 refuses mixed dtypes (`Must flatten tensors with uniform dtype but got torch.bfloat16 and torch.float32`), which
@@ -27,6 +29,7 @@ Sharded weights change three things elsewhere, all handled through this module:
 from __future__ import annotations
 
 import contextlib
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -127,9 +130,68 @@ def shard_model(
 
 def shard_module(module, extra: tuple[torch.nn.Module | None, ...] = ()) -> None:
     """A LightningModule's `configure_model` under `trainer=fsdp`: shard its `model` (and `extra`) over the
-    strategy's data-parallel processes; nothing without a device mesh (other strategies) or when already done."""
+    strategy's data-parallel processes with rank 0's weights (`shard_from_rank0`); nothing without a device mesh
+    (other strategies) or when already done."""
     if module.device_mesh is not None and not is_sharded(module.model):
-        shard_model(module.model, data_parallel_mesh(module.device_mesh), extra)
+        shard_from_rank0(module, data_parallel_mesh(module.device_mesh), extra)
+
+
+def model_init_context(trainer) -> contextlib.AbstractContextManager:
+    """Where a module builds its model before `trainer` fits it: under `trainer=fsdp` on the meta device on every
+    process but rank 0 (no weights read or allocated; `shard_from_rank0` gives it rank 0's), else as usual (every
+    process builds its own). The trainer knows its rank before the process group exists (Lightning's launcher
+    and torchrun set it in the environment)."""
+    if isinstance(trainer.strategy, FullyShardedDataParallel) and trainer.global_rank != 0:
+        return torch.device("meta")
+    return contextlib.nullcontext()
+
+
+def shard_from_rank0(module: torch.nn.Module, mesh, extra: tuple[torch.nn.Module | None, ...] = ()) -> None:
+    """Shard `module.model` (and `extra`, `shard_model`) over `mesh`, every process with rank 0's weights and
+    buffers: all of `module`'s parameters, the non-persistent buffers (rotary `inv_freq`) that no state dict holds
+    too. A process whose module is on the meta device (`model_init_context`) allocates its shards here; the
+    others' values are replaced by rank 0's (equal where built from the same seed). `mesh` spans every process.
+    Rank 0 holds its full weights until they are broadcast, beside its shards (on the GPU; in host memory on the
+    CPU: 1 + 1 / processes times the model there, against about 1 for sharding alone).
+
+    Raises:
+        ValueError: a process built another model than rank 0 (a weight's name, shape or dtype differs).
+    """
+    import torch.distributed as dist
+    from torch.distributed.checkpoint.state_dict import StateDictOptions, set_model_state_dict
+
+    _check_same_model(module)
+    full = module.state_dict() if dist.get_rank() == 0 else {}  # references: the sharding would free the weights
+    shard_model(module.model, mesh, extra)
+    tensors = itertools.chain(module.parameters(), module.buffers())
+    if any(t.is_meta for t in tensors):
+        if mesh.device_type == "cpu":
+            device = torch.device("cpu")
+        else:  # the device FSDP2 moved rank 0's shards to: the process's current one
+            device = torch.device(mesh.device_type, torch.get_device_module(mesh.device_type).current_device())
+        module.to_empty(device=device)
+    options = StateDictOptions(full_state_dict=True, broadcast_from_rank0=True)
+    set_model_state_dict(module, full, options=options)
+    del full
+    for buffer in module.buffers():  # unsharded: the same on every process
+        dist.broadcast(buffer, src=0)
+
+
+def _check_same_model(module: torch.nn.Module) -> None:
+    """Raise on every process when one built another model than rank 0 (a meta-device build that drifted from
+    `from_pretrained`): its weights would be cast or misplaced silently, its buffers' broadcast could hang."""
+    import torch.distributed as dist
+
+    named = itertools.chain(module.named_parameters(), module.named_buffers())
+    mine = [(name, tuple(t.shape), str(t.dtype).removeprefix("torch.")) for name, t in named]
+    rank0 = [mine]
+    dist.broadcast_object_list(rank0, src=0)
+    diff = next((f"{a} (rank 0: {b})" for a, b in itertools.zip_longest(mine, rank0[0]) if a != b), None)
+    diffs: list[str | None] = [None] * dist.get_world_size()
+    dist.all_gather_object(diffs, diff)
+    bad = next(((rank, d) for rank, d in enumerate(diffs) if d is not None), None)
+    if bad is not None:
+        raise ValueError(f"rank {bad[0]} built another model than rank 0: weight (name, shape, dtype) {bad[1]}")
 
 
 def hf_model(model: torch.nn.Module) -> torch.nn.Module:
@@ -141,7 +203,8 @@ def hf_model(model: torch.nn.Module) -> torch.nn.Module:
 class FullyShardedDataParallel(ModelParallelStrategy):
     """Lightning's `ModelParallelStrategy` as plain FSDP2 data parallelism: one data-parallel dimension over all
     processes (no tensor parallelism), checkpoints as one file holding the trainable weights (gathered on every
-    process, written by rank 0). The modules shard themselves in `configure_model` (`shard_model`)."""
+    process, written by rank 0). The modules shard themselves in `configure_model` (`shard_from_rank0`), built on
+    the meta device on every process but rank 0 (`model_init_context`)."""
 
     def __init__(self, process_group_backend: str | None = None, **kwargs: Any) -> None:
         super().__init__(

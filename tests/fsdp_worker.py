@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 
@@ -27,10 +28,14 @@ def main(rank: int, dataset: str, out: str) -> None:
 
     def grads(shard: bool) -> dict[str, torch.Tensor]:
         torch.manual_seed(0)
-        module = SFTModule(spec, vision_aux_weight=1.0)
+        # sharded: rank 1 builds on the meta device, as under trainer=fsdp, and takes rank 0's weights
+        with torch.device("meta") if shard and rank else contextlib.nullcontext():
+            module = SFTModule(spec, vision_aux_weight=1.0)
+        assert all(p.is_meta == (shard and rank == 1) for p in module.parameters())
         if shard:
             mesh = init_device_mesh("cpu", (2,))
-            sharding.shard_model(module.model, mesh, (module.visual_head,))
+            sharding.shard_from_rank0(module, mesh, (module.visual_head,))
+            assert not any(t.is_meta for t in [*module.parameters(), *module.buffers()])
         loss, _, _ = module._loss(batch)
         (loss + module._vision_aux(batch, 2, "train")).backward()
         out = {}

@@ -177,7 +177,8 @@ def test_gradient_checkpointing_with_lora(batches):
 
 
 def test_save_and_load_pretrained_round_trip(batches, tmp_path):
-    """The real-model path (`from_pretrained` on a directory) loads a saved tiny model unchanged."""
+    """The real-model path (`from_pretrained` on a directory) loads a saved tiny model unchanged; under a meta
+    device context it builds the same model without weights."""
     _, batch = batches["images"]
     model = build_tiny_model()
     model.save_pretrained(tmp_path)
@@ -185,6 +186,16 @@ def test_save_and_load_pretrained_round_trip(batches, tmp_path):
     assert loaded.generation_config.pad_token_id == model.generation_config.pad_token_id
     with torch.no_grad():
         torch.testing.assert_close(loaded(**model_inputs(batch)).logits, model(**model_inputs(batch)).logits)
+    # under a meta device context (trainer=fsdp's ranks but 0): the same weights' names, shapes and dtypes, none read
+    for dtype in (torch.float32, torch.bfloat16):
+        real = load_pretrained(tmp_path, dtype=dtype, local_files_only=True)
+        with torch.device("meta"):
+            empty = load_pretrained(tmp_path, dtype=dtype, local_files_only=True)
+        assert all(t.is_meta for t in [*empty.parameters(), *empty.buffers()])
+        tensors = [(n, t.shape, t.dtype) for n, t in [*real.named_parameters(), *real.named_buffers()]]
+        assert [(n, t.shape, t.dtype) for n, t in [*empty.named_parameters(), *empty.named_buffers()]] == tensors
+        assert empty.generation_config.to_dict() == real.generation_config.to_dict()
+        assert empty.config.to_dict() == real.config.to_dict() and not empty.training
     with pytest.raises(FileNotFoundError, match="not a directory"):
         load_pretrained(tmp_path / "missing")
     (tmp_path / "empty").mkdir()  # a folder without a checkpoint, a path that is no hub id: the path is named

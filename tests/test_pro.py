@@ -460,8 +460,9 @@ def _two_processes(out: Path, trainer: str, *overrides: str) -> dict:
 @pytest.mark.slow
 def test_ddp_two_processes_offline_on_cpu(tmp_path, dataset_dir):
     """Two CPU ranks (gloo), one stored pair each: the loss is not zero, so gradients really synchronise.
-    trainer=fsdp (FSDP2, aynamics.sharding) gives the same adapter; online, its ranks sample responses of
-    different lengths together (`synced_gpus`) and its first step samples before any forward."""
+    trainer=fsdp (FSDP2, aynamics.sharding) gives the same adapter, also from that adapter as `init_adapter`
+    (which only rank 0 loads onto its base: rank 1 takes rank 0's weights); online, its ranks sample responses
+    of different lengths together (`synced_gpus`) and its first step samples before any forward."""
     from safetensors.torch import load_file
 
     prefs = _handmade_preferences(dataset_dir, tmp_path / "prefs")
@@ -474,6 +475,12 @@ def test_ddp_two_processes_offline_on_cpu(tmp_path, dataset_dir):
     b = load_file(tmp_path / "fsdp" / "adapter" / "adapter_model.safetensors")
     # an entry whose true gradient is 0 carries float noise that Adam scales to ±lr (1e-4) a step: 2 steps apart
     # at most 4e-4 (see tests/test_train.py::test_fsdp_matches_ddp_and_resumes_exactly)
+    assert set(a) == set(b) and all(torch.allclose(a[k], b[k], atol=4.5e-4) for k in a)
+    init = [*offline, f"stage.init_adapter={tmp_path / 'ddp' / 'adapter'}"]
+    for strategy in ("ddp", "fsdp"):
+        _two_processes(tmp_path / f"{strategy}_init", strategy, *init)
+    a = load_file(tmp_path / "ddp_init" / "adapter" / "adapter_model.safetensors")
+    b = load_file(tmp_path / "fsdp_init" / "adapter" / "adapter_model.safetensors")
     assert set(a) == set(b) and all(torch.allclose(a[k], b[k], atol=4.5e-4) for k in a)
     online = _two_processes(tmp_path / "online", "fsdp", f"data.dir={dataset_dir}")
     assert online["global_step"] == 2 and "val/greedy/iou_full" in online["metrics"]

@@ -787,8 +787,10 @@ def _weights(run: Path, name: str = "last.ckpt") -> dict[str, torch.Tensor]:
 
 def test_fsdp_gradients_equal_data_parallel_ones(tmp_path, dataset_dir):
     """Two CPU processes (gloo), a different batch each, the tiny model with its tower trained and the dense
-    visual head: the gradients of the sharded model (aynamics.sharding.shard_model, FSDP2 reduce-scatter),
-    gathered, equal the mean of the two unsharded models' gradients on all 60 trainable tensors."""
+    visual head: the gradients of the sharded model (aynamics.sharding.shard_from_rank0, FSDP2 reduce-scatter;
+    rank 1 builds it on the meta device and takes rank 0's weights and buffers), gathered, equal the mean of the
+    two unsharded models' gradients on all 60 trainable tensors (without the buffers' broadcast, rank 1's rotary
+    frequencies were uninitialised memory and the tower's gradients differed)."""
     import socket
 
     out = tmp_path / "grads.pt"
@@ -816,15 +818,22 @@ def test_fsdp_matches_ddp_and_resumes_exactly(tmp_path, dataset_dir):
     """trainer=fsdp (FSDP2, aynamics.sharding) on 2 CPU processes, with the tower trained and the dense visual
     head (sharded like the adapter): 2 steps end where DDP's end. Their gradients are equal (the test above),
     but entries whose true gradient is 0 (e.g. attention key biases) carry float noise that Adam's first steps
-    scale to ±lr, so the weights agree to about one step (lr 1e-3) and the losses to 1e-4. The scene evaluation
-    runs (every rank generates, rank 0 scores), the adapter holds the full gathered weights, and a run resumed
-    from step 2 ends exactly where the straight run ends."""
+    scale to ±lr, so the weights agree to about one step (lr 1e-3) and the losses to 1e-4. Only rank 0 builds
+    the weights (rank 1's module is on the meta device until `configure_model` gives it rank 0's: under ddp
+    both build theirs). The scene evaluation runs (every rank generates, rank 0 scores), the adapter holds the
+    full gathered weights, and a run resumed from step 2 ends exactly where the straight run ends."""
     from safetensors.torch import load_file
 
     same = [f"data.dir={dataset_dir}", "model.train_vision=true", "data.visual_targets=true"]
     same += ["stage.module.vision_aux_weight=1.0", "trainer.max_steps=2", "trainer.val_check_interval=2"]
-    _two_processes(tmp_path / "ddp", "trainer=ddp", *same)
-    _two_processes(tmp_path / "fsdp", "trainer=fsdp", *same)
+    same += ["+callbacks.init._target_=train_fixtures.RecordInit"]
+    for strategy in ("ddp", "fsdp"):
+        _two_processes(
+            tmp_path / strategy, f"trainer={strategy}", *same, f"+callbacks.init.dirpath={tmp_path / strategy}"
+        )
+    init = {s: [json.loads((tmp_path / s / f"init_rank{r}.json").read_text()) for r in (0, 1)] for s in ("ddp", "fsdp")}
+    assert [r["devices"] for r in init["ddp"]] == [["cpu"], ["cpu"]]
+    assert [r["devices"] for r in init["fsdp"]] == [["cpu"], ["meta"]]
     ddp, fsdp = _weights(tmp_path / "ddp"), _weights(tmp_path / "fsdp")
     assert set(fsdp) == set(ddp) and any("visual_head" in k for k in fsdp) and any("lora_B" in k for k in fsdp)
     for k in ddp:

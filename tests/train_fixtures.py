@@ -6,6 +6,7 @@ Made by the real generator (`aynamics.generate`) at 64×48 pixels: 12 scenes, sp
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 from pathlib import Path
@@ -71,3 +72,17 @@ class NanWeightAt(L.Callback):
             weight = next(p for p in pl_module.parameters() if p.requires_grad)
             with torch.no_grad():
                 weight.view(-1)[0] = float("nan")
+
+
+class RecordInit(L.Callback):
+    """Writes `DIR/init_rank<R>.json` for each process: the devices of its module's parameters before
+    `configure_model` (at Lightning's `setup` hook): `+callbacks.init._target_=train_fixtures.RecordInit
+    +callbacks.init.dirpath=DIR`."""
+
+    def __init__(self, dirpath: str) -> None:
+        self.dirpath = Path(dirpath)
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        self.dirpath.mkdir(parents=True, exist_ok=True)
+        devices = sorted({p.device.type for p in pl_module.parameters()})
+        (self.dirpath / f"init_rank{trainer.global_rank}.json").write_text(json.dumps({"devices": devices}))
