@@ -607,7 +607,9 @@ def load_adapter(
     base = build_base(runnable_kernel(spec, target))
     try:
         with peft_quietly():
-            model = PeftModel.from_pretrained(base, str(adapter_dir))
+            # read onto the CPU, where the base is: peft's default, the first GPU, opened a CUDA context there from
+            # every process and for --device cpu
+            model = PeftModel.from_pretrained(base, str(adapter_dir), torch_device="cpu")
     except torch.OutOfMemoryError:
         raise
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:  # a peft config peft refuses, weights of

@@ -96,7 +96,8 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
         # a base on the meta device (a process but rank 0 under trainer=fsdp: `sharding.model_init_context`) takes
         # no adapter weights here, but rank 0's once sharded: torch's note on each of them says nothing
         warnings.filterwarnings("ignore", "for .*: copying from a non-meta parameter", UserWarning)
-        model = PeftModel.from_pretrained(base, str(init_adapter), is_trainable=True, config=config)
+        # read onto the CPU, where the base is (peft's default, the first GPU, opened a context there from every rank)
+        model = PeftModel.from_pretrained(base, str(init_adapter), is_trainable=True, config=config, torch_device="cpu")
     float32_trained_tower(model)  # the adapter's tower is loaded in the base dtype: trained in float32, as in SFT
     return model.train(), used
 

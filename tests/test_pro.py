@@ -230,15 +230,31 @@ def test_module_arguments_are_checked():
         ProModule(SPEC, init_adapter="/nonexistent/adapter")
 
 
-def test_policy_from_an_adapter_is_trained_with_the_runs_settings(tmp_path):
+def _no_device_guess(monkeypatch) -> None:
+    """peft reads an adapter onto `infer_device()` (the first GPU of a GPU machine: a CUDA context there from every
+    process, and for --device cpu) unless told where: make a guess fail loudly."""
+    import peft.peft_model
+    import peft.utils.save_and_load
+
+    def guess():
+        raise AssertionError("peft chose the device the adapter is read onto")
+
+    monkeypatch.setattr(peft.peft_model, "infer_device", guess)
+    monkeypatch.setattr(peft.utils.save_and_load, "infer_device", guess)
+
+
+def test_policy_from_an_adapter_is_trained_with_the_runs_settings(tmp_path, monkeypatch):
     """An SFT adapter saved without checkpointing and dropout, loaded by a PRO run that asks for both (and names
     another LoRA rank): checkpointing is on in the decoder and vision blocks and the LoRA dropout is the run's (both
     were the adapter's before: helper-37), the rank stays the adapter's and the run's is named as ignored; in eval
-    mode the policy gives the adapter's outputs."""
+    mode the policy gives the adapter's outputs. The adapter is read onto the CPU, beside its base, by PRO and by
+    `lm.load_adapter` (predict, evaluate), never onto peft's guess (the first GPU, from every rank)."""
     from aynamics.pro import build_policy
 
     saved = lm.build_model(SPEC).eval()
     lm.save_adapter(saved, tmp_path / "adapter", SPEC, lm.PromptSpec(num_frames=2))
+    _no_device_guess(monkeypatch)
+    lm.load_adapter(tmp_path / "adapter", "cpu")
     run = dataclasses.replace(SPEC, lora_rank=4, lora_dropout=0.3, gradient_checkpointing=True)
     with pytest.warns(UserWarning, match=r"model.lora_rank = 4 \(the adapter's: 8\) ignored"):
         policy, used = build_policy(run, str(tmp_path / "adapter"))
