@@ -146,9 +146,9 @@ class Video:
     def _timed_frames_at(self, times: Sequence[float]) -> list[np.ndarray]:
         """`frames_at` by the frames' presentation times: the frame on screen at t is the last one to come at or
         before t + half a nominal frame (at a constant rate, the nearest). Decoding stops at the first frame that
-        comes after the last time needed; only the frames picked are kept. Stored times that go backwards (an AVI
-        holds none: FFmpeg numbers H.264 frames with B-frames in decoding order) are no clock: the frames are then
-        read by count, frame k at k / `fps`."""
+        comes after the last time needed; only the frames picked are kept. Stored times that go backwards are no
+        clock (a container of `UNTIMED_FORMATS` under another name): the frames are then read by count, frame k at
+        k / `fps`."""
         times = np.asarray(times, float)
         tolerance = 0.5 / self.fps + 1e-9
         order = list(np.argsort(times, kind="stable"))
@@ -228,12 +228,12 @@ def open_video(path: str | Path, fps: float | None = None) -> Video:
         starts = np.concatenate([[0.0], np.cumsum(durations[:-1])])
         rate = 1.0 / float(np.median(durations))
         return Video(path, starts, rate, end=float(starts[-1] + durations[-1]), pillow=True)
-    rate = _file_rate(path)
+    rate, timed = _file_clock(path)
     if fps is not None:  # the user's constant rate: frame k at k / fps
         return Video(path, None, float(fps))
     if rate is None:
         raise ValueError(f"video {str(path)!r} states no frame rate: give it with --fps")
-    return Video(path, None, rate, timed=True)
+    return Video(path, None, rate, timed=timed)
 
 
 def read_frames(path: str | Path) -> list[np.ndarray]:
@@ -278,8 +278,14 @@ def _video_stream(container):
     return best if best in moving else (moving[0] if moving else None)
 
 
-def _file_rate(path: Path) -> float | None:
-    """The frame rate a video file states (FFmpeg through PyAV), None if it states none.
+# Containers that store no presentation times: FFmpeg's are made up (an AVI's come in decoding order, wrong with
+# B-frames), so their frames are placed by count at the stated rate.
+UNTIMED_FORMATS = {"avi", "h264", "hevc", "mjpeg", "rawvideo"}
+
+
+def _file_clock(path: Path) -> tuple[float | None, bool]:
+    """The frame rate a video file states (FFmpeg through PyAV; None if it states none), and whether its frames
+    carry presentation times to place them by (not in `UNTIMED_FORMATS`).
 
     Raises:
         ValueError: the file is no video FFmpeg reads, or holds no video stream (audio only), named.
@@ -290,11 +296,12 @@ def _file_rate(path: Path) -> float | None:
         with av.open(str(path)) as container:
             stream = _video_stream(container)
             fps = float(stream.guessed_rate) if stream is not None and stream.guessed_rate else None
+            timed = not set(container.format.name.split(",")) & UNTIMED_FORMATS
     except Exception as e:  # PyAV raises its own error types for a file that is no video
         raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
     if stream is None:
         raise ValueError(f"{str(path)!r} holds no video stream (audio only?)")
-    return fps if fps and np.isfinite(fps) and fps > 0 else None
+    return (fps if fps and np.isfinite(fps) and fps > 0 else None), timed
 
 
 def _frames(path: Path, pillow: bool) -> Iterator[tuple[float | None, np.ndarray]]:

@@ -3,6 +3,8 @@ frames training showed the model, at the times it showed them."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import imageio.v3 as iio
 import numpy as np
 import pytest
@@ -205,8 +207,10 @@ def test_display_matrices_are_applied_as_ffmpeg_applies_them(tmp_path):
 
 def test_an_avi_with_b_frames_is_read_by_count(tmp_path):
     """An AVI stores no presentation times: FFmpeg numbers its H.264 frames in decoding order, so with B-frames
-    the times of the frames shown go 1, 4, 3, 5, 2, ... (/30 s). They are read by count at the stated rate,
-    frames 0, 3, ..., 27 (by those times: 0, 2, 4, 8, 12, 14, 17, 19, 23, 27)."""
+    the times of the frames shown go 1, 4, 3, 5, 2, ... (/30 s). Its frames are read by count at the stated rate,
+    frames 0, 3, ..., 27 (by those times: 0, 2, 4, 8, 12, 14, 17, 19, 23, 27), a short clip's too (0.05 s: frame 2,
+    where the first times gave frame 0, helper-52). Times that go backwards in a container not known to lack them
+    are caught while reading: the frames are read by count."""
     import av
 
     with av.open(str(tmp_path / "b.avi"), "w") as out:
@@ -215,8 +219,12 @@ def test_an_avi_with_b_frames_is_read_by_count(tmp_path):
         for k in range(31):
             out.mux(stream.encode(av.VideoFrame.from_ndarray(_stamped(k, (48, 64)), format="rgb24")))
         out.mux(stream.encode())
-    assert video_io.open_video(tmp_path / "b.avi").timed
+    video = video_io.open_video(tmp_path / "b.avi")
+    assert not video.timed
     assert _stamps(clip_of(tmp_path / "b.avi", lm.PromptSpec())) == list(range(0, 30, 3))
+    assert _stamps(video.frames_at([0.0, 0.05])) == [0, 2]
+    as_if_timed = dataclasses.replace(video, timed=True)
+    assert _stamps(as_if_timed.frames_at(lm.PromptSpec().frame_times)) == list(range(0, 30, 3))
 
 
 def test_the_moving_video_stream_is_read_and_audio_is_no_video(tmp_path):
