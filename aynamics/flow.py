@@ -146,11 +146,12 @@ def motion_field(
     flow[vv, uu, 1] = v1 - v0
     if not occlusion:
         return flow, None
-    hidden = (z1 <= 0) | (u1 < 0) | (u1 >= w) | (v1 < 0) | (v1 >= h)
+    # a point without a landing place (a diverged rollout's NaN pose) is lost too; comparisons with NaN are False
+    hidden = ~(np.isfinite(u1) & np.isfinite(v1) & (z1 > 0)) | (u1 < 0) | (u1 >= w) | (v1 < 0) | (v1 >= h)
     if next_depth is not None and next_segmentation is not None:
         inside = ~hidden
-        tu = np.clip(u1, 0, w - 1).astype(np.intp)
-        tv = np.clip(v1, 0, h - 1).astype(np.intp)
+        tu = np.clip(np.nan_to_num(u1), 0, w - 1).astype(np.intp)  # (NaN cast to an index was -2^63: IndexError)
+        tv = np.clip(np.nan_to_num(v1), 0, h - 1).astype(np.intp)
         nearer = next_depth[tv, tu] < z1 * (1 - OCCLUSION_TOLERANCE)
         other = next_segmentation[tv, tu] != body
         hidden |= inside & (nearer | other)

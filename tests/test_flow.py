@@ -208,3 +208,16 @@ def test_motion_field_occlusion_at_the_next_frame():
         assert flow[0, 0].tolist() == [1.0, 0.0]
         results.append(bool(occluded[0, 0]))
     assert results == [False, True, True]
+
+
+def test_motion_field_of_a_nan_pose_is_occluded_not_a_crash():
+    """A diverged rollout's next pose is NaN: its pixels have no landing place and are occluded (helper-53: the NaN
+    landing column cast to an index, -2^63, raised IndexError in the next frame's occlusion test); the other body's
+    pixel is as before."""
+    seg = np.array([[0, 1]], np.int16)
+    position, orientation = _translations((np.nan, 0, 0), (-0.5, 0, 0))
+    next_depth, next_seg = np.ones((1, 2)), np.array([[-1, 1]], np.int16)
+    flow, occluded = flowlib.motion_field(
+        np.ones((1, 2)), seg, _unit_camera(2, 1), position, orientation, next_depth, next_seg
+    )
+    assert occluded.tolist() == [[True, False]] and flow[0, 1].tolist() == [-0.5, 0.0]
