@@ -221,3 +221,16 @@ def test_motion_field_of_a_nan_pose_is_occluded_not_a_crash():
         np.ones((1, 2)), seg, _unit_camera(2, 1), position, orientation, next_depth, next_seg
     )
     assert occluded.tolist() == [[True, False]] and flow[0, 1].tolist() == [-0.5, 0.0]
+
+
+def test_motion_field_points_leaving_the_image_with_the_next_frame():
+    """With the next frame's depth and segmentation, pixels that leave a 2×2 image are occluded, not looked up past
+    its edge: (0, 0) by dx 3 lands at u1 = 3.5 (right), (0, 1) by dx -5 at u1 = -3.5 (left), (1, 0) by dy 3 at
+    v1 = 4.5 (below), (1, 1) by dy -5 at v1 = -3.5 (above); the flow is each move."""
+    position, orientation = _translations((3, 0, 0), (-5, 0, 0), (0, 3, 0), (0, -5, 0))
+    seg = np.array([[0, 1], [2, 3]], np.int16)
+    flow, occluded = flowlib.motion_field(
+        np.ones((2, 2)), seg, _unit_camera(2, 2), position, orientation, np.ones((2, 2)), seg
+    )
+    assert occluded.all()
+    assert flow.tolist() == [[[3.0, 0.0], [-5.0, 0.0]], [[0.0, 3.0], [0.0, -5.0]]]

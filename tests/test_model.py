@@ -207,6 +207,31 @@ def test_save_and_load_pretrained_round_trip(batches, tmp_path):
         load_processor("a/b/c", local_files_only=True)
 
 
+def test_load_pretrained_on_meta_follows_the_checkpoint(tmp_path):
+    """Under a meta device context `load_pretrained` builds what it would load: dtype="auto" takes the checkpoint's
+    (bfloat16 here, not float32), an `attn_implementation` given is kept ("eager", not the default "sdpa"), a
+    generation config without a pad id gets the model's (0), as from_pretrained's model does; a checkpoint without
+    a generation config is built too (from the model config), and a folder without a checkpoint is named."""
+    model = build_tiny_model().to(torch.bfloat16)
+    model.generation_config.pad_token_id = None
+    model.save_pretrained(tmp_path)
+    real = load_pretrained(tmp_path, attn_implementation="eager", local_files_only=True)
+    with torch.device("meta"):
+        empty = load_pretrained(tmp_path, attn_implementation="eager", local_files_only=True)
+    assert {t.dtype for t in empty.parameters()} == {t.dtype for t in real.parameters()} == {torch.bfloat16}
+    assert empty.config._attn_implementation == real.config._attn_implementation == "eager"
+    assert empty.generation_config.pad_token_id == real.generation_config.pad_token_id == 0
+    (tmp_path / "generation_config.json").unlink()
+    real = load_pretrained(tmp_path, dtype=torch.float32, local_files_only=True)
+    with torch.device("meta"):
+        empty = load_pretrained(tmp_path, dtype=torch.float32, local_files_only=True)
+    ids = ("pad_token_id", "bos_token_id", "eos_token_id")
+    assert [getattr(empty.generation_config, k) for k in ids] == [getattr(real.generation_config, k) for k in ids]
+    (tmp_path / "empty").mkdir()
+    with torch.device("meta"), pytest.raises(OSError, match=r"model path '.*empty': cannot load the model \("):
+        load_pretrained(tmp_path / "empty", local_files_only=True)
+
+
 def test_completion_logprobs_match_the_sft_loss(proc, frames):
     """Scoring N completions of one prompt: the mean token log-prob equals minus the model's own SFT loss."""
     model = build_tiny_model()

@@ -317,3 +317,124 @@ def test_frame_times_count_from_the_first_stored_frame():
     assert lm.PromptSpec(min_pixels=28 * 28).min_pixels == 784
     with pytest.raises(ValueError, match="min_pixels = 783: must be >= 784"):
         lm.PromptSpec(min_pixels=783)
+
+
+def test_mirrored_flipped_and_rounded_display_matrices(tmp_path):
+    """The matrices `test_display_matrices_are_applied_as_ffmpeg_applies_them` leaves out, by FFmpeg's autorotate:
+    an anti-transposing one (0, -1, -1, 0; 270° with c < 0: `transpose=clock_flip`) puts the top-left mark
+    bottom-right in a 64-high frame; a vertical flip (1, 0, 0, -1; 0° with d < 0: `vflip`) bottom-left; one a unit
+    off 90° ((1, 1, -1, 1) in 16.16: 89.999°, rounded to 90: `transpose=clock`) top-right, as the exact 90°; one
+    with a zero column (scale 0, no angle: FFmpeg's theta is NaN, nothing applied) leaves the frame as stored."""
+    u, w = 65536, 1 << 30
+    cases = {
+        "antitranspose": ((0, -u, 0, -u, 0, 0, 0, 0, w), (64, 48), np.s_[-8:, -8:]),
+        "vflip": ((u, 0, 0, 0, -u, 0, 0, 0, w), (48, 64), np.s_[-8:, :8]),
+        "r90_off_by_a_unit": ((1, u, 0, -u, 1, 0, 0, 0, w), (64, 48), np.s_[:8, -8:]),
+        "zero_column": ((u, 0, 0, 0, 0, 0, 0, 0, w), (48, 64), np.s_[:8, :8]),
+    }
+    for name, (matrix, shape, mark) in cases.items():
+        frame = video_io.read_frames(_write_timed(tmp_path / f"{name}.mp4", [0, 33], matrix=matrix))[0]
+        assert frame.shape[:2] == shape and frame[mark].min() > 200 and np.median(frame) < 100, name
+
+
+def test_a_video_whose_clock_starts_late_counts_from_its_first_frame(tmp_path):
+    """The frames of `test_a_variable_rate_video_is_read_by_its_frames_times` stored 0.5 s later (0.5, 0.533, 0.567,
+    0.7, 0.733, 1.0, 1.033 s: a stream cut from a longer one, an MPEG-TS's start) are read at the same times from
+    the first frame: 0.1 s is the frame from 0.567 s, 0.3 s the one from 0.733 s, 0.5 s the one from 1.0 s (on the
+    file's clock every time before 0.5 s is frame 0)."""
+    path = _write_timed(tmp_path / "late.mp4", [500, 533, 567, 700, 733, 1000, 1033])
+    assert _stamps(video_io.open_video(path).frames_at([0.0, 0.1, 0.3, 0.5])) == [0, 2, 4, 5]
+
+
+def test_timed_frames_without_times_and_frames_named_by_place(tmp_path, monkeypatch):
+    """Frames a timed container gives without presentation times come at k / fps: at 10 fps the frames on screen at
+    0, 0.2 and 0.4 s are 0, 2 and 4 (at time 0 each, the 0.4 s was past the video). A frame of another size is
+    named by its place: of frames at 0, 0.1 and 0.2 s, 0.0 s is frame 0 (picked when frame 1 came) and 0.2 s frame
+    2 (the last decoded), not frames 1 and 3."""
+    video = video_io.Video(tmp_path / "x.mp4", None, 10.0, timed=True)
+    monkeypatch.setattr(video_io, "_frames", lambda path, pillow: ((None, _stamped(k)) for k in range(6)))
+    assert _stamps(video.frames_at([0.0, 0.2, 0.4])) == [0, 2, 4]
+    sizes = [(24, 32), (24, 32), (12, 16)]
+    monkeypatch.setattr(
+        video_io, "_frames", lambda path, pillow: ((k / 10, _stamped(k, s)) for k, s in enumerate(sizes))
+    )
+    with pytest.raises(ValueError, match=r"frame 2 of '.*x\.mp4': 16×12 pixels, unlike the 32×24 of frame 0 of"):
+        video.frames_at([0.0, 0.2])
+
+
+def test_a_video_at_a_given_rate_is_decoded_only_as_far_as_needed_and_too_short_named(tmp_path, monkeypatch):
+    """Read by count (`--fps` given): the clip of 40 frames at 30 fps ends at frame 27, and decoding stops there (28
+    frames decoded, not 29). Seven frames at 10 fps last 0.7 s: the frame at 0.7 s (the 8th) is named missing, with
+    the count and the last frame's time (it was a KeyError)."""
+    iio.imwrite(
+        tmp_path / "a.mp4", np.stack([_stamped(k, (48, 64)) for k in range(40)]), plugin="pyav", codec="libx264", fps=30
+    )
+    decoded = []
+    frames = video_io._frames
+
+    def counting(path, pillow):
+        for f in frames(path, pillow):
+            decoded.append(1)
+            yield f
+
+    monkeypatch.setattr(video_io, "_frames", counting)
+    assert _stamps(clip_of(tmp_path / "a.mp4", lm.PromptSpec(), fps=30)) == list(range(0, 30, 3))
+    assert len(decoded) == 28
+    monkeypatch.setattr(video_io, "_frames", frames)
+    path = _write_timed(tmp_path / "vfr.mp4", [0, 33, 67, 200, 233, 500, 533])
+    with pytest.raises(ValueError, match=r"has 7 frames \(0.7 s, the last coming at 0.6 s\), but frames up to 0.7 s"):
+        video_io.open_video(path, fps=10).frames_at([0.0, 0.7])
+
+
+def test_rates_and_files_open_video_refuses(tmp_path, monkeypatch):
+    """An infinite `fps` is refused like 0 (a folder's frames all came at 0 s); an empty file is named as one (not
+    'cannot read video'); a file stating no frame rate asks for --fps, and reads by count at the one given."""
+    folder = _folder(tmp_path / "f", 3)
+    with pytest.raises(ValueError, match="fps = inf: must be a finite number > 0"):
+        video_io.open_video(folder, fps=float("inf"))
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"empty\.mp4' is an empty file, not a video"):
+        video_io.open_video(tmp_path / "empty.mp4")
+    path = _write_timed(tmp_path / "v.mp4", [0, 33, 67, 200])
+    monkeypatch.setattr(video_io, "_file_clock", lambda path: (None, True))
+    with pytest.raises(ValueError, match=r"v\.mp4' states no frame rate: give it with --fps"):
+        video_io.open_video(path)
+    video = video_io.open_video(path, fps=10)
+    assert not video.timed and _stamps(video.frames_at([0.0, 0.3])) == [0, 3]
+
+
+def test_an_animation_without_durations_plays_at_10_fps(tmp_path):
+    """A GIF saved with no frame durations (all 0) plays at 10 fps, frame k at k / 10 s, like a single image (a
+    zero median duration gave an infinite rate); a given fps places frame k at k / fps."""
+    gif = [Image.fromarray(_stamped(k)) for k in range(12)]
+    gif[0].save(tmp_path / "z.gif", save_all=True, append_images=gif[1:], duration=0, loop=0)
+    video = video_io.open_video(tmp_path / "z.gif")
+    assert video.fps == 10 and video.starts.tolist() == pytest.approx([k / 10 for k in range(12)])
+    assert _stamps(clip_of(tmp_path / "z.gif", lm.PromptSpec())) == list(range(10))
+    assert video_io.open_video(tmp_path / "z.gif", fps=20).starts[-1] == pytest.approx(0.55)
+
+
+def test_a_folder_with_a_given_rate_is_read_by_time(tmp_path):
+    """A folder of exactly 10 frames is the clip itself only when no fps is given: at 20 fps it lasts 0.5 s and
+    the clip's 0.9 s is past it. Five frames at 5 fps (0, 0.2, ..., 0.8 s): a time halfway between two frames
+    takes the later (0.1 s: frame 1), and 0.9 s, half a frame after the last, is still the last frame."""
+    v10 = _folder(tmp_path / "v10", 10)
+    with pytest.raises(
+        ValueError, match=r"v10' \(10 frames at 20 fps\) lasts 0.5 s \(its last frame comes at 0.45 s\)"
+    ):
+        clip_of(v10, lm.PromptSpec(), fps=20)
+    assert _stamps(clip_of(_folder(tmp_path / "v5", 5), lm.PromptSpec(), fps=5)) == [0, 1, 1, 2, 2, 3, 3, 4, 4, 4]
+
+
+def test_32_bit_and_float_grey_images_are_scaled_to_8_bits():
+    """Pillow's 32-bit grey ('I'): values up to 255 are 8-bit already (200 stays 200), up to 65535 16-bit (300 ->
+    1, 65535 -> 255), beyond that scaled by its own maximum (50000 of 100000 -> 128); float grey ('F') is [0, 1]
+    (0.5 -> 128)."""
+
+    def grey(values, dtype) -> list[int]:
+        return video_io.rgb8(Image.fromarray(np.array([values], dtype)))[0, :, 0].tolist()
+
+    assert grey([0, 200], np.int32) == [0, 200]
+    assert grey([0, 300, 65535], np.int32) == [0, 1, 255]
+    assert grey([0, 50000, 100000], np.int32) == [0, 128, 255]
+    assert grey([0.0, 0.5, 1.0], np.float32) == [0, 128, 255]
