@@ -156,23 +156,20 @@ class Video:
         picked: list[int] = [0] * len(times)
         first = last = None
         n, backwards = 0, False
-        try:
-            for k, (start, frame) in enumerate(_frames(self.path, False)):
-                if start is None:  # a stream without presentation times: at the nominal rate
-                    start = k / self.fps
-                first = start if first is None else first
-                start -= first
-                if last is not None and start < last[0] - 1e-9:
-                    backwards = True
-                    break
-                while order and times[order[0]] + tolerance < start:  # on screen before this frame: the last one
-                    i = order.pop(0)  # (a time before the first frame: the first frame)
-                    out[i], picked[i] = (last[1], k - 1) if last is not None else (frame, k)
-                if not order:
-                    break
-                last, n = (start, frame), k + 1
-        except Exception as e:  # PyAV raises many types for a file it cannot decode
-            raise ValueError(f"cannot read video {str(self.path)!r}: {type(e).__name__}: {e}") from None
+        for k, (start, frame) in enumerate(_readable_frames(self.path, False)):
+            if start is None:  # a stream without presentation times: at the nominal rate
+                start = k / self.fps
+            first = start if first is None else first
+            start -= first
+            if last is not None and start < last[0] - 1e-9:
+                backwards = True
+                break
+            while order and times[order[0]] + tolerance < start:  # on screen before this frame: the last one
+                i = order.pop(0)  # (a time before the first frame: the first frame)
+                out[i], picked[i] = (last[1], k - 1) if last is not None else (frame, k)
+            if not order:
+                break
+            last, n = (start, frame), k + 1
         if backwards:
             return replace(self, timed=False).frames_at(times)
         if order:
@@ -347,19 +344,24 @@ def _upright(image: np.ndarray, frame) -> np.ndarray:
     return image[:: -1 if m[4] < 0 else 1, :: -1 if m[0] < 0 else 1]
 
 
+def _readable_frames(path: Path, pillow: bool) -> Iterator[tuple[float | None, np.ndarray]]:
+    """`_frames`, a file that cannot be decoded named in a `ValueError` (PyAV and Pillow raise many types)."""
+    try:
+        yield from _frames(path, pillow)
+    except Exception as e:
+        raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
+
+
 def _decode(path: Path, want: set[int] | None, pillow: bool) -> tuple[dict[int, np.ndarray], int]:
     """The frames of `want` (indices; None: all) of a video file (`pillow`: one Pillow reads), decoding no further
     than the last of them, and how many frames were decoded."""
     last, got, n = (max(want) if want is not None else None), {}, 0
-    try:
-        for k, (_, frame) in enumerate(_frames(path, pillow)):
-            n = k + 1
-            if want is None or k in want:
-                got[k] = frame
-            if last is not None and k >= last:
-                break
-    except Exception as e:  # PyAV / Pillow raise many types for a file they cannot decode
-        raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
+    for k, (_, frame) in enumerate(_readable_frames(path, pillow)):
+        n = k + 1
+        if want is None or k in want:
+            got[k] = frame
+        if last is not None and k >= last:
+            break
     return got, n
 
 

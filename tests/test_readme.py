@@ -43,11 +43,8 @@ def test_the_python_api_block_runs_and_prints_its_comments(monkeypatch, capsys):
 def readme_shell_lines() -> list[str]:
     """Every line of the README's ```bash blocks, continuation lines joined to their command."""
     text = (ROOT / "README.md").read_text()
-    lines = []
-    for block in re.findall(r"```bash\n(.*?)```", text, re.S):
-        for line in block.replace("\\\n", " ").splitlines():
-            lines.append(line)
-    return lines
+    blocks = re.findall(r"```bash\n(.*?)```", text, re.S)
+    return [line for block in blocks for line in block.replace("\\\n", " ").splitlines()]
 
 
 def test_every_flag_the_readme_gives_a_command_exists():

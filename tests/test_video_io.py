@@ -106,6 +106,19 @@ def test_the_clip_is_the_frames_training_showed(tmp_path):
     assert _stamps(clip_of(tmp_path / "a.mp4", prompt)) == list(range(0, 30, 3))
 
 
+def _count_decoded(monkeypatch) -> list:
+    """A list that grows by one for every frame `video_io` decodes from now on."""
+    decoded, frames = [], video_io._frames
+
+    def counting(path, pillow):
+        for f in frames(path, pillow):
+            decoded.append(1)
+            yield f
+
+    monkeypatch.setattr(video_io, "_frames", counting)
+    return decoded
+
+
 def test_a_video_file_is_decoded_only_as_far_as_the_clip_needs(tmp_path, monkeypatch):
     """The clip of a 300-frame video ends at frame 27: decoding stops at the next frame, the first to come after
     the clip's last time (the whole file was decoded into memory before: 1.7 GB for 10 s of 720p)."""
@@ -116,15 +129,7 @@ def test_a_video_file_is_decoded_only_as_far_as_the_clip_needs(tmp_path, monkeyp
         codec="libx264",
         fps=30,
     )
-    decoded = []
-    frames = video_io._frames
-
-    def counting(path, pillow):
-        for f in frames(path, pillow):
-            decoded.append(1)
-            yield f
-
-    monkeypatch.setattr(video_io, "_frames", counting)
+    decoded = _count_decoded(monkeypatch)
     assert _stamps(clip_of(tmp_path / "long.mp4", lm.PromptSpec())) == list(range(0, 30, 3))
     assert len(decoded) == 29
     assert len(video_io.read_frames(tmp_path / "long.mp4")) == 300
@@ -369,18 +374,10 @@ def test_a_video_at_a_given_rate_is_decoded_only_as_far_as_needed_and_too_short_
     iio.imwrite(
         tmp_path / "a.mp4", np.stack([_stamped(k, (48, 64)) for k in range(40)]), plugin="pyav", codec="libx264", fps=30
     )
-    decoded = []
-    frames = video_io._frames
-
-    def counting(path, pillow):
-        for f in frames(path, pillow):
-            decoded.append(1)
-            yield f
-
-    monkeypatch.setattr(video_io, "_frames", counting)
+    decoded = _count_decoded(monkeypatch)
     assert _stamps(clip_of(tmp_path / "a.mp4", lm.PromptSpec(), fps=30)) == list(range(0, 30, 3))
     assert len(decoded) == 28
-    monkeypatch.setattr(video_io, "_frames", frames)
+    monkeypatch.undo()  # the plain reader again
     path = _write_timed(tmp_path / "vfr.mp4", [0, 33, 67, 200, 233, 500, 533])
     with pytest.raises(ValueError, match=r"has 7 frames \(0.7 s, the last coming at 0.6 s\), but frames up to 0.7 s"):
         video_io.open_video(path, fps=10).frames_at([0.0, 0.7])
