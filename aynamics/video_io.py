@@ -295,7 +295,7 @@ def _file_clock(path: Path) -> tuple[float | None, bool]:
             fps = float(stream.guessed_rate) if stream is not None and stream.guessed_rate else None
             timed = not set(container.format.name.split(",")) & UNTIMED_FORMATS
     except Exception as e:  # PyAV raises its own error types for a file that is no video
-        raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
+        raise _unreadable(path, e, 0) from None
     if stream is None:
         raise ValueError(f"{str(path)!r} holds no video stream (audio only?)")
     return (fps if fps and np.isfinite(fps) and fps > 0 else None), timed
@@ -345,11 +345,23 @@ def _upright(image: np.ndarray, frame) -> np.ndarray:
 
 
 def _readable_frames(path: Path, pillow: bool) -> Iterator[tuple[float | None, np.ndarray]]:
-    """`_frames`, a file that cannot be decoded named in a `ValueError` (PyAV and Pillow raise many types)."""
+    """`_frames`, a file that cannot be decoded named in a `ValueError` (PyAV and Pillow raise many types), with
+    how many frames it gave before (a truncated recording)."""
+    n = 0
     try:
-        yield from _frames(path, pillow)
+        for item in _frames(path, pillow):
+            yield item
+            n += 1
     except Exception as e:
-        raise ValueError(f"cannot read video {str(path)!r}: {type(e).__name__}: {e}") from None
+        raise _unreadable(path, e, n) from None
+
+
+def _unreadable(path: Path, error: Exception, frames: int) -> ValueError:
+    """The error naming a video file that failed to decode after `frames` frames (0: to open)."""
+    at = f" after {frames} frame{'s' * (frames != 1)}" if frames else ""
+    if not frames and Path(path).suffix.lower() in {".mp4", ".mov", ".m4v"}:
+        at = " (one cut off while recording has no index)"
+    return ValueError(f"cannot read video {str(path)!r}{at}: {type(error).__name__}: {error}")
 
 
 def _decode(path: Path, want: set[int] | None, pillow: bool) -> tuple[dict[int, np.ndarray], int]:

@@ -435,3 +435,26 @@ def test_32_bit_and_float_grey_images_are_scaled_to_8_bits():
     assert grey([0, 300, 65535], np.int32) == [0, 1, 255]
     assert grey([0, 50000, 100000], np.int32) == [0, 128, 255]
     assert grey([0.0, 0.5, 1.0], np.float32) == [0, 128, 255]
+
+
+def test_broken_video_is_named_with_the_frames_it_gave(tmp_path, monkeypatch):
+    """A video whose decoding fails part-way is named with how many frames came before; an MP4 cut off before
+    its index was written (a recording stopped by a crash) says so."""
+    frames = np.stack([_stamped(k, (48, 64)) for k in range(20)])
+    iio.imwrite(tmp_path / "a.mp4", frames, plugin="pyav", codec="libx264", fps=30)
+    whole = (tmp_path / "a.mp4").read_bytes()
+    (tmp_path / "cut.mp4").write_bytes(whole[: len(whole) // 2])  # the index (moov) comes last: it is lost
+    with pytest.raises(ValueError, match=r"cannot read video .*cut\.mp4' \(one cut off while recording has no index\)"):
+        video_io.open_video(tmp_path / "cut.mp4", fps=None).frames_at([0.0])
+
+    plain = video_io._frames
+
+    def failing(path, pillow):
+        for k, item in enumerate(plain(path, pillow)):
+            if k == 3:
+                raise OSError("corrupt packet")
+            yield item
+
+    monkeypatch.setattr(video_io, "_frames", failing)
+    with pytest.raises(ValueError, match=r"cannot read video .*a\.mp4' after 3 frames: OSError: corrupt packet"):
+        video_io.open_video(tmp_path / "a.mp4", fps=None).frames_at([0.0, 0.5])
