@@ -76,6 +76,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     spec = hydra.utils.instantiate(cfg.model)
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
     datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
+    warn_drifting_validation(datamodule, trainer, interval, accumulate)
     with model_init_context(trainer):  # trainer=fsdp: only rank 0 loads the base, the others get its weights
         module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
     try:
@@ -114,6 +115,25 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 command += ["--batch-size", evaluation.batch_size, "--max-new-tokens", evaluation.max_new_tokens]
                 print(f"The test split's table: {shlex.join(str(c) for c in command)}")
     return metrics
+
+
+def warn_drifting_validation(datamodule, trainer, interval: int | None, accumulate: int) -> None:
+    """Warn when validation every `interval` optimizer steps cannot keep to them: Lightning validates every
+    `interval * accumulate` batches counted across epochs, and steps the optimizer on each epoch's last batch too,
+    so when an epoch's batches are not a multiple of `accumulate` the validations fall later and later in steps."""
+    if interval is None or accumulate <= 1 or not hasattr(datamodule, "splits"):
+        return
+    n = len(datamodule.splits["train"])
+    n = min(n, datamodule.limit_train) if datamodule.limit_train else n
+    batches = math.ceil(math.ceil(n / trainer.world_size) / datamodule.batch_size)
+    if batches % accumulate:
+        logging.getLogger(__name__).warning(
+            f"trainer.val_check_interval = {interval} steps with trainer.accumulate_grad_batches = {accumulate}: an "
+            f"epoch is {batches} batches, not a multiple of {accumulate}, so its last step takes fewer batches and "
+            "validation drifts off every "
+            f"{interval} steps (and off the checkpoints' steps); choose data.batch_size or data.limit_train so that "
+            f"an epoch's batches divide by {accumulate}"
+        )
 
 
 class _NoTips(logging.Filter):

@@ -216,6 +216,16 @@ class StepCheckpoint(ModelCheckpoint):
             raise SIGTERMException
 
 
+def validation_number(trainer: L.Trainer, counted: int) -> int:
+    """Which validation of the run this is (1 for the first): for validation every `val_check_batch` batches
+    across epochs, from the batches trained (a resumed run continues the count; its own count restarted at 0 and
+    missed the validation of the step it resumed from, which Lightning skips), else `counted`."""
+    every = getattr(trainer, "val_check_batch", None)
+    if getattr(trainer, "check_val_every_n_epoch", 1) is None and isinstance(every, int) and every > 0:
+        return (trainer.fit_loop.epoch_loop.total_batch_idx + 1) // every
+    return counted
+
+
 def ends_training(trainer: L.Trainer) -> bool:
     """Whether the fit ends after the current batch (or the validation now running is its last): max_steps
     reached, or the last batch of the last epoch (max_epochs)."""
@@ -293,7 +303,7 @@ class SceneEvaluation(L.Callback):
         if trainer.sanity_checking:
             return
         self.validations += 1
-        if self.validations % self.every_n and not ends_training(trainer):
+        if validation_number(trainer, self.validations) % self.every_n and not ends_training(trainer):
             return
         self.evaluate(trainer, pl_module)
 

@@ -319,6 +319,11 @@ class ResumableLoader(DataLoader):
     def load_state_dict(self, state: dict[str, int]) -> None:
         if state.get("n") != self.sampler.n:
             raise ValueError(f"resumed data set has {self.sampler.n} training examples, the checkpoint's had {state}")
+        if "seed" in state and state["seed"] != self.sampler.seed:  # the order is a function of (seed, epoch)
+            raise ValueError(
+                f"data.seed = {self.sampler.seed}, but the checkpoint was trained with {state['seed']}: the resumed "
+                "epoch would skip the first examples of another order; resume with the same seed"
+            )
 
 
 def eval_shard(n: int, trainer) -> list[int] | None:
@@ -604,6 +609,10 @@ class SceneDataModule(L.LightningDataModule):
             batch_size=self.eval_batch_size,
             sampler=eval_shard(len(ds), self.trainer),
             collate_fn=self._collate,
+            # its own generator: each iterator draws a worker base seed, from torch's global RNG without one,
+            # which moved training's random state (LoRA dropout) at every validation, and a resumed run skips
+            # the validation of the step it resumes from
+            generator=torch.Generator().manual_seed(self.seed),
             **loader_options(self.num_workers, self.trainer, self.cache),
         )
 

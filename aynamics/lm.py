@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -19,6 +20,7 @@ from typing import Any
 
 import torch
 
+from aynamics import rng
 from aynamics import scene as scene_lib
 from aynamics.processor import IGNORE_INDEX, build_prompt, token_logprobs
 
@@ -480,6 +482,35 @@ def keep_trainable_weights(checkpoint: dict, module: torch.nn.Module) -> None:
         checkpoint["state_dict"] = {k: v for k, v in checkpoint["state_dict"].items() if k in trainable}
 
 
+class ExactResume:
+    """Checkpoint hooks SFT and PRO share (a mixin before `LightningModule`): a checkpoint keeps only the trainable
+    weights and every process's random states; loading one checks it (`check_checkpoint`, which the module
+    extends), keeps `resumed_step` (the global step it was written at; None for a fresh run) and restores the
+    random states at the first training batch (Lightning draws random numbers between loading and that batch)."""
+
+    resumed_step: int | None = None
+    _rng_to_restore: dict | None = None
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        keep_trainable_weights(checkpoint, self)
+        checkpoint["rng"] = rng.gathered_states()  # every process's (each draws its own dropout masks, samples)
+
+    def check_checkpoint(self, checkpoint: dict) -> None:
+        """Refuse a checkpoint written for another model (before anything loads under fsdp)."""
+        check_trainable_weights(checkpoint, self)
+        check_same_base(checkpoint.get("hyper_parameters", {}).get("spec"), self.spec)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
+        self._rng_to_restore = checkpoint.get("rng")
+        self.resumed_step = checkpoint.get("global_step")
+
+    def on_train_batch_start(self, batch, batch_idx: int) -> None:
+        if self._rng_to_restore is not None:
+            rng.restore(self._rng_to_restore, self.global_rank)
+            self._rng_to_restore = None
+
+
 def check_trainable_weights(checkpoint: dict, module: torch.nn.Module) -> None:
     """Refuse a checkpoint that lacks some of `module`'s trainable weights: written for another model or LoRA
     setting (modules load with `strict_loading = False`, since checkpoints hold only the trainable weights, so the
@@ -490,6 +521,34 @@ def check_trainable_weights(checkpoint: dict, module: torch.nn.Module) -> None:
         raise ValueError(
             f"checkpoint lacks {len(missing)} trainable weights of this model (e.g. {sorted(missing)[0]!r}): "
             "it was written for a different model.* / LoRA setting"
+        )
+
+
+def check_same_base(stored: dict | None, spec: ModelSpec) -> None:
+    """Refuse to resume a checkpoint (its `stored` model spec) on another base or adapter scaling: its kind, the
+    tiny model's sizes or seed (its random weights), or `lora_alpha`; the trained weights mean nothing there. Another
+    `path` is only logged: the same weights may have moved.
+
+    Raises:
+        ValueError: the settings that differ, as the checkpoint has them and as the run builds them.
+    """
+    if not isinstance(stored, dict):
+        return
+    current = dataclasses.asdict(spec)
+    if stored.get("path", current["path"]) != current["path"]:
+        logging.getLogger(__name__).warning(
+            f"the checkpoint was trained on model.path = {stored['path']!r}, this run loads {current['path']!r}: "
+            "resuming, which is right only if both hold the same weights"
+        )
+    keys = ["kind", "tiny", "lora_alpha"] + (["seed"] if spec.kind == "tiny" else [])
+    diff = [k for k in keys if k in stored and stored[k] != current[k]]
+    if diff:
+        raise ValueError(
+            "the checkpoint was trained on model "
+            + ", ".join(f"{k}={stored[k]!r}" for k in diff)
+            + ", but the run builds "
+            + ", ".join(f"{k}={current[k]!r}" for k in diff)
+            + " (model.*; model.seed follows seed): resume with the same model"
         )
 
 

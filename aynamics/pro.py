@@ -35,7 +35,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from aynamics import lm, rng, sharding
+from aynamics import lm, sharding
 from aynamics import reward as rw
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
@@ -102,7 +102,7 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
     return model.train(), used
 
 
-class ProModule(L.LightningModule):
+class ProModule(lm.ExactResume, L.LightningModule):
     """PRO on unlabeled videos (online) or on a stored preference data set (offline).
 
     Args:
@@ -168,8 +168,6 @@ class ProModule(L.LightningModule):
         self.hparams["spec"] = dataclasses.asdict(self.spec)
         self.processor, self.prompt = processor, prompt
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
-        self._rng_to_restore: dict | None = None  # a resumed run's random states, set at its first batch
-        self.resumed_step: int | None = None  # the global step of the checkpoint a resumed run started from
 
     def configure_model(self) -> None:
         """Under `trainer=fsdp` (a device mesh is set): shard the policy (`aynamics.sharding`)."""
@@ -324,28 +322,6 @@ class ProModule(L.LightningModule):
         if not params:
             raise ValueError("the policy has no trainable parameters: apply LoRA or load the adapter trainable")
         return torch.optim.AdamW(params, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
-
-    # ----------------------------------------------------------------------------------------
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Keep only the trainable weights (the adapter) in the checkpoint, and every process's random states (the
-        sampled candidates draw from them) for an exact resume."""
-        lm.keep_trainable_weights(checkpoint, self)  # all of them under self.model
-        checkpoint["rng"] = rng.gathered_states()
-
-    def check_checkpoint(self, checkpoint: dict) -> None:
-        """Refuse a checkpoint written for another model (before anything loads under fsdp)."""
-        lm.check_trainable_weights(checkpoint, self)
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
-        self._rng_to_restore = checkpoint.get("rng")
-        self.resumed_step = checkpoint.get("global_step")
-
-    def on_train_batch_start(self, batch, batch_idx: int) -> None:
-        # Restored here, not at load: Lightning draws random numbers between loading and the first batch.
-        if self._rng_to_restore is not None:
-            rng.restore(self._rng_to_restore, self.global_rank)
-            self._rng_to_restore = None
 
 
 def has_flow(videos: Sequence[UnlabeledVideo]) -> bool:

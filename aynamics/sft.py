@@ -18,7 +18,7 @@ import math
 import lightning as L
 import torch
 
-from aynamics import lm, rng, sharding, visual_targets
+from aynamics import lm, sharding, visual_targets
 from aynamics.model import find_visual
 from aynamics.processor import model_inputs
 
@@ -88,7 +88,7 @@ def check_gradients(module: L.LightningModule, optimizer: torch.optim.Optimizer)
         )
 
 
-class SFTModule(L.LightningModule):
+class SFTModule(lm.ExactResume, L.LightningModule):
     """Supervised fine-tuning on (frames, response) pairs.
 
     Args:
@@ -187,8 +187,6 @@ class SFTModule(L.LightningModule):
             self.visual_head = visual_targets.Head(visual.config.out_hidden_size)
             visual.register_forward_hook(self._keep_visual_tokens)
         self.strict_loading = False  # checkpoints hold only the trainable weights; the base is rebuilt from spec
-        self._rng_to_restore: dict | None = None
-        self.resumed_step: int | None = None  # the global step of the checkpoint a resumed run started from
 
     def configure_model(self) -> None:
         """Under `trainer=fsdp` (a device mesh is set): shard the model and the dense visual head."""
@@ -349,31 +347,28 @@ class SFTModule(L.LightningModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     # ------------------------------------------------------------------ checkpoints
-    def on_save_checkpoint(self, checkpoint: dict) -> None:
-        """Keep only the trainable weights (the adapter) and record the RNG states for an exact resume."""
-        lm.keep_trainable_weights(checkpoint, self)
-        checkpoint["rng"] = rng.gathered_states()  # every process's (each draws its own dropout masks)
-
     def check_checkpoint(self, checkpoint: dict) -> None:
         """Refuse a checkpoint written for another model, optimizer layout or prompt (target, modality, frames:
         the adapter would have learnt two; before anything loads under fsdp)."""
-        lm.check_trainable_weights(checkpoint, self)
+        super().check_checkpoint(checkpoint)
         stored = (checkpoint.get("aynamics_meta") or {}).get("prompt")
         prompt = getattr(getattr(self._trainer, "datamodule", None), "prompt", None) if self._trainer else None
         mismatch = lm.prompt_mismatch(stored, prompt) if isinstance(stored, dict) and prompt is not None else None
         if mismatch:
             raise ValueError(f"the checkpoint was trained with {mismatch[0]}, but the data are set to {mismatch[1]}")
+        if isinstance(stored, dict) and prompt is not None and "examples" in stored:
+            if tuple(stored["examples"]) != tuple(prompt.examples):
+                raise ValueError(
+                    f"the checkpoint was trained with {len(stored['examples'])} in-context examples in its prompt, but "
+                    f"the data are set to {len(prompt.examples)} (data.num_examples, decimals, object_names, "
+                    "objects_last): resume with the same ones"
+                )
         saved = checkpoint.get("hyper_parameters", {}).get("vision_lr_scale", 1.0)
         if saved != self.hparams.vision_lr_scale:  # other parameter groups: the optimizer state would not fit
             raise ValueError(
                 f"stage.module.vision_lr_scale = {self.hparams.vision_lr_scale}, but the checkpoint was trained with "
                 f"{saved}: resume with the same value"
             )
-
-    def on_load_checkpoint(self, checkpoint: dict) -> None:
-        self.check_checkpoint(checkpoint)  # again under fsdp, whose strategy checks before loading: cheap
-        self._rng_to_restore = checkpoint.get("rng")
-        self.resumed_step = checkpoint.get("global_step")
 
     def on_train_start(self) -> None:
         # A resumed run restores the optimizer's rates of the step it stopped at, while the scheduler follows this
@@ -393,9 +388,3 @@ class SFTModule(L.LightningModule):
                 for p in group["params"]:
                     p.grad = None
         check_gradients(self, optimizer)  # without the groups dropped here
-
-    def on_train_batch_start(self, batch, batch_idx: int) -> None:
-        # Restored here, not at load: Lightning draws random numbers between loading and the first batch.
-        if self._rng_to_restore is not None:
-            rng.restore(self._rng_to_restore, self.global_rank)
-            self._rng_to_restore = None

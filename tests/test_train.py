@@ -1216,3 +1216,71 @@ def test_resumed_to_a_longer_run_steps_on_the_new_schedule(tmp_path, dataset_dir
     ckpt = tmp_path / "short" / "checkpoints" / "last.ckpt"
     resumed = train(_cfg(tmp_path / "resumed", *common, "trainer.max_steps=4", f"ckpt_path={ckpt}"))
     assert resumed["train/lr"] == pytest.approx(straight["train/lr"], rel=1e-6)
+
+
+def test_resume_from_a_validated_step_continues_exactly(tmp_path, dataset_dir):
+    """LoRA dropout on (as in the 3B / 7B configs), validation every 2 steps, a checkpoint every step: resumed from
+    step 2 (saved before that step's validation, which the resumed run skips), steps 3 and 4 are the straight run's
+    bit for bit. The validation loader drew its workers' base seed from torch's global generator, so every
+    validation moved the dropout masks of the steps after it, and the resumed run's differed."""
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null", "model.lora_dropout=0.1"]
+    common += ["callbacks.checkpoint.every_n_train_steps=1", "trainer.val_check_interval=2"]
+    common += ["trainer.enable_progress_bar=false"]
+    train(_cfg(tmp_path / "straight", *common, "trainer.max_steps=4"))
+    train(_cfg(tmp_path / "short", *common, "trainer.max_steps=2"))
+    ckpt = tmp_path / "short" / "checkpoints" / "step000002.ckpt"
+    train(_cfg(tmp_path / "resumed", *common, "trainer.max_steps=4", f"ckpt_path={ckpt}"))
+    _same_steps(tmp_path / "straight", tmp_path / "resumed", (3, 4))
+
+
+def test_resume_refuses_another_base_scaling_data_order_or_examples(tmp_path, dataset_dir):
+    """A checkpoint resumed under another model.seed (the tiny model's random base: the adapter was trained on other
+    frozen weights), model.lora_alpha (the update's scale), data.seed (the loader's stored seed: the resumed epoch
+    skipped the first examples of another order) or in-context examples is refused, naming the setting; all four
+    resumed silently (the adapter folder then named the new base)."""
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null"]
+    common += ["trainer.val_check_interval=null", "trainer.check_val_every_n_epoch=100"]
+    train(_cfg(tmp_path / "a", *common, "trainer.max_steps=1"))
+    ckpt = f"ckpt_path={tmp_path / 'a' / 'checkpoints' / 'last.ckpt'}"
+    for override, message in (
+        ("model.seed=7", "trained on model seed=0, but the run builds seed=7"),
+        ("model.lora_alpha=8", "lora_alpha=64.0, but the run builds lora_alpha=8"),
+        ("data.seed=5", "data.seed = 5, but the checkpoint was trained with 0"),
+        ("data.num_examples=1", "trained with 0 in-context examples in its prompt, but the data are set to 1"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            train(_cfg(tmp_path / "b", *common, "trainer.max_steps=2", override, ckpt))
+
+
+def test_validation_that_cannot_keep_to_its_steps_under_accumulation_is_named(tmp_path, dataset_dir, caplog):
+    """5 training records at batch 1 with 2 batches per step: each epoch's last step takes 1 batch, so validation
+    'every 3 steps' (every 6 batches) fell at steps 3 and 7 of an 8-step run, not 3 and 6 (the checkpoints' steps):
+    the run says so before training."""
+    import logging
+
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null", "trainer.max_steps=1"]
+    common += ["trainer.accumulate_grad_batches=2", "trainer.val_check_interval=3"]
+    with caplog.at_level(logging.WARNING):
+        train(_cfg(tmp_path / "drift", *common))
+    assert "an epoch is 5 batches, not a multiple of 2" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        train(_cfg(tmp_path / "even", *common, "data.batch_size=2", "trainer.accumulate_grad_batches=3"))
+    assert "validation drifts" not in caplog.text
+
+
+def test_every_n_validations_keeps_its_cadence_across_a_resume(tmp_path, dataset_dir):
+    """Scene evaluation at every 2nd validation (validation every step): a 4-step run evaluates at steps 2 and 4,
+    and so does the same run resumed from step 1 (its count restarted at 0 and Lightning skips the validation of
+    the resumed step: it evaluated at 3 and 4)."""
+    common = [f"data.dir={dataset_dir}", "data.batch_size=1", "trainer.val_check_interval=1"]
+    common += ["callbacks.evaluation.every_n_validations=2", "callbacks.evaluation.num_samples=1"]
+    common += ["callbacks.evaluation.max_new_tokens=2", "callbacks.evaluation.num_animations=0"]
+    common += ["callbacks.evaluation.baseline=false", "callbacks.checkpoint.every_n_train_steps=1"]
+    train(_cfg(tmp_path / "straight", *common, "trainer.max_steps=4"))
+    train(_cfg(tmp_path / "short", *common, "trainer.max_steps=1"))
+    ckpt = tmp_path / "short" / "checkpoints" / "step000001.ckpt"
+    train(_cfg(tmp_path / "resumed", *common, "trainer.max_steps=4", f"ckpt_path={ckpt}"))
+    for run in ("straight", "resumed"):
+        files = sorted(p.name for p in (tmp_path / run / "eval").glob("predictions_step*.jsonl"))
+        assert files == ["predictions_step000002.jsonl", "predictions_step000004.jsonl"], run
