@@ -663,6 +663,7 @@ _THINK = re.compile(r"<think>.*?(?:</think>|$)", re.S)
 _FENCE = re.compile(r"```(?:ya?ml)?\s*\n(.*?)(?:```|$)", re.S)
 # `- type:`, or `-` alone then `type:` on the next line; not \s*: runs of blank lines made the search quadratic
 _FIRST_ITEM = re.compile(r"^[ \t]*-(?:[ \t]+|[ \t]*\n[ \t]+)type[ \t]*:", re.M)
+_INLINE_ITEM = re.compile(r"-[ \t]+type[ \t]*:")  # an item after other text on its line
 
 
 def _strip_wrappers(text: str) -> str:
@@ -674,11 +675,22 @@ def _strip_wrappers(text: str) -> str:
 
 
 def _cut_prose(body: str) -> str | None:
-    """The part of `body` from the first `- type:` line to the last line of that list, or None."""
+    """The part of `body` from the first `- type:` line to the last line of that list, or None. A first item
+    after other text on its line ("Scene: - type: box", a stray control character), followed by its indented
+    keys, starts the list there: cut with its line, it was an object dropped without a word."""
     m = _FIRST_ITEM.search(body)
-    if m is None:
+    start = None if m is None else m.start()
+    before = body if start is None else body[:start]
+    inline = None
+    for inline in _INLINE_ITEM.finditer(before):  # the last one before the first line-start item
+        pass
+    if inline is not None:  # its own keys follow it, indented, up to the next item
+        keys = [line for line in body[inline.start() : start].splitlines()[1:] if line.strip()]
+        if keys and keys[0][:1] in " \t" and (start is None or all(line[:1] in " \t" for line in keys)):
+            start = inline.start()
+    if start is None:
         return None
-    lines = body[m.start() :].splitlines()
+    lines = body[start:].splitlines()
     indent = len(lines[0]) - len(lines[0].lstrip())
     keep = []
     for line in lines:

@@ -541,3 +541,13 @@ def test_zero_mass_message():
     """Mass 0 is refused as not positive (not as out of range): `objects[0].physics.mass = 0: must be > 0`."""
     with pytest.raises(S.SceneError, match=r"objects\[0\]\.physics\.mass = 0: must be > 0"):
         S.parse(_box(physics="{mass: 0}"))
+
+
+def test_a_first_item_after_other_text_on_its_line_is_kept():
+    """A response whose first item follows other text on its line (a stray NUL from a model, 'Scene: - type:
+    box') lost that object without a word (the line was cut as prose: one object fewer, a wrong count). It is read
+    from its `-`; a `- type:` mentioned in prose before the list (not followed by indented keys) still is prose."""
+    whole = S.parse(OK_BOX + CAMERA)
+    assert S.parse("\x00" + OK_BOX + CAMERA) == whole
+    assert S.parse("Here is the scene: " + OK_BOX + CAMERA + "That's all.") == whole
+    assert S.parse("Each entry starts with - type: and a shape.\n\nThe scene:\n" + OK_BOX + CAMERA) == whole
