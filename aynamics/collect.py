@@ -19,6 +19,8 @@ from pathlib import Path
 
 import yaml
 
+from aynamics.video_io import natural_key
+
 DEFAULT_METRICS = (
     "val/yaml_valid",
     "val/sim_valid",
@@ -47,7 +49,9 @@ def run_folders(root: str | Path) -> list[Path]:
     found = {p.parent.parent for p in root.rglob(".hydra/overrides.yaml")} | {
         p.parent for p in root.rglob("metrics.json") if _is_training_record(p)
     }
-    return sorted(found, key=lambda p: [int(s) if s.isdigit() else s for s in p.relative_to(root).parts])
+    # each part by its numbers (2 before 10), words and numbers comparable: a folder "best" or "3_rerun" beside
+    # Hydra's 0, 1, ... compared a str with an int
+    return sorted(found, key=lambda p: [natural_key(s) for s in p.relative_to(root).parts])
 
 
 def _is_training_record(path: Path) -> bool:
@@ -67,7 +71,12 @@ def collect(root: str | Path, metrics: tuple[str, ...] = DEFAULT_METRICS) -> lis
         row: dict = {"run": str(folder.relative_to(root)) if folder != Path(root) else "."}
         overrides_file = folder / ".hydra" / "overrides.yaml"
         if overrides_file.is_file():
-            for item in yaml.safe_load(overrides_file.read_text()) or []:
+            try:
+                overrides = yaml.safe_load(overrides_file.read_text(errors="replace")) or []
+            except yaml.YAMLError:  # a file cut short or edited by hand: the run is still listed
+                overrides = []
+                row["overrides"] = "unreadable .hydra/overrides.yaml"
+            for item in overrides if isinstance(overrides, list) else []:
                 key, _, value = str(item).partition("=")
                 if not key.startswith("hydra."):
                     row[key.lstrip("+~")] = value

@@ -260,7 +260,7 @@ def evaluate_videos(
 
     def item(folder: Path) -> list[dict]:
         try:  # read in its turn: --num reads only those
-            video = video_from_folder(folder, inputs=prompt.modality)
+            video = video_from_folder(folder, inputs=prompt.modality, clip_times=prompt.frame_times)
             inputs = lm.prompt_inputs(processor, prompt, list(video.frames))
         except (OSError, ValueError) as e:  # one bad folder never stops the evaluation (FileNotFoundError: OSError)
             reason = missing_file_message(e) if isinstance(e, FileNotFoundError) else str(e)

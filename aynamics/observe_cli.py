@@ -19,6 +19,7 @@ The folder is accepted by `aynamics score --observed DIR`.
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -31,6 +32,42 @@ RENDER_FILES = frozenset(
     {"frames", "flow", "segmentation.npy", "depth.npy", "flow.npy", "occlusion.npy", "camera.json", "meta.json"}
     | {"scene.yaml", "video.gif"}
 )
+
+
+RENDER_IMAGE = {"frames": re.compile(r"frame_\d{4}\.png"), "flow": re.compile(r"flow_\d{4}\.png")}
+
+
+def check_earlier_render(out: Path) -> None:
+    """Refuse a folder of RENDER_FILES' names that no render wrote: a video folder of the user's in the observed
+    layout (frames/ of their own names, segmentation.npy of their own masks, which `evaluate --videos` and PRO
+    read). Its masks were overwritten and the render's frames mixed into theirs. A render writes depth.npy right
+    after segmentation.npy, and names its images frame_NNNN.png / flow_NNNN.png.
+
+    Raises:
+        UsageError: naming the file that shows the folder is not an earlier render.
+    """
+    if not out.is_dir():
+        return
+    for folder, pattern in RENDER_IMAGE.items():
+        if (out / folder).is_dir():
+            other = next(
+                (
+                    p.name
+                    for p in sorted((out / folder).iterdir())
+                    if not p.name.startswith(".") and not pattern.fullmatch(p.name)
+                ),
+                None,
+            )
+            if other is not None:
+                raise UsageError(
+                    f"render: --out {str(out)!r} is no earlier render: {folder}/{other} is not a file render writes "
+                    "(a video folder of yours?); give a new or empty folder"
+                )
+    if (out / "segmentation.npy").exists() and not (out / "depth.npy").exists():
+        raise UsageError(
+            f"render: --out {str(out)!r} is no earlier render: it holds segmentation.npy without depth.npy (a video "
+            "folder of yours, whose masks would be overwritten?); give a new or empty folder"
+        )
 
 
 def _add_render(sub) -> None:
@@ -63,6 +100,7 @@ def _run_render(args) -> int:
             raise UsageError(f"render: --textures {args.textures!r}: {getattr(e, 'strerror', None) or e}") from None
     out = Path(args.out)
     check_out_folder("render", out, writes=RENDER_FILES)  # before the work; the folders are made after it
+    check_earlier_render(out)
     rollout = sim.simulate(scene)
     try:
         frames = renderlib.render(

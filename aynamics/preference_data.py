@@ -18,8 +18,10 @@ Plus `summary.json`: counts, mean/best reward, share invalid, the sampling setti
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import re
 import shutil
 import tempfile
 from collections.abc import Sequence
@@ -167,17 +169,40 @@ def check_made_for(path: str | Path, prompt: Any, tokenizer) -> None:
         )
 
 
+# What `write_preferences` puts in its folder (`datasets`' files and ours): a folder holding anything else is not a
+# preference set, whatever summary.json it has, and is never replaced (a common name: a results folder may hold one)
+_PREFERENCE_FILE = re.compile(r"(state\.json|dataset_info\.json|summary\.json|data-\d+-of-\d+\.arrow)")
+
+
+def _other_file(out: Path) -> str | None:
+    """The first entry of `out` that no preference set writes (hidden files aside), or None."""
+    for p in sorted(out.iterdir()):
+        if not p.name.startswith(".") and not (p.is_file() and _PREFERENCE_FILE.fullmatch(p.name)):
+            return p.name
+    return None
+
+
 def check_out(out: str | Path) -> Path:
-    """`out` resolved, if it may be (re)written: absent, or a preference set written before (it has
-    `summary.json`). Anything else is refused, so a mistyped `--out` never deletes a data set or a home folder.
+    """`out` resolved, if it may be (re)written: absent, or a preference set written before (`summary.json` and
+    `state.json`, and only the files a preference set holds). Anything else is refused, so a mistyped `--out`
+    never deletes a data set, a results folder or a home folder.
 
     Raises:
         ValueError: `out` exists and is not a preference data set, naming it.
     """
     out = Path(out).resolve()
-    if out.exists() and not (out / "summary.json").is_file():
+    if not out.exists():
+        return out
+    if not (out / "summary.json").is_file():
         raise ValueError(
             f"--out {str(out)!r} exists and is not a preference data set (no summary.json): refusing to replace it; "
+            "give a new folder"
+        )
+    other = _other_file(out)
+    why = "no state.json" if not (out / "state.json").is_file() else None if other is None else f"it holds {other!r}"
+    if why is not None:
+        raise ValueError(
+            f"--out {str(out)!r} exists and is not a preference data set ({why}): refusing to replace it; "
             "give a new folder"
         )
     return out
@@ -242,7 +267,11 @@ def add_preferences_command(sub) -> None:
     p.add_argument("--data", required=True, help="unlabeled videos: a generated data set or a folder of videos")
     p.add_argument("--out", required=True, help="folder to write the preference data set to")
     p.add_argument("--split", default="train", help="split of a generated data set (default train)")
-    p.add_argument("--model", default="tiny", help="'tiny' or a checkpoint directory (default tiny)")
+    p.add_argument(
+        "--model",
+        default=None,
+        help="'tiny' or a checkpoint directory (default: --adapter's base, else tiny)",
+    )
     p.add_argument("--adapter", default=None, help="peft adapter to sample with (e.g. the SFT stage's)")
     p.add_argument("--num-samples", type=int, default=32, help="candidates per video (default 32, as the paper)")
     p.add_argument("--pairs", type=int, default=3, help="pairs kept per video (default 3, as the paper)")
@@ -280,15 +309,38 @@ def run_preferences(args) -> int:
     try:
         check_out(args.out)  # before hours of sampling, not after
         device = lm.inference_device(args.device)
-        if args.model == "tiny":
-            spec = lm.ModelSpec(kind="tiny")
+        trained, prompt = lm.read_adapter_meta(args.adapter) if args.adapter else (None, None)
+        model = args.model or (trained.path if trained is not None and trained.kind == "pretrained" else "tiny")
+        if model == "tiny":
+            spec = lm.ModelSpec(kind="tiny") if trained is None or trained.kind != "tiny" else trained
         else:
             dtype = args.dtype or ("bfloat16" if device.type == "cuda" else "float32")
-            spec = lm.ModelSpec(kind="pretrained", path=args.model, dtype=dtype)
-        prompt = lm.read_adapter_meta(args.adapter)[1] if args.adapter else lm.PromptSpec(modality=args.inputs)
+            spec = lm.ModelSpec(kind="pretrained", path=model, dtype=dtype)
+            if trained is not None:  # the adapter's architecture, this run's dtype (no warning for what was not given)
+                spec = dataclasses.replace(trained, path=model, dtype=dtype)
+        if trained is not None and (trained.kind, trained.path) != (spec.kind, spec.path):
+            raise ValueError(
+                f"--adapter {args.adapter!r} was trained on model kind={trained.kind!r} path={trained.path!r}, but "
+                f"--model is {model!r}: leave --model out to use the adapter's"
+            )
+        prompt = prompt or lm.PromptSpec(modality=args.inputs)
         videos = open_videos(
-            args.data, args.split, inputs=prompt.modality, use_flow=args.metric != "iou", limit=args.limit
+            args.data,
+            args.split,
+            inputs=prompt.modality,
+            use_flow=args.metric != "iou",
+            limit=args.limit,
+            clip_times=prompt.frame_times,  # a folder's images at the adapter's times, as predict reads a video
         )
+        if args.metric != "iou":  # before sampling: the first valid candidate would stop the run
+            from aynamics.pro import without_flow
+
+            missing = without_flow(videos)
+            if missing is not None:
+                raise ValueError(
+                    f"--metric {args.metric} scores the flow, but the video {missing!r} of --data has no observed "
+                    "flow (flow.npy): add it or use --metric iou"
+                )
         if isinstance(videos, GeneratedVideos):  # the recorded prompt holds the videos' clock, as in PRO
             from aynamics.data import with_clock
 

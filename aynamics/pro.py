@@ -189,6 +189,17 @@ class ProModule(lm.ExactResume, L.LightningModule):
                 f"stage.reward_metric = {self.reward_config.metric!r} scores the flow, but data.use_flow = false: "
                 "set data.use_flow=true or stage.reward_metric=iou"
             )
+        if dm is not None and self.reward_config.needs_flow:  # else the first valid candidate stops the run
+            sets = [("data.val_dir" if dm.hparams.get("val_dir") else "data.dir", getattr(dm, "val_set", []))]
+            if self.hparams.mode == "online":
+                sets.insert(0, ("data.dir", dm.train_set))
+            for key, videos in sets:
+                missing = without_flow(videos)
+                if missing is not None:
+                    raise ValueError(
+                        f"stage.reward_metric = {self.reward_config.metric!r} scores the flow, but {key} video "
+                        f"{missing!r} has no observed flow (flow.npy): add it or set stage.reward_metric=iou"
+                    )
         self.ensure_processor()
         if self.hparams.init_adapter is not None:
             _, trained = lm.read_adapter_meta(self.hparams.init_adapter)
@@ -332,6 +343,14 @@ def has_flow(videos: Sequence[UnlabeledVideo]) -> bool:
     return all(v.observation.flow is not None for v in videos)
 
 
+def without_flow(videos: Sequence[UnlabeledVideo]) -> str | None:
+    """The key of the first video without observed flow (an EPE reward cannot score it), or None: a generated data
+    set's flow column read (`use_flow`), or each folder's flow.npy."""
+    if isinstance(videos, GeneratedVideos):
+        return None if has_flow(videos) else "(every record: data.use_flow = false or no flow column)"
+    return next((v.key for v in videos if v.observation.flow is None), None)
+
+
 def _margin(seq: torch.Tensor, rewards: torch.Tensor) -> torch.Tensor:
     """Mean over rows of ℓ(best-scored) - ℓ(worst-scored) candidate (0 where all rewards tie)."""
     r = rewards.to(seq.device)
@@ -395,7 +414,8 @@ class ProDataModule(L.LightningDataModule):
         if self.processor is not None:
             return
         hp = self.hparams
-        kw = {"inputs": hp.modality, "use_flow": hp.use_flow}
+        # video folders: the images at the clip's times on each video's clock (the default clip: 0 to 0.9 s)
+        kw = {"inputs": hp.modality, "use_flow": hp.use_flow, "clip_times": self.prompt.frame_times}
         if hp.preferences_dir is not None:
             from aynamics.preference_data import load_preferences, stored_clock
 

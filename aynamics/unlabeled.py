@@ -191,15 +191,22 @@ class GeneratedVideos(torch.utils.data.Dataset):
 
 
 def video_from_folder(
-    path: str | Path, *, inputs: str = "rgb", width: int | None = None, height: int | None = None
+    path: str | Path,
+    *,
+    inputs: str = "rgb",
+    width: int | None = None,
+    height: int | None = None,
+    clip_times: Sequence[float] | None = None,
 ) -> UnlabeledVideo:
     """An `UnlabeledVideo` from `frames/*.png` (or, with `inputs="flow"`, the colour-wheel flow images
     `flow/*.png` that `aynamics render` writes, image f the flow from frame f to f + 1) plus the scorer's observed
     layout (see the module docstring).
 
     When the folder holds every image of the video (as many frames as the segmentation, one flow image fewer), the
-    model sees those of the sampled frames (those the observation uses); when it holds exactly as many as are
-    sampled, it sees them all. Images are taken in natural name order (`2.png` before `10.png`); hidden files
+    model sees those at `clip_times` (s from the first frame, on the video's clock: meta.json's fps; the adapter's
+    `PromptSpec.frame_times`, as `aynamics predict` reads a video), or without them those of the sampled frames
+    (those the observation uses, over the whole video); when it holds exactly as many as are sampled, it sees them
+    all. Images are taken in natural name order (`2.png` before `10.png`); hidden files
     (`._0.png`) are not images of the video. Frames may be PNG or JPEG (read as the camera showed them, see
     `aynamics.video_io.read_image`); flow images, PNG, are re-coloured on the scale of those the model sees, as
     generated records are (`aynamics.flow.on_own_scale`: `aynamics render` colours all 29 on one scale).
@@ -226,6 +233,14 @@ def video_from_folder(
     every = n_video if inputs == "rgb" else n_video - 1  # flow images: f -> f + 1 for every frame but the last
     if len(files) == len(obs.frames):
         chosen = files
+    elif len(files) == every and clip_times is not None:  # the adapter's clip, on the video's own clock
+        picked = [int(round(t * obs.fps + 1e-9)) for t in clip_times]
+        if max(picked) >= every:
+            raise ValueError(
+                f"{str(folder)!r}: {every} images at {obs.fps} fps (meta.json), but the clip the model was trained "
+                f"on needs the image at {max(clip_times):.3g} s (image {max(picked)}): give a longer video"
+            )
+        chosen = [files[k] for k in picked]
     elif len(files) == every:
         chosen = [files[int(k)] for k in obs.frames]
     else:
@@ -280,11 +295,12 @@ def load_folders(
     width: int | None = None,
     height: int | None = None,
     limit: int | None = None,
+    clip_times: Sequence[float] | None = None,
 ) -> list[UnlabeledVideo]:
     """The videos of `video_folders(path)` (the first `limit` only are read), the model seeing `inputs` ("rgb"
-    frames or "flow" images)."""
+    frames or "flow" images) at `clip_times` (`video_from_folder`)."""
     folders = video_folders(path)[:limit]
-    return [video_from_folder(p, inputs=inputs, width=width, height=height) for p in folders]
+    return [video_from_folder(p, inputs=inputs, width=width, height=height, clip_times=clip_times) for p in folders]
 
 
 def is_generated(path: str | Path) -> bool:
@@ -302,12 +318,14 @@ def open_videos(
     height: int | None = None,
     use_flow: bool = True,
     limit: int | None = None,
+    clip_times: Sequence[float] | None = None,
 ) -> Sequence[UnlabeledVideo]:
-    """Unlabeled videos from a generated data set (a folder with `dataset_dict.json` or `state.json`) or folders."""
+    """Unlabeled videos from a generated data set (a folder with `dataset_dict.json` or `state.json`) or folders
+    (the model seeing each folder's images at `clip_times`: `video_from_folder`)."""
     root = Path(path)
     if is_generated(root):
         return GeneratedVideos(root, split, inputs=inputs, width=width, height=height, use_flow=use_flow, limit=limit)
-    return load_folders(root, inputs=inputs, width=width, height=height, limit=limit)
+    return load_folders(root, inputs=inputs, width=width, height=height, limit=limit, clip_times=clip_times)
 
 
 def collate_videos(items: Sequence[UnlabeledVideo]) -> list[UnlabeledVideo]:

@@ -605,3 +605,19 @@ def test_scene_evaluation_simulates_with_the_data_sets_own_substeps(tmp_path):
         [r["scene_yaml"] for r in scored], [r["scene"] for r in scored], [r["observation"] for r in scored]
     )
     assert per["iou_full"] == pytest.approx([1.0, 1.0])
+
+
+def test_collect_runs_named_with_words_beside_numbers(tmp_path):
+    """A run folder named with letters ("best", "3_rerun") beside Hydra's numbered ones: the sort compared a str
+    with an int and `aynamics collect` ended in a TypeError traceback; an unreadable overrides.yaml likewise."""
+    from aynamics.cli import main
+
+    for name in ("10", "2", "best", "3_rerun"):
+        (tmp_path / name / ".hydra").mkdir(parents=True)
+        (tmp_path / name / ".hydra" / "overrides.yaml").write_text(f"- seed={len(name)}\n")
+        (tmp_path / name / "metrics.json").write_text('{"global_step": 1, "metrics": {}}')
+    (tmp_path / "best" / ".hydra" / "overrides.yaml").write_text("- 'data.dir=/x\n")  # cut short
+    rows = collect(tmp_path)
+    assert [r["run"] for r in rows] == ["2", "3_rerun", "10", "best"]
+    assert rows[3]["overrides"] == "unreadable .hydra/overrides.yaml" and rows[3]["status"] == "done"
+    assert main(["collect", str(tmp_path)]) == 0

@@ -172,3 +172,26 @@ def test_score_refuses_a_zero_scoring_size(capsys, flag):
     """0 is refused with the other sizes out of range (it passed the check as "not given" before)."""
     assert cli.main(["score", ASSET, "--observed", ASSET, flag, "0"]) == 2
     assert "must be in [8, 1920] × [8, 1280]" in capsys.readouterr().err
+
+
+def test_render_refuses_a_video_folder_of_the_users(tmp_path, capsys):
+    """A video folder in the observed layout (frames/ of its own names, segmentation.npy: what `evaluate --videos`
+    and PRO read) has only names render writes: its masks were overwritten by the render's and 30 frame_NNNN.png
+    mixed into its frames, exit 0. Now refused, untouched; an earlier render is still written over."""
+    import numpy as np
+
+    video = tmp_path / "myvideo"
+    (video / "frames").mkdir(parents=True)
+    (video / "frames" / "IMG_0.png").write_bytes(b"")
+    np.save(video / "segmentation.npy", np.zeros((30, 8, 8), np.int16))
+    before = (video / "segmentation.npy").read_bytes()
+    size = ["--width", "32", "--height", "32", "--no-gif"]
+    assert cli.main(["render", ASSET, "--out", str(video), *size]) == 2
+    assert "frames/IMG_0.png is not a file render writes" in capsys.readouterr().err
+    (video / "frames" / "IMG_0.png").unlink()
+    assert cli.main(["render", ASSET, "--out", str(video), *size]) == 2
+    assert "segmentation.npy without depth.npy" in capsys.readouterr().err
+    assert (video / "segmentation.npy").read_bytes() == before and not any((video / "frames").iterdir())
+    earlier = tmp_path / "earlier"
+    assert cli.main(["render", ASSET, "--out", str(earlier), *size]) == 0
+    assert cli.main(["render", ASSET, "--out", str(earlier), *size, "--seed", "1"]) == 0

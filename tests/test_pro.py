@@ -624,3 +624,104 @@ def test_offline_pro_shows_the_frames_on_the_clock_they_were_sampled_on(tmp_path
     dm = ProDataModule(str(dataset_dir), tiny, as_video=True, num_frames=4, preferences_dir=str(prefs))
     dm.setup()
     assert (dm.prompt.fps, dm.prompt.clip_frames) == (online.prompt.fps, online.prompt.clip_frames)
+
+
+def test_preferences_never_replace_a_folder_that_merely_holds_a_summary_json(tmp_path, dataset_dir, capsys):
+    """A results folder with a summary.json of its own (a common name) is no preference set: it was deleted whole,
+    sub-folders and all, and replaced by the preferences."""
+    results = tmp_path / "results"
+    (results / "exp1").mkdir(parents=True)
+    (results / "summary.json").write_text('{"acc": 0.9}')
+    (results / "exp1" / "notes.txt").write_text("keep")
+    args = ["preferences", "--data", str(dataset_dir), "--num-samples", "2", "--max-new-tokens", "4", "--limit", "1"]
+    assert cli_main([*args, "--out", str(results)]) == 2
+    assert "is not a preference data set (no state.json)" in capsys.readouterr().err
+    (results / "state.json").write_text("{}")
+    assert cli_main([*args, "--out", str(results)]) == 2
+    assert "is not a preference data set (it holds 'exp1')" in capsys.readouterr().err
+    assert (results / "exp1" / "notes.txt").read_text() == "keep"
+    first = _handmade_preferences(dataset_dir, tmp_path / "prefs")  # a preference set is still replaced
+    assert _handmade_preferences(dataset_dir, tmp_path / "prefs") == first
+
+
+def test_an_epe_reward_on_videos_without_flow_is_refused_before_sampling(tmp_path, capsys):
+    """Video folders without flow.npy (the flow is optional) and an EPE or mix reward: training started and stopped
+    at the first valid candidate, steps (hours on a real model) later, and `aynamics preferences` after sampling
+    every video; a weak model's all-invalid candidates never reached the check. Now both stop before sampling,
+    naming the video."""
+    import types
+
+    from aynamics.pro import ProDataModule
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    _video_folder(tmp_path / "videos" / "a", 10)
+    dm = ProDataModule(str(tmp_path / "videos"), str(TINY_ASSET_DIR), num_frames=2)
+    with pytest.warns(UserWarning, match="PRO validation scores the first training videos"):
+        dm.setup("fit")
+    for metric in ("epe", "mix"):
+        module = ProModule(SPEC, prompt=PROMPT, num_samples=2, reward_metric=metric)
+        module._trainer = types.SimpleNamespace(datamodule=dm)
+        with pytest.raises(ValueError, match=f"reward_metric = '{metric}' scores the flow, but data.dir video 'a'"):
+            module.setup("fit")
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=2)  # iou: no flow needed
+    module._trainer = types.SimpleNamespace(datamodule=dm)
+    module.setup("fit")
+    args = ["preferences", "--data", str(tmp_path / "videos"), "--out", str(tmp_path / "p"), "--num-samples", "2"]
+    assert cli_main([*args, "--metric", "epe"]) == 2
+    assert "--metric epe scores the flow, but the video 'a' of --data has no observed flow" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
+
+
+def test_folder_videos_show_the_model_the_clip_at_the_adapters_times(tmp_path):
+    """A video folder longer than the training clip (90 frames at 30 fps), or at another rate (60 frames at 60 fps,
+    meta.json): `evaluate --videos` and PRO showed the model every third image of the whole video (0 to 2.9 s, 3×
+    the training clip's pace), while `aynamics predict` on the same frames reads 0 to 0.9 s. With the clip's times
+    they see what predict sees; a folder too short for them is named."""
+    import json
+
+    from PIL import Image
+
+    from aynamics.predict import clip_of
+    from aynamics.unlabeled import video_from_folder
+
+    def folder(name, n, fps):
+        root = tmp_path / name
+        (root / "frames").mkdir(parents=True)
+        for k in range(n):  # each image's number in its red channel
+            Image.fromarray(np.full((16, 16, 3), (k, 0, 0), np.uint8)).save(root / "frames" / f"{k}.png")
+        np.save(root / "segmentation.npy", np.full((n, 16, 16), -1, np.int16))
+        (root / "meta.json").write_text(json.dumps({"fps": fps}))
+        return root
+
+    times = lm.PromptSpec().frame_times  # 0, 0.1, ..., 0.9 s
+    red = lambda frames: [int(np.asarray(f)[0, 0, 0]) for f in frames]  # noqa: E731
+    long = folder("long", 90, 30)
+    assert red(video_from_folder(long, clip_times=times).frames) == list(range(0, 30, 3))
+    assert red(video_from_folder(long, clip_times=times).frames) == red(clip_of(long / "frames", lm.PromptSpec()))
+    assert red(video_from_folder(long).frames) == list(range(0, 90, 3))  # without times: the sampled frames
+    assert red(video_from_folder(folder("fast", 60, 60), clip_times=times).frames) == list(range(0, 60, 6))
+    with pytest.raises(ValueError, match="needs the image at 0.9 s"):
+        video_from_folder(folder("short", 20, 30), clip_times=times)
+
+
+def test_preferences_take_the_adapters_base_model(tmp_path, dataset_dir, capsys):
+    """`aynamics preferences --adapter A` without --model built the tiny model: an adapter of a real base was
+    refused naming train.py's keys (stage.init_adapter, model is kind='tiny'), and a tiny adapter warned that
+    model settings nobody gave (lora_rank 16, ...) were ignored. Now the adapter's base is used."""
+    import warnings
+
+    adapter = tmp_path / "adapter"
+    lm.save_adapter(lm.build_model(SPEC), adapter, SPEC, PROMPT)
+    args = ["preferences", "--data", str(dataset_dir), "--num-samples", "2", "--max-new-tokens", "3", "--limit", "1"]
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        assert cli_main([*args, "--out", str(tmp_path / "p"), "--adapter", str(adapter)]) == 0
+    assert not [w for w in seen if "ignored" in str(w.message)]
+    meta = json.loads((adapter / "aynamics.json").read_text())
+    meta["model"] |= {"kind": "pretrained", "path": str(tmp_path / "qwen3b")}  # a real base, not on this machine
+    (adapter / "aynamics.json").write_text(json.dumps(meta))
+    assert cli_main([*args, "--out", str(tmp_path / "q"), "--adapter", str(adapter)]) == 2
+    err = capsys.readouterr().err
+    assert f"model path {str(tmp_path / 'qwen3b')!r}" in err and "stage.init_adapter" not in err
+    assert cli_main([*args, "--out", str(tmp_path / "q"), "--adapter", str(adapter), "--model", "tiny"]) == 2
+    assert "but --model is 'tiny': leave --model out" in capsys.readouterr().err
