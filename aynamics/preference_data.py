@@ -266,7 +266,7 @@ def add_preferences_command(sub) -> None:
     p = sub.add_parser("preferences", help="sample, score and store a PRO preference data set (offline mode)")
     p.add_argument("--data", required=True, help="unlabeled videos: a generated data set or a folder of videos")
     p.add_argument("--out", required=True, help="folder to write the preference data set to")
-    p.add_argument("--split", default="train", help="split of a generated data set (default train)")
+    p.add_argument("--split", help="split of a generated data set (default train; not for video folders)")
     p.add_argument(
         "--model",
         default=None,
@@ -302,10 +302,12 @@ def run_preferences(args) -> int:
     from aynamics import lm
     from aynamics.cli import UsageError, _print_json
     from aynamics.pro import ProModule
-    from aynamics.unlabeled import GeneratedVideos, open_videos
+    from aynamics.unlabeled import GeneratedVideos, is_generated, open_videos
 
     if args.limit is not None and args.limit < 1:
         raise UsageError(f"preferences: --limit {args.limit}: must be >= 1")
+    if args.split is not None and Path(args.data).is_dir() and not is_generated(args.data):
+        raise UsageError(f"preferences: --split {args.split}: --data {args.data!r} holds video folders, not splits")
     try:
         check_out(args.out)  # before hours of sampling, not after
         device = lm.inference_device(args.device)
@@ -326,7 +328,7 @@ def run_preferences(args) -> int:
         prompt = prompt or lm.PromptSpec(modality=args.inputs)
         videos = open_videos(
             args.data,
-            args.split,
+            args.split or "train",
             inputs=prompt.modality,
             use_flow=args.metric != "iou",
             limit=args.limit,

@@ -670,6 +670,8 @@ def test_an_epe_reward_on_videos_without_flow_is_refused_before_sampling(tmp_pat
     assert cli_main([*args, "--metric", "epe"]) == 2
     assert "--metric epe scores the flow, but the video 'a' of --data has no observed flow" in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
+    assert cli_main([*args, "--split", "test"]) == 2  # video folders have no splits: it was silently ignored
+    assert "--split test: --data" in capsys.readouterr().err and not (tmp_path / "p").exists()
 
 
 def test_folder_videos_show_the_model_the_clip_at_the_adapters_times(tmp_path):
