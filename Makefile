@@ -55,6 +55,9 @@ train: setup  ## generate a small data set if missing, train the tiny model on t
 	  echo "$(TRAIN_DATA) was simulated by older physics: moved to $$old, generating it again"; fi
 	@test -f $(TRAIN_DATA)/dataset_dict.json || $(BIN)/aynamics generate --num $(TRAIN_SCENES) --out $(TRAIN_DATA) \
 	  --seed 0 --quiet width=112 height=80 backdrop=plain
+	@# an earlier run there is moved aside, kept (train.py refuses a fresh run into a folder holding one)
+	@if [ -e $(TRAIN_OUT) ]; then old=$(TRAIN_OUT).previous-$$(date +%Y%m%d-%H%M%S); mv $(TRAIN_OUT) $$old; \
+	  echo "$(TRAIN_OUT) holds an earlier run: moved to $$old"; fi
 	$(BIN)/python train.py experiment=make_train data.dir=$(TRAIN_DATA) hydra.run.dir=$(TRAIN_OUT)
 
 lint: setup  ## ruff lint + format check

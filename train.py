@@ -40,7 +40,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the stage described by `cfg` and return the final metrics (also written to `OUT/metrics.json`)."""
     import lightning as L
 
-    from aynamics.callbacks import SceneEvaluation, format_table, json_safe
+    from aynamics.callbacks import SceneEvaluation, format_table, json_safe, use_atomic_checkpoints
     from aynamics.lm import TARGETS
     from aynamics.sharding import model_init_context
 
@@ -64,6 +64,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
         check_resume_checkpoint(cfg.ckpt_path)  # before the model loads
     L.seed_everything(cfg.seed, workers=True)
     out = Path(cfg.output_dir)
+    checkpoints = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("dirpath")
+    if not cfg.get("ckpt_path") and (found := earlier_run(out, checkpoints)):
+        # a fresh run there versioned its checkpoints beside the earlier ones (last-v1.ckpt, while the SIGTERM
+        # message and the README name last.ckpt, the earlier run's) and overwrote its adapter, predictions and CSV
+        raise ValueError(
+            f"hydra.run.dir = {str(out)!r} holds an earlier run ({found}): resume it with ckpt_path=CHECKPOINT, or "
+            "give a new hydra.run.dir (a fresh run there would overwrite its adapter and results)"
+        )
     out.mkdir(parents=True, exist_ok=True)
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
@@ -72,6 +80,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     batches = {} if interval is None else {"val_check_interval": interval * accumulate}
     # before the model: a strategy or precision this machine lacks (deepspeed not installed) fails in seconds
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, **batches)
+    use_atomic_checkpoints(trainer)  # a kill or a full disk mid-save never leaves a partial last.ckpt
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # the model's random draws as before the trainer
     spec = hydra.utils.instantiate(cfg.model)
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
@@ -89,20 +98,34 @@ def train(cfg: DictConfig) -> dict[str, float]:
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     metrics = {k: v for k, v in metrics.items() if math.isfinite(v) or k.startswith("val/")}
     resumed = getattr(module, "resumed_step", None)
-    if resumed is not None and resumed >= trainer.global_step:  # nothing trained: the results stay as they were
-        logging.getLogger(__name__).warning(
-            f"ckpt_path = {cfg.ckpt_path!r} had reached step {resumed}, trainer.max_steps = "
-            f"{cfg.trainer.max_steps}: nothing trained, {out / 'metrics.json'} left as it was; give a larger "
-            "trainer.max_steps to continue"
-        )
-        return metrics
     evaluation = next((c for c in callbacks if isinstance(c, SceneEvaluation)), None)
+    if resumed is not None and resumed >= trainer.global_step:  # nothing trained
+        validated_last = interval is not None and resumed % interval == 0
+        if recorded_step(out) == resumed or not validated_last:  # the results stay as they were
+            logging.getLogger(__name__).warning(
+                f"ckpt_path = {cfg.ckpt_path!r} had reached step {resumed}, trainer.max_steps = "
+                f"{cfg.trainer.max_steps}: nothing trained, {out / 'metrics.json'} left as it was; give a larger "
+                "trainer.max_steps to continue"
+            )
+            return metrics
+        # the run was stopped after its last checkpoint and before its results (in the final validation, which a
+        # resumed run skips): validate that step again, then write its metrics.json as the run would have
+        logging.getLogger(__name__).warning(
+            f"ckpt_path = {cfg.ckpt_path!r} had reached step {resumed} without its results in "
+            f"{out / 'metrics.json'}: validating step {resumed} again"
+        )
+        trainer.validate(module, datamodule=datamodule, verbose=False)
+        metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+        metrics = {k: v for k, v in metrics.items() if math.isfinite(v) or k.startswith("val/")}
     if trainer.is_global_zero:
         overrides = OmegaConf.to_container(cfg, resolve=False) if cfg.get("save_config", True) else {}
         record = {"metrics": metrics, "global_step": trainer.global_step, "config": overrides}
         if evaluation is not None and evaluation.step is not None:
             record["val_step"] = evaluation.step  # the step of the val/ metrics (the last validation's)
-        (out / "metrics.json").write_text(json.dumps(json_safe(record), indent=2, default=str, allow_nan=False))
+        text = json.dumps(json_safe(record), indent=2, default=str, allow_nan=False)
+        tmp = out / f".metrics.json.tmp-{os.getpid()}"
+        tmp.write_text(text)
+        os.replace(tmp, out / "metrics.json")  # whole or not at all: a resume reads its global_step
         if cfg.get("print_table", True) and evaluation is not None and evaluation.last:
             rows = {"model": evaluation.last}
             if evaluation.last_baseline:
@@ -115,6 +138,23 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 command += ["--batch-size", evaluation.batch_size, "--max-new-tokens", evaluation.max_new_tokens]
                 print(f"The test split's table: {shlex.join(str(c) for c in command)}")
     return metrics
+
+
+def earlier_run(out: Path, checkpoints: str | None) -> str | None:
+    """What of an earlier training run the folder `out` holds (a checkpoint, else its metrics.json), or None."""
+    folder = Path(checkpoints) if checkpoints else out / "checkpoints"
+    names = sorted(p.name for p in folder.glob("*.ckpt")) if folder.is_dir() else []
+    if names:
+        return str(folder / ("last.ckpt" if "last.ckpt" in names else names[-1]))
+    return str(out / "metrics.json") if (out / "metrics.json").is_file() else None
+
+
+def recorded_step(out: Path) -> int | None:
+    """The `global_step` of the run's `metrics.json` (written once its results are), or None without one."""
+    try:
+        return json.loads((out / "metrics.json").read_text())["global_step"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def warn_drifting_validation(datamodule, trainer, interval: int | None, accumulate: int) -> None:
@@ -233,10 +273,13 @@ def main(cfg: DictConfig) -> float | None:
     one_log_stream()
     try:
         metrics = train(cfg)
-    except SIGTERMException:  # Lightning stopped after the step under way (a SystemExit of status 0)
+    except SIGTERMException as stop:  # Lightning stopped after the step under way (a SystemExit of status 0)
         checkpoints = (cfg.get("callbacks") or {}).get("checkpoint") or {}
         folder = Path(checkpoints.get("dirpath") or "/nonexistent")
-        if (folder / "last.ckpt").is_file():
+        saved = getattr(stop, "checkpoint", None)  # the file StepCheckpoint wrote (last-v1.ckpt beside another's)
+        if saved and Path(saved).is_file():
+            where = f"resume with ckpt_path={saved}"
+        elif (folder / "last.ckpt").is_file():
             where = f"resume with ckpt_path={folder / 'last.ckpt'}"
         else:
             where = f"the checkpoints are in {folder}" if folder.is_dir() else "no checkpoint was saved"

@@ -31,6 +31,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from aynamics import lm, metrics, sharding
@@ -213,7 +214,44 @@ class StepCheckpoint(ModelCheckpoint):
                 self._save_last_checkpoint(trainer, candidates)
         if stop and not ending:  # the last step: saved, and the run ends as planned
             log.warning("SIGTERM: the run stops after step %d", trainer.global_step)
-            raise SIGTERMException
+            error = SIGTERMException()
+            error.checkpoint = self.last_model_path or None  # the file to resume from, for train.py's message
+            raise error
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint file writer, with each file written beside its final path and renamed into place.
+
+    Lightning's own writes the checkpoint to a temporary file under $TMPDIR and moves it: where the run folder is on
+    another filesystem (node-local /tmp, a shared run folder) the move copies over the final path, truncating it
+    first, so a kill (SLURM after its grace time, the OOM killer) or a full disk during the copy left an empty or
+    partial `last.ckpt` in place of the previous good one."""
+
+    def save_checkpoint(self, checkpoint: dict, path, storage_options=None) -> None:
+        import os
+
+        from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
+
+        if storage_options is not None or not _is_local_file_protocol(str(path)):
+            return super().save_checkpoint(checkpoint, path, storage_options)
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+        try:
+            with open(tmp, "wb") as f:
+                torch.save(checkpoint, f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)  # atomic: the file at `path` is the old checkpoint or the new one, whole
+        finally:
+            tmp.unlink(missing_ok=True)
+
+
+def use_atomic_checkpoints(trainer: L.Trainer) -> None:
+    """Write the trainer's checkpoint files with `AtomicCheckpointIO` where it uses Lightning's plain file writer
+    (strategies with their own, e.g. DeepSpeed's folders, keep theirs)."""
+    if type(trainer.strategy.checkpoint_io) is TorchCheckpointIO:
+        trainer.strategy.checkpoint_io = AtomicCheckpointIO()
 
 
 def validation_number(trainer: L.Trainer, counted: int) -> int:

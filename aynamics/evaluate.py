@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import warnings
 from collections.abc import Iterator
@@ -319,9 +320,18 @@ def write_evaluation(out: str | Path, result: Evaluation, settings: dict) -> Pat
     if result.refined:
         per["refined"] = result.refined
         per |= {f"refined_{k}": v for k, v in result.refined_per_item.items()}
-    write_predictions(out / "predictions.jsonl", result.texts, result.records, per)
     meta = summary(result) | {"settings": settings}
-    (out / "metrics.json").write_text(json.dumps(json_safe(meta), indent=2, allow_nan=False) + "\n")
+    text = json.dumps(json_safe(meta), indent=2, allow_nan=False) + "\n"
+    # metrics.json is written last and whole, and an earlier evaluation's goes first: a folder whose metrics.json
+    # is there holds one evaluation's pair (a kill between the two files left this one's predictions beside the
+    # earlier one's metrics.json and settings)
+    (out / "metrics.json").unlink(missing_ok=True)
+    tmp = out / f".predictions.jsonl.tmp-{os.getpid()}"
+    write_predictions(tmp, result.texts, result.records, per)
+    os.replace(tmp, out / "predictions.jsonl")
+    tmp = out / f".metrics.json.tmp-{os.getpid()}"
+    tmp.write_text(text)
+    os.replace(tmp, out / "metrics.json")
     return out
 
 

@@ -359,10 +359,25 @@ def save_adapter(
 
     `state_dict`: the weights to write instead of the model's own (sharded models: `sharding.trainable_state`).
     """
+    import os
+    import shutil
+
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    model.save_pretrained(str(out), **({"state_dict": state_dict} if state_dict is not None else {}))
-    (out / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # written whole beside it, then swapped in: replaced file by file, a kill left one checkpoint's weights with
+    # another's aynamics.json (prompt) or adapter_config.json, and such a folder loads without a word
+    tmp, old = (out.parent / f".{out.name}.{what}-{os.getpid()}" for what in ("tmp", "old"))
+    for folder in (tmp, old):
+        shutil.rmtree(folder, ignore_errors=True)
+    model.save_pretrained(str(tmp), **({"state_dict": state_dict} if state_dict is not None else {}))
+    (tmp / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
+    if out.is_dir():
+        for p in out.iterdir():  # files of the user's in the folder stay in it
+            if not (tmp / p.name).exists():
+                os.replace(p, tmp / p.name)
+        os.replace(out, old)
+    os.replace(tmp, out)
+    shutil.rmtree(old, ignore_errors=True)
     return out
 
 
