@@ -28,13 +28,14 @@ import numpy as np
 from aynamics import scene as scenelib
 from aynamics.effects import CANDIDATES, GRIDS, NAMES, STEP_HZ, physics_rate, scene_with, simulate_many
 from aynamics.fit import FitResult, fit, flat, track_errors
-from aynamics.measured import Measured, MeasuredError, Track, split
+from aynamics.measured import Measured, MeasuredError, Track, check_units, split
 from aynamics.residuals import sparse_terms
 
 BIC_MARGIN = 10.0
 VAL_DROP = 0.30  # validation RMS must fall by >= 30 % (nulls: at most ~15 % from fitting the integrator's bias)
 Z_MIN = 10.0  # standard errors: the effective-sample-size errors of contact-rich fits are optimistic (a null reached 7)
-AMBIGUOUS = 0.10  # a runner-up reaching 90 % of the best's validation improvement is as good
+AMBIGUOUS = 0.10  # a runner-up reaching 90 % of the best's validation improvement is as good ...
+AMBIGUOUS_RESIDUAL = 1.25  # ... when it also leaves at most this times the best's validation RMS
 SCREEN_EVALS = 4  # least-squares iterations of the coarse screening fit of every candidate
 FINALISTS = 3  # candidates with the lowest screened BIC that are fitted fully and judged
 VAL_MAJORITY = 0.6  # ... and at least this share of the validation trajectories must improve (not a lucky few)
@@ -184,6 +185,19 @@ def _validation(err: np.ndarray, cur_err: np.ndarray) -> tuple[float, float, boo
     return val, drop, bool(np.mean(err < cur_err) >= VAL_MAJORITY)
 
 
+def ambiguous_with(best: CandidateRow, others: list[CandidateRow], cur_val: float) -> list[str]:
+    """The significant runners-up that explain the validation data about as well as `best`: within `AMBIGUOUS` of
+    its improvement in mean squared error over the current model (RMS `cur_val`) AND leaving at most
+    `AMBIGUOUS_RESIDUAL` times its validation RMS. The first test alone called a cause leaving 5 cm "as good" as
+    one leaving 2.7 mm whenever the baseline was far off (17 cm: 90 % of the improvement is all but 5.4 cm)."""
+    gain = cur_val**2 - best.val_rms**2
+    return [
+        r.name
+        for r in others
+        if r.val_rms**2 - best.val_rms**2 <= AMBIGUOUS * gain and r.val_rms <= AMBIGUOUS_RESIDUAL * best.val_rms
+    ]
+
+
 def _pairs(
     scene: scenelib.Scene,
     fit_t: list[Track],
@@ -264,6 +278,7 @@ def _audit(
     t0 = time.perf_counter()
     say = log or (lambda msg: None)
     scene = check_objects(measured, scene)
+    check_units(measured)
     fit_ids, val_ids, held_ids = split(measured.ids, seed, held_out=held_out)
     fit_t, val_t, held_t = measured.subset(fit_ids), measured.subset(val_ids), measured.subset(held_ids)
     base = _baseline(scene, fit_t)
@@ -301,9 +316,8 @@ def _audit(
         if not sig:
             break
         best, best_res = sig[0]
-        gain = cur_val**2 - best.val_rms**2
         if rnd == 0:
-            ambiguous = [r.name for r, _ in sig[1:] if r.val_rms**2 - best.val_rms**2 <= AMBIGUOUS * gain]
+            ambiguous = ambiguous_with(best, [r for r, _ in sig[1:]], cur_val)
         causes.append(best.name)
         cur, cur_val, cur_err = best_res, best.val_rms, best.val_errors
     unexplained: list[dict] = []
@@ -381,7 +395,7 @@ def run_audit(args) -> int:
 
     from aynamics.audit_report import write_report
     from aynamics.cli import UsageError, check_out_folder
-    from aynamics.measured import Measured, every_nth, read_csv
+    from aynamics.measured import Measured, check_units, every_nth, read_csv
 
     if not 30 <= args.step_hz <= 10_000:
         raise UsageError(f"audit: --step-hz {args.step_hz}: must be in [30, 10000] physics steps per second")
@@ -395,6 +409,7 @@ def run_audit(args) -> int:
     scene = scenelib.load(args.scene)
     try:
         measured = read_csv(args.measured)
+        check_units(measured, args.measured)
         held = every_nth(measured.ids, args.held_out_every) if args.held_out_every else None
         rest = [i for i in measured.ids if held is None or i not in set(held)]
         if args.max_trajectories and len(rest) > args.max_trajectories:  # a fixed held-out split is kept whole

@@ -197,8 +197,9 @@ def _targets(text: str | None, scene: Scene) -> list[int]:
     lower = {n.lower(): i for i, n in enumerate(scene.names)}
     for part in re.split(r"\s*,\s*(?:and\s+)?|\s+and\s+", text.strip()):
         part = part.strip()
-        if part in lower:
-            out.append(lower[part])
+        bare = re.sub(r"^the ", "", part)  # "the crate" for an object named crate
+        if part in lower or bare in lower:
+            out.append(lower[part if part in lower else bare])
             continue
         m = re.fullmatch(r"(?:(all|every|each|the) )?(box|boxes|sphere|spheres|cylinder|cylinders)", part)
         if m is None:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aynamics.scene import RANGES
 from aynamics.simulate import geom_size, quat_to_mat
 
 REQUIRED = ("trajectory", "t", "object", "x", "y", "z")
@@ -173,6 +174,41 @@ def _track(tid: str, rows: list, objects: list[str], has_q: bool, has_v: tuple[b
                 "(every object of the file must be measured in every trajectory)"
             )
     return Track(tid, times - times[0], pos, quat, vel)
+
+
+MAX_DURATION = 60.0  # s: longest trajectory the audit simulates (simulate.SimConfig's limit)
+MAX_EXTENT = 100.0  # m: no measured position of a rigid-body toss lies farther from the origin
+MAX_SPEED = RANGES["state.linear_velocity"].hi  # m/s: the scene range of each initial velocity component
+
+
+def check_units(data: Measured, path: str = "the measured data") -> None:
+    """Refuse trajectories whose numbers cannot be seconds and metres (a file in mm or ms): they were simulated as
+    they are and ended in a confident verdict ("unexplained", a 2e4 m/s² term) or an audit running for hours.
+
+    Raises:
+        MeasuredError: a trajectory longer than `MAX_DURATION` s, a position beyond `MAX_EXTENT` m, or an initial
+            velocity component beyond `MAX_SPEED` m/s, naming the trajectory, object and value.
+    """
+    for tid, tr in data.tracks.items():
+        if tr.duration > MAX_DURATION:
+            raise MeasuredError(
+                f"{path}: trajectory {tid!r} lasts {tr.duration:g} s (t from {tr.t[0]:g} to {tr.t[-1]:g}): at most "
+                f"{MAX_DURATION:g} s; column t must be in seconds (milliseconds? divide by 1000)"
+            )
+        for i, obj in enumerate(data.objects):
+            p = tr.position[:, i]
+            far = np.nanmax(np.abs(p))
+            if far > MAX_EXTENT:
+                raise MeasuredError(
+                    f"{path}: trajectory {tid!r}, object {obj!r}: a position of {far:g} m: columns x, y, z must be in "
+                    f"metres (millimetres? divide by 1000)"
+                )
+            speed = float(np.max(np.abs(initial_state(tr, i)["linear_velocity"])))  # the range is per component
+            if speed > MAX_SPEED:
+                raise MeasuredError(
+                    f"{path}: trajectory {tid!r}, object {obj!r}: an initial velocity component of {speed:.4g} m/s, "
+                    f"beyond the scene range of ±{MAX_SPEED:g} m/s; are t in seconds and x, y, z in metres?"
+                )
 
 
 def cube_tosses_csv(src: str, dst: str, tosses: list[int] | None = None) -> int:

@@ -195,6 +195,7 @@ def _track_stage(
     frozen: set[str],
     left: Budget,
     cap: int,
+    cap_seconds: float,
     seed: int,
     flow_weight: float,
     nthread: int | None,
@@ -202,7 +203,8 @@ def _track_stage(
 ) -> tuple[Scene, float, int]:
     """The best track fit by the scorer (near-ties, e.g. IoU 0 everywhere, broken by the track objective), then,
     when its IoU is still below `POLISH_BELOW`, a CMA-ES polish of its positions and velocities on the track
-    objective (physics only, at most `cap` simulations). Returns the scene, its objective value, restarts."""
+    objective (physics only, at most `cap` simulations and `cap_seconds`). Returns the scene, its objective value,
+    restarts."""
     from aynamics.scorer import score
 
     fits, matched = _track_fits(best, observed, params, left, nthread)
@@ -223,7 +225,15 @@ def _track_stage(
         return scene, value, 0
     space = _space(scene, _groups(params, KINEMATIC), frozen)
     found = cmaes_search(
-        track, space, space.encode(scene), track_values[j], left, seed=seed, max_sims=cap, stop_at=-0.003
+        track,
+        space,
+        space.encode(scene),
+        track_values[j],
+        left,
+        seed=seed,
+        max_sims=cap,
+        max_seconds=cap_seconds,
+        stop_at=-0.003,
     )
     polished = objective_value(score([found.scene], observed, nthread=nthread)[0], flow_weight)
     left.used += 1
@@ -271,9 +281,9 @@ def refine(
         seed: CMA-ES seed (results are deterministic for a seed, up to the time budget).
         nthread: simulation threads (default: all cores, at most 8).
         track_below: run the track stage when the start's full IoU is below this.
-        track_share: at most this share of the budget goes to the track stage's CMA-ES.
-        kinematic_share: share of the remaining budget for a first IoU stage over positions and velocities only
-            (when `params` has more groups).
+        track_share: at most this share of the budget (simulations and seconds) goes to the track stage's CMA-ES.
+        kinematic_share: share of the remaining budget (simulations and seconds) for a first IoU stage over
+            positions and velocities only (when `params` has more groups).
         track_sigma: multiplies the score stages' CMA-ES steps when the track stage found the start.
         sigma_scale: multiplies the initial CMA-ES steps (`param_space`'s 0.3 m, 0.5 m/s, 0.15 per quaternion
             component, ...; see `DEFAULT_SIGMA_SCALE`).
@@ -309,7 +319,18 @@ def refine(
     kinematic = _groups(params, KINEMATIC)
     if kinematic and before.iou_full < track_below and left.left() >= TRACK_STAGE_SIMS:
         scene, value, r = _track_stage(
-            best, best_v, observed, params, frozen, left, int(track_share * budget), seed, flow_weight, nthread, trace
+            best,
+            best_v,
+            observed,
+            params,
+            frozen,
+            left,
+            int(track_share * budget),
+            track_share * seconds,
+            seed,
+            flow_weight,
+            nthread,
+            trace,
         )
         restarts += r
         if value > best_v:
@@ -317,10 +338,13 @@ def refine(
             sigma_scale *= track_sigma  # the fit is close: search near it first
 
     objective = score_objective(observed, flow_weight=flow_weight, nthread=nthread)
-    stages = [("score", list(params), None)]
+    stages = [("score", list(params), None, None)]
     if kinematic and len(kinematic) < len(params):  # coarse to fine: positions and velocities first
-        stages.insert(0, ("score-kinematic", kinematic, int(kinematic_share * left.left())))
-    for k, (stage, groups, cap) in enumerate(stages):
+        # its share of what is left in simulations AND in seconds: a budget in simulations that time cuts short
+        # (a large --budget with --seconds) must still leave the other groups their turn
+        share_s = kinematic_share * max(seconds - left.elapsed, 0.0)
+        stages.insert(0, ("score-kinematic", kinematic, int(kinematic_share * left.left()), share_s))
+    for k, (stage, groups, cap, cap_s) in enumerate(stages):
         if left.left() <= 0 or (stop_at is not None and best_v >= stop_at):
             break
         space = _space(best, groups, frozen)
@@ -333,6 +357,7 @@ def refine(
             seed=seed + 1 + k,
             stop_at=stop_at,
             max_sims=cap,
+            max_seconds=cap_s,
             sigma_scale=sigma_scale,
         )
         restarts += found.restarts

@@ -64,14 +64,17 @@ def cmaes_search(
     patience: int = 8,
     min_improvement: float = 1e-3,
     max_sims: int | None = None,
+    max_seconds: float | None = None,
 ) -> Search:
     """Maximise `objective` over the space from x0 (whose value is value0) with IPOP-style CMA-ES restarts.
 
     Each generation is one `objective` call. A run restarts from the best point so far when CMA-ES reports
     convergence or the best value has not improved by `min_improvement` for `patience` generations; restarts
     alternate a wider search with a doubled population and a narrower local one. Candidates that do not decode
-    to a valid scene count as the generation's worst.
+    to a valid scene count as the generation's worst. `max_sims` and `max_seconds` cap this search's own share of
+    the shared `budget` (a stage of a refinement).
     """
+    started = time.perf_counter()
     rng = np.random.default_rng(seed)
     best_x, best_v = np.asarray(x0, float).copy(), float(value0)
     best_scene = space.decode(best_x)
@@ -98,7 +101,8 @@ def cmaes_search(
         run_best, stall = best_v, 0
         while True:
             left = budget.left() if max_sims is None else min(budget.left(), max_sims - spent)
-            if left < pop or (stop_at is not None and best_v >= stop_at):
+            out_of_time = max_seconds is not None and time.perf_counter() - started >= max_seconds
+            if left < pop or out_of_time or (stop_at is not None and best_v >= stop_at):
                 return Search(best_x, best_v, best_scene, trace, restarts, generations)
             xs = [es.ask() for _ in range(pop)]
             scenes, ok = [], []

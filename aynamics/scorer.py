@@ -18,11 +18,13 @@ reason=...)`; the others in the batch are scored normally.
 Observed folder layout (what `aynamics render --out DIR` writes; all frames are the full video, frame k = state k):
     segmentation.npy    (T, H, W) int, -1 background, else object index   -- or --
     segmentation/*.png  one mask per frame in natural name order (2.png before 10.png): 0 background, v > 0
-                        object v - 1 (8/16-bit grey), or colour masks where each distinct non-black colour is
-                        one object
+                        object v - 1 (8/16-bit grey, or a palette PNG's index, as DAVIS-style annotations), or
+                        colour masks where each distinct non-black colour is one object (numbered in increasing
+                        0xRRGGBB order; with names in meta.json, give "colours" too)
     flow.npy            optional (T-1, H, W, 2) float pixels at H×W (dx right, dy down), flow k: frame k -> k+1
     occlusion.npy       optional (T-1, H, W) bool, True where the observed flow is occluded
-    meta.json           optional {"names": [...], "fps": 30}: object names for matching by name
+    meta.json           optional {"names": [...], "fps": 30}: object names for matching by name; with colour
+                        masks also "colours": [[r, g, b], ...], the colour of each named object
 The sampled frames are `sample_frames(T)`; masks and flow are resampled to the scorer's resolution by taking the
 pixel nearest each low-resolution pixel centre (flow vectors scaled by the width ratio), and candidates are cast
 through those video pixels' centres (`raycast.SampleGrid`), so a true scene meets its own masks exactly; a video
@@ -169,7 +171,7 @@ class Observation:
         root = Path(path)
         if not root.is_dir():
             raise FileNotFoundError(2, f"observed folder {str(root)!r} does not exist", str(root))
-        seg = _load_segmentation(root)  # (T, H, W)
+        seg, colours = _load_segmentation(root)  # (T, H, W); colour masks: each id's 0xRRGGBB code
         lo, hi = int(seg.min(initial=-1)), int(seg.max(initial=-1))
         if lo < -1 or hi > MAX_OBJECT_ID:  # the int16 masks below wrapped 40000 to -25536: silently background
             bad = lo if lo < -1 else hi
@@ -218,6 +220,8 @@ class Observation:
                 if not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
                     raise ValueError(f"{root / 'meta.json'}: names = {names!r}: must be a list of object names")
                 names = tuple(names)
+                if colours is not None:  # ids of colour masks follow the colour codes, not the names' order
+                    seg = _colour_ids(root / "meta.json", meta.get("colours"), names, colours, seg)
             if not (isinstance(fps, int) and not isinstance(fps, bool) and 1 <= fps <= 1000):
                 raise ValueError(
                     f"{root / 'meta.json'}: fps = {fps!r}: must be a whole number of frames per second >= 1"
@@ -265,24 +269,56 @@ def _load_npy(path: Path, kind: type) -> np.ndarray:
     return a
 
 
-def _load_segmentation(root: Path) -> np.ndarray:
+def _colour_ids(meta: Path, listed, names: tuple[str, ...], codes: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """Renumber colour-mask ids (`codes[j]`: 0xRRGGBB of id j) so that id k is the object of `listed[k]`, the colour
+    meta.json gives `names[k]`."""
+    if listed is None:
+        raise ValueError(
+            f"{meta}: names {list(names)} with colour masks: the masks number their objects by colour code "
+            f'(0xRRGGBB: {", ".join(f"#{c:06x}" for c in codes)}), not in the names\' order; add "colours": '
+            "[[r, g, b], ...], one per name, or use grey masks (value v = object v - 1)"
+        )
+    ok = isinstance(listed, list) and len(listed) == len(names)
+    ok = ok and all(
+        isinstance(c, list) and len(c) == 3 and all(isinstance(x, int) and 0 <= x <= 255 for x in c) for c in listed
+    )
+    if not ok:
+        raise ValueError(f"{meta}: colours = {listed!r}: must be one [r, g, b] (0-255) per name ({len(names)})")
+    want = [(r << 16) | (g << 8) | b for r, g, b in listed]
+    missing = [f"#{c:06x}" for c in codes if c not in want]
+    if missing:
+        raise ValueError(f'{meta}: the masks hold colour(s) {missing} that "colours" does not list')
+    lut = np.array([want.index(int(c)) for c in codes] + [-1])  # id -1 (background) stays -1
+    return lut[seg]
+
+
+def _load_segmentation(root: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """(T, H, W) object ids (-1 background) and, for colour masks, the 0xRRGGBB code of each id (else None)."""
     if (root / "segmentation.npy").is_file():
         seg = _load_npy(root / "segmentation.npy", int)
         if seg.ndim != 3 or not np.issubdtype(seg.dtype, np.integer):
             raise ValueError(
                 f"{root / 'segmentation.npy'}: shape {seg.shape} dtype {seg.dtype}, expected (T, H, W) int"
             )
-        return seg
+        if np.issubdtype(seg.dtype, np.unsignedinteger):  # no -1: 0 would be object 0, background everywhere
+            raise ValueError(
+                f"{root / 'segmentation.npy'}: dtype {seg.dtype} cannot hold the background id -1: save signed "
+                "ids (-1 background, 0, 1, ... objects), e.g. (masks.astype(int) - 1) for masks with 0 background, "
+                "or write segmentation/*.png (0 background)"
+            )
+        return seg, None
     folder = root / "segmentation"
     files = image_files(folder, (".png",))  # natural order: 2.png before 10.png
     if not files:
         raise FileNotFoundError(2, f"{str(root)!r} has neither segmentation.npy nor segmentation/*.png", str(root))
     import imageio.v3 as iio
+    from PIL import Image
 
     masks = []
     for p in files:
         try:
-            masks.append(iio.imread(p))
+            with Image.open(p) as im:  # a palette PNG (DAVIS-style): its indices, as grey (0 background)
+                masks.append(np.asarray(im) if im.mode == "P" else iio.imread(p))
         except (OSError, ValueError, SyntaxError) as e:  # truncated or not a PNG
             raise ValueError(f"{p}: not a readable PNG mask ({e})") from None
     if len({m.shape for m in masks}) != 1:
@@ -291,14 +327,16 @@ def _load_segmentation(root: Path) -> np.ndarray:
     if stack.ndim == 4 and stack.shape[-1] in (1, 2):  # grey (+ alpha): the grey channel
         stack = stack[..., 0]
     if stack.ndim == 3:  # grey: value v > 0 is object v - 1
-        return stack.astype(np.int32) - 1
+        return stack.astype(np.int32) - 1, None
     if stack.ndim != 4 or stack.shape[-1] not in (3, 4):
         raise ValueError(f"{folder}: masks of shape {masks[0].shape}: need grey, grey + alpha, RGB or RGBA images")
     rgb = stack[..., :3].astype(np.int64)
     code = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
     colours, ids = np.unique(code, return_inverse=True)
     ids = ids.reshape(code.shape).astype(np.int32)
-    return ids - 1 if colours[0] == 0 else ids  # black is background
+    if colours[0] == 0:  # black is background
+        return ids - 1, colours[1:]
+    return ids, colours
 
 
 # --------------------------------------------------------------------------------------------

@@ -350,3 +350,16 @@ def test_write_animation_gif_and_mp4_read_back(tmp_path):
             assert abs(cols.min() - 4 * k) <= (0 if name.endswith("gif") else 1), (name, k, cols)
     with pytest.raises(ValueError, match="'a.avi'.*.gif or .mp4"):
         write_animation("a.avi", [[video]], [[""]])
+
+
+def test_a_named_object_after_the():
+    """'set the mass of the crate to 3 kg' for an object named crate: 'the crate' was looked up as a name and
+    refused ("object 'the crate' not found; the scene has ['crate']"), though 'the box' worked."""
+    from aynamics.scene import parse
+
+    crate = parse(
+        "- {type: box, name: crate, size: [0.2, 0.2, 0.2], state: {position: [0, 1, 0.2]}}\n"
+        "- {type: camera, position: [0, -2, 3]}\n"
+    )
+    (change,) = apply_instruction(crate, "set the mass of the crate to 3 kg").changes
+    assert (change.path, change.after) == ("crate.physics.mass", 3.0)

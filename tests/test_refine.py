@@ -189,6 +189,26 @@ def test_refine_stages_coarse_to_fine(truth):
     assert {t[3] for t in only.trace} == {"start", "score"}
 
 
+def test_a_budget_time_cuts_short_still_reaches_every_group(truth):
+    """--budget 100000000 --seconds 8 (time the limit) gave the positions-and-velocities stage half of the
+    simulations, so it ran until the seconds were gone and the other chosen groups (here friction; by default
+    orientation and spin) were never searched. Its share is now of the seconds left too."""
+    from aynamics.scorer import Observation
+
+    obs = Observation.from_scene(truth)
+    pred = _shift(truth, (0.35, -0.25, 0.0), (-0.8, 0.5, 0.0))
+    result = refine(
+        [pred], obs, params=["position", "linear_velocity", "friction"], budget=10**9, seconds=2.0, track_below=0.0
+    )
+    stages = [t[3] for t in result.trace]
+    assert stages.count("score-kinematic") > 0 and stages.count("score") > 0, stages
+    empty = Budget(10_000, 60.0)
+    space = param_space(pred, ["position"])
+    objective = trajectory_objective(truth, nthread=1)
+    found = cmaes_search(objective, space, space.encode(pred), 0.0, empty, max_seconds=0.0)
+    assert found.generations == 0 and empty.used == 0
+
+
 def test_refine_warm_starts_from_best_sample(truth):
     from aynamics.scorer import Observation
 

@@ -338,3 +338,42 @@ def test_observation_simulates_up_to_its_last_frame():
     seg = np.zeros((2, 4, 4), np.int16)
     assert scorer.Observation(seg, np.array([0, 40]), 4, 4).config.duration == pytest.approx(41 / 30)
     assert scorer.Observation(seg, np.array([0, 3]), 4, 4).config.duration == pytest.approx(1.0)
+
+
+def test_unsigned_segmentation_npy_is_refused_naming_the_file(tmp_path):
+    """uint8 masks (0 background, as most tools save them) cannot hold -1: min(initial=-1) raised OverflowError (a
+    traceback from `refine`/`score`); now a ValueError naming the file and the fix."""
+    np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.uint8))
+    with pytest.raises(ValueError, match=r"segmentation.npy: dtype uint8 cannot hold the background id -1"):
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+
+
+def test_colour_and_palette_masks_follow_the_names_in_meta_json(tmp_path):
+    """Names in meta.json pair by index with mask ids. RGB masks number objects by colour code, so red 'a' and
+    green 'b' were read as ids 1 and 0 and the names swapped: refused without "colours", right with them.
+    A palette PNG (DAVIS-style) is read by its indices, like grey (index 1 is object 0)."""
+    from PIL import Image
+
+    red, green = (255, 0, 0), (0, 255, 0)
+    img = np.zeros((8, 8, 3), np.uint8)
+    img[:, :4], img[:, 4:] = red, green
+    rgb = tmp_path / "rgb"
+    (rgb / "segmentation").mkdir(parents=True)
+    for k in range(30):
+        iio.imwrite(rgb / "segmentation" / f"{k:03d}.png", img)
+    (rgb / "meta.json").write_text(json.dumps({"names": ["a", "b"]}))
+    with pytest.raises(ValueError, match=r"colour masks.*add \"colours\""):
+        scorer.Observation.from_dir(rgb, width=8, height=8)
+    (rgb / "meta.json").write_text(json.dumps({"names": ["a", "b"], "colours": [list(red), list(green)]}))
+    seg = scorer.Observation.from_dir(rgb, width=8, height=8).segmentation
+    assert (seg[:, :, :4] == 0).all() and (seg[:, :, 4:] == 1).all()
+    pal = tmp_path / "pal"
+    (pal / "segmentation").mkdir(parents=True)
+    index = np.zeros((8, 8), np.uint8)
+    index[:, :4], index[:, 4:] = 1, 2
+    for k in range(30):
+        im = Image.fromarray(index, mode="P")
+        im.putpalette([0, 0, 0, 128, 0, 0, 0, 128, 0])  # index 2's colour sorts before index 1's
+        im.save(pal / "segmentation" / f"{k:03d}.png")
+    seg = scorer.Observation.from_dir(pal, width=8, height=8).segmentation
+    assert (seg[:, :, :4] == 0).all() and (seg[:, :, 4:] == 1).all()
