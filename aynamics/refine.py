@@ -274,7 +274,7 @@ def refine(
     Args:
         initial: the prediction, or several (e.g. N samples): the best-scoring one is the warm start.
         observed: the observation (segmentation, optional flow) to match.
-        params: parameter groups to search (see `param_space`).
+        params: parameter groups to search (see `param_space`); a string names one or more (comma-separated).
         budget: simulations in all (each scored or track candidate is one); the track stage runs only when
             `TRACK_STAGE_SIMS` (24) are left for it, so a small budget goes to the score stages alone.
         seconds: wall-time budget; the search stops at the first generation past it.
@@ -297,6 +297,8 @@ def refine(
     from aynamics.scorer import score
 
     start_t = time.perf_counter()
+    if isinstance(params, str):  # "position" or "position, mass": one string, not its characters
+        params = params.replace(",", " ").split()
     scenes = [initial] if isinstance(initial, Scene) else list(initial)
     if not scenes:
         raise ValueError("refine: no initial scene given")

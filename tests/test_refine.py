@@ -648,3 +648,14 @@ def test_trajectory_objective_is_minus_the_mean_centre_distance():
     flying = parse(sphere.format(5, 20) + cam + "- type: gravity\n  gravity: [0, 0, 0]\n")
     objective = trajectory_objective(target, config=SimConfig(duration=60, fps=2), nthread=1)
     assert objective([flying, target]) == [-100.0, 0.0]
+
+
+def test_refine_takes_its_groups_as_one_string(truth):
+    """`refine(..., params="position")` answered "unknown group 'p'" (the string was taken as its characters)."""
+    from aynamics.scorer import Observation
+
+    observed = Observation.from_scene(truth)
+    one = refine(truth, observed, params="box_0.position", budget=4)
+    assert one.after.iou_full == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="unknown group 'spin'"):
+        refine(truth, observed, params="position, spin", budget=4)
