@@ -655,7 +655,7 @@ def test_refine_takes_its_groups_as_one_string(truth):
     from aynamics.scorer import Observation
 
     observed = Observation.from_scene(truth)
-    one = refine(truth, observed, params="box_0.position", budget=4)
+    one = refine(truth, observed, params="position", budget=4)
     assert one.after.iou_full == pytest.approx(1.0)
     with pytest.raises(ValueError, match="unknown group 'spin'"):
         refine(truth, observed, params="position, spin", budget=4)
