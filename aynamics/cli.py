@@ -206,6 +206,10 @@ def missing_file_message(e: FileNotFoundError) -> str:
     return f"file not found: {e.filename}"
 
 
+# The machine's refusals to write (a full disk or quota, a read-only or foreign folder): one line, not a traceback
+WRITE_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM})
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser(argv)
     try:
@@ -222,6 +226,11 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # e.g. `aynamics ... | head`
         sys.stderr.close()
         return 0
+    except OSError as e:
+        if e.errno not in WRITE_ERRORS:  # anything else is unexpected: its traceback helps
+            raise
+        sys.stderr.write(f"aynamics: {e.strerror}: {e.filename}\n" if e.filename else f"aynamics: {e}\n")
+        return 1
     except KeyboardInterrupt:
         sys.stderr.write("aynamics: interrupted\n")
         return 130

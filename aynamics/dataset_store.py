@@ -274,8 +274,12 @@ def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None
         write_manifest(out, manifest)
     tmp = out / f".assemble-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
-    with quiet_datasets():
-        dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 empty file
+    try:
+        with quiet_datasets():
+            dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 file
+    except BaseException:  # a full disk or a kill: no hidden copy of the data set left holding the space
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     with _exclusive(out / ".assemble.lock"):  # shards that finish together move their (equal) splits in turn
         (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
         for s in SPLITS:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -110,6 +111,33 @@ def test_resume_after_interruption(reference, tmp_path, monkeypatch):
     assert made == [2, 3]  # chunk 0 (scenes 0, 1) was not redone
     assert not list((tmp_path / "run" / "chunks").glob(".tmp-*"))
     assert _rows(path) == _rows(reference)
+
+
+@needs_gl
+def test_a_full_disk_during_assembly_leaves_no_hidden_copy(reference, tmp_path, monkeypatch, capsys):
+    """Assembly writes the data set beside its place first: a full disk there left that hidden `.assemble-PID`
+    copy, which no later run removed (it kept the space); the command says so in one line, exit 1."""
+    import errno
+
+    from datasets import DatasetDict
+
+    from aynamics.cli import main
+
+    out = tmp_path / "copy"
+    shutil.copytree(reference, out)
+    (out / "dataset_dict.json").unlink()
+
+    def full(self, path, **kwargs):
+        Path(path, "train").mkdir(parents=True)
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(DatasetDict, "save_to_disk", full)
+    with pytest.raises(OSError):
+        gen.assemble(out)
+    assert not list(out.glob(".assemble-*"))
+    assert main(["generate", "--num", str(NUM), "--out", str(out), "--assemble"]) == 1
+    assert capsys.readouterr().err == f"aynamics: No space left on device: {out / '.assemble-'}{os.getpid()}\n"
+    assert not list(out.glob(".assemble-*"))
 
 
 @needs_gl
