@@ -6,29 +6,21 @@ from __future__ import annotations
 import errno
 import json
 import sys
-from pathlib import Path
 
 import lightning as L
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from train_fixtures import tiny_dataset
+from train_fixtures import ROOT, tiny_dataset, train_cfg
 
 from aynamics import lm
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-FAST = ["data.num_frames=2", "data.batch_size=2", "data.limit_val=2", "logger=none"]
+_cfg = train_cfg
 
 
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory):
     return tiny_dataset(tmp_path_factory)
-
-
-def _cfg(out: Path, *overrides: str):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=[f"output_dir={out}", *FAST, *overrides])
 
 
 class FailInValidation(L.Callback):

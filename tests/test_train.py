@@ -17,29 +17,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from train_fixtures import tiny_dataset
+from train_fixtures import FAST, ROOT, tiny_dataset, train_cfg
 
 from aynamics import lm
 from aynamics.data import SceneDataModule
 from aynamics.processor import model_inputs
 from aynamics.sft import SFTModule
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from train import train  # noqa: E402
 
-FAST = ["data.num_frames=2", "data.batch_size=2", "data.limit_val=2", "logger=none"]
+_cfg = train_cfg
 
 
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory):
     return tiny_dataset(tmp_path_factory)
-
-
-def _cfg(out: Path, *overrides: str):
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=[f"output_dir={out}", *FAST, *overrides])
 
 
 @pytest.mark.parametrize(

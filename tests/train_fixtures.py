@@ -1,5 +1,5 @@
-"""A tiny generated data set shared by the training tests (one copy per test session, also under xdist), and a
-callback that sends the training process SIGTERM.
+"""A tiny generated data set shared by the training tests (one copy per test session, also under xdist), their
+config composition, and a callback that sends the training process SIGTERM.
 
 Made by the real generator (`aynamics.generate`) at 64×48 pixels: 12 scenes, split 5 / 4 / 3.
 """
@@ -16,6 +16,16 @@ import torch
 from filelock import FileLock
 
 NUM_SCENES = 12
+ROOT = Path(__file__).resolve().parents[1]
+FAST = ["data.num_frames=2", "data.batch_size=2", "data.limit_val=2", "logger=none"]  # small, quick training runs
+
+
+def train_cfg(out: Path, *overrides: str):
+    """`conf/config.yaml` composed as `train.py` would be, writing to `out`, with FAST and `overrides`."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=[f"output_dir={out}", *FAST, *overrides])
 
 
 def tiny_dataset(tmp_path_factory) -> Path:
