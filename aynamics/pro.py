@@ -23,6 +23,7 @@ trainable (adapter) weights; `callbacks.AdapterExport` writes the peft adapter, 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -286,10 +287,16 @@ class ProModule(lm.ExactResume, L.LightningModule):
         if not keep.any():
             return seq.sum() * 0.0, seq  # zero loss that still reaches every parameter (DDP-friendly)
         s, rk = seq[keep], r[keep]
+        # a mean over the batch's B videos, a skipped one adding 0 (not over the kept ones): a video's weight is then
+        # the same whether it shares its batch with tied videos or is a micro-batch (accumulation) or rank of its own
         loss = soft_preference_loss(s, rk, hp.tau) if hp.loss == "soft" else pro_ranking_loss(s, rk)
-        if hp.sft_weight > 0:
-            lp, m = tok_lp.view(b, n, -1)[keep], mask.view(b, n, -1)[keep]
-            loss = loss + hp.sft_weight * sft_on_best(lp, m, rk)
+        loss = loss * (len(s) / b)
+        # SFT only where the best candidate is valid (an invalid one scores 0): with skip_ties=false an all-invalid
+        # video's `argmax` is its first candidate, whose broken text the term would teach
+        good = rk.amax(1) > 0
+        if hp.sft_weight > 0 and good.any():
+            lp, m = tok_lp.view(b, n, -1)[keep][good], mask.view(b, n, -1)[keep][good]
+            loss = loss + hp.sft_weight * sft_on_best(lp, m, rk[good]) * (int(good.sum()) / b)
         return loss, seq
 
     def training_step(self, batch: list, batch_idx: int) -> torch.Tensor:
@@ -312,8 +319,11 @@ class ProModule(lm.ExactResume, L.LightningModule):
 
     def validation_step(self, batch: list[UnlabeledVideo], batch_idx: int) -> None:
         hp = self.hparams
-        _, _, greedy, _ = self.sample_and_score(batch, 1, 0.0)
-        _, _, scores, rewards = self.sample_and_score(batch, hp.num_samples, hp.temperature)
+        # its own random stream: the checkpoint of a step is written before that step's validation, which a resumed
+        # run skips, so draws here moved every later training sample (and dropout mask) of the straight run only
+        with own_random_stream(self.device, VAL_SEED + 1_000_003 * self.global_rank + batch_idx):
+            _, _, greedy, _ = self.sample_and_score(batch, 1, 0.0)
+            _, _, scores, rewards = self.sample_and_score(batch, hp.num_samples, hp.temperature)
         modes = rw.evaluation_modes([row[0] for row in greedy], scores, rewards)
         metrics = {f"val/{k}": v for k, v in modes.items()}
         metrics |= {f"val/{k.split('/')[1]}": v for k, v in modes.items() if k.startswith("greedy/")}
@@ -333,6 +343,20 @@ class ProModule(lm.ExactResume, L.LightningModule):
         if not params:
             raise ValueError("the policy has no trainable parameters: apply LoRA or load the adapter trainable")
         return torch.optim.AdamW(params, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+
+
+VAL_SEED = 20_260_601  # validation's sampling seed (per process and batch): the same candidates at every validation
+
+
+@contextlib.contextmanager
+def own_random_stream(device: torch.device, seed: int):
+    """Run the body on torch's generators seeded with `seed` (the CPU's and `device`'s), restored after."""
+    devices = [device] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.random.default_generator.manual_seed(seed)
+        if devices:
+            torch.cuda.manual_seed(seed)  # the current device's
+        yield
 
 
 def has_flow(videos: Sequence[UnlabeledVideo]) -> bool:
@@ -487,5 +511,7 @@ class ProDataModule(L.LightningDataModule):
             batch_size=hp.batch_size,
             sampler=eval_shard(len(self.val_set), self.trainer),
             collate_fn=collate_videos,
+            # its own generator: an iterator draws a worker base seed, from torch's global RNG without one
+            generator=torch.Generator().manual_seed(hp.seed),
             **loader_options(hp.num_workers, self.trainer),
         )

@@ -593,7 +593,7 @@ def _flow_logged_keys(tmp_path, kw) -> None:
         dm.setup("fit")
         assert dm.val_flow is drop
         module = ProModule(SPEC, prompt=PROMPT, num_samples=2)
-        module._trainer = types.SimpleNamespace(datamodule=dm)
+        module._trainer = types.SimpleNamespace(datamodule=dm, global_rank=0)
         score = Score(0.5, 0.5, 1.0, 2.0, True)
         module.sample_and_score = lambda videos, n, t: (None, None, [[score] * n], torch.ones(1, n))
         module.log_dict = lambda metrics, **_: logged.append(set(metrics))
@@ -660,7 +660,7 @@ def test_an_epe_reward_on_videos_without_flow_is_refused_before_sampling(tmp_pat
         dm.setup("fit")
     for metric in ("epe", "mix"):
         module = ProModule(SPEC, prompt=PROMPT, num_samples=2, reward_metric=metric)
-        module._trainer = types.SimpleNamespace(datamodule=dm)
+        module._trainer = types.SimpleNamespace(datamodule=dm, global_rank=0)
         with pytest.raises(ValueError, match=f"reward_metric = '{metric}' scores the flow, but data.dir video 'a'"):
             module.setup("fit")
     module = ProModule(SPEC, prompt=PROMPT, num_samples=2)  # iou: no flow needed
@@ -727,3 +727,106 @@ def test_preferences_take_the_adapters_base_model(tmp_path, dataset_dir, capsys)
     assert f"model path {str(tmp_path / 'qwen3b')!r}" in err and "stage.init_adapter" not in err
     assert cli_main([*args, "--out", str(tmp_path / "q"), "--adapter", str(adapter), "--model", "tiny"]) == 2
     assert "but --model is 'tiny': leave --model out" in capsys.readouterr().err
+
+
+def test_pro_resume_is_exact_across_a_validation_at_the_checkpoint_step(tmp_path, dataset_dir):
+    """The checkpoint of step 2 is written before step 2's validation, which samples (and draws a DataLoader seed);
+    a resumed run skips that validation. Training's random state (LoRA dropout here, online sampling alike) must
+    not depend on it: resumed from step 2, step 3 ends on the straight run's adapter, bit for bit."""
+    from safetensors.torch import load_file
+
+    prefs = _handmade_preferences(dataset_dir, tmp_path / "prefs")
+    three = [f"data.dir={dataset_dir}", "stage.mode=offline", f"stage.preferences_dir={prefs}"]
+    three += ["trainer.max_steps=3", "trainer.val_check_interval=2", "callbacks.checkpoint.every_n_train_steps=2"]
+    three += ["model.lora_dropout=0.3", "stage.temperature=1.0"]
+    train(_cfg(tmp_path / "straight", *three))
+    step2 = tmp_path / "straight" / "checkpoints" / "step000002.ckpt"
+    train(_cfg(tmp_path / "resumed", *three, f"ckpt_path={step2}"))
+    straight = load_file(tmp_path / "straight" / "adapter" / "adapter_model.safetensors")
+    resumed = load_file(tmp_path / "resumed" / "adapter" / "adapter_model.safetensors")
+    assert set(straight) == set(resumed) and all(torch.equal(straight[k], resumed[k]) for k in straight)
+
+
+def test_validation_leaves_the_training_random_state_alone(dataset_dir):
+    """A validation step (greedy + N samples) and iterating the validation loader draw nothing from torch's
+    global generator, and a validation step samples the same candidates whatever that generator's state."""
+    from types import SimpleNamespace
+
+    from aynamics.pro import ProDataModule
+    from aynamics.tokenizer_build import TINY_ASSET_DIR
+
+    dm = ProDataModule(str(dataset_dir), str(TINY_ASSET_DIR), batch_size=1, num_frames=2, use_flow=False)
+    dm.setup("fit")
+    dm.trainer = SimpleNamespace(global_rank=0, world_size=1)
+    before = torch.get_rng_state()
+    batch = next(iter(dm.val_dataloader()))
+    assert torch.equal(torch.get_rng_state(), before)
+    module = ProModule(
+        SPEC, prompt=dm.prompt, processor=dm.processor, num_samples=2, max_new_tokens=6, temperature=1.0, nthread=1
+    )
+    module._trainer = SimpleNamespace(datamodule=dm, global_rank=0, world_size=1, num_nodes=1)
+    logged = []
+    module.log_dict = lambda metrics, **kw: logged.append(metrics)
+    sampled = []
+    real = rw.sample_completions
+
+    def recording(*args, **kw):
+        ids, texts = real(*args, **kw)
+        sampled.append(ids)
+        return ids, texts
+
+    import aynamics.reward
+
+    aynamics.reward.sample_completions = recording
+    try:
+        torch.manual_seed(1)
+        before = torch.get_rng_state()
+        module.validation_step(batch, 0)
+        assert torch.equal(torch.get_rng_state(), before)
+        torch.manual_seed(2)
+        module.validation_step(batch, 0)
+    finally:
+        aynamics.reward.sample_completions = real
+    assert sampled[1] == sampled[3]  # the N samples: the same at every validation
+
+
+def test_sft_term_never_imitates_an_invalid_candidate(dataset_dir):
+    """skip_ties=false, sft_weight=1: a video whose candidates are all invalid (rewards 0) adds its soft-preference
+    term (uniform targets) but no SFT term (argmax of the zeros is candidate 0, an invalid text); a video with a
+    valid best candidate adds the SFT term on it."""
+    from aynamics.preference import sft_on_best, soft_preference_loss
+    from aynamics.processor import token_logprobs
+
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=4, skip_ties=False, sft_weight=1.0, tau=0.1).eval()
+    module.ensure_processor()
+    prompts, ids, rewards = _fixed_candidates(module, dataset_dir)
+    with torch.no_grad():
+        zeros = torch.zeros(2, 4)
+        loss, seq = module.preference_loss(prompts, ids, zeros)
+        assert loss.item() == pytest.approx(soft_preference_loss(seq, zeros, 0.1).item(), abs=1e-5)
+        mixed = torch.stack([zeros[0], rewards[1]])
+        loss, seq = module.preference_loss(prompts, ids, mixed)
+        pad = module.processor.tokenizer.pad_token_id
+        one = rw.candidate_batch(prompts[1:], ids[1:], pad, forbidden=rw.vision_token_ids(module.model))
+        from aynamics.processor import model_inputs
+
+        lp, m = token_logprobs(module.model(**model_inputs(one)).logits, one["labels"])
+        sft = sft_on_best(lp.view(1, 4, -1), m.view(1, 4, -1), rewards[1:])
+    # the SFT term is a mean over the batch's 2 videos, the all-invalid one adding 0
+    assert loss.item() == pytest.approx(soft_preference_loss(seq, mixed, 0.1).item() + sft.item() / 2, abs=1e-4)
+
+
+@pytest.mark.parametrize("loss", ["soft", "ranking"])
+def test_a_videos_weight_does_not_depend_on_how_videos_are_batched(dataset_dir, loss):
+    """Two videos, one whose candidates all tie (skipped) and one informative: one batch of both gives the loss that
+    two micro-batches of one video each give under accumulate_grad_batches=2 (Lightning: the mean of their losses)
+    or two ddp ranks (the mean of their gradients): 0 and the informative video's loss, averaged."""
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=4, loss=loss, tau=0.1).eval()
+    module.ensure_processor()
+    prompts, ids, rewards = _fixed_candidates(module, dataset_dir)
+    rewards = torch.stack([torch.zeros(4), rewards[1]])
+    with torch.no_grad():
+        together, _ = module.preference_loss(prompts, ids, rewards)
+        apart = [module.preference_loss(prompts[k : k + 1], ids[k : k + 1], rewards[k : k + 1])[0] for k in (0, 1)]
+    assert apart[0].item() == 0.0 and apart[1].item() > 0
+    assert together.item() == pytest.approx((apart[0] + apart[1]).item() / 2, rel=1e-5)
