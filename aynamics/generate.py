@@ -87,6 +87,13 @@ if TYPE_CHECKING:  # rendering is imported inside the workers only
     from aynamics.render import Frames, Renderer
 
 
+# Raise when the same rollout gets other labels (rest_time, reasoning text): a run whose chunks were labelled by
+# other code is neither resumed nor assembled with this one (absent: 1). 2: rest from the frame's mean speed (a
+# resting object's contact jitter is not motion), occlusion told apart from leaving the view, heights above the
+# floor plane.
+LABELS_VERSION = 2
+
+
 @dataclass(frozen=True)
 class GenerateConfig:
     """How records are made (not which ones: that is `seed` and `num`).
@@ -153,6 +160,7 @@ class GenerateConfig:
         data.pop("workers")
         data["substeps"] = self.sim.substeps  # the steps the records were made with (None: from fps)
         data["physics"] = PHYSICS_VERSION  # chunks simulated by other code are not mixed in (absent: before 2)
+        data["labels"] = LABELS_VERSION  # chunks whose rest times / reasoning were derived otherwise are not mixed in
         return data
 
 
@@ -546,7 +554,8 @@ def make_record(index: int, seed: int, config: GenerateConfig, renderer, given: 
     n = len(scene.objects)
     visible = rs.visibility(fr["segmentation"], n, config.min_pixels)
     times = rollout.t[fr["frames"]]
-    text = rs.reasoning_text(scene, rollout, visible, times, seed=scene_seed)
+    inside = rs.centres_in_picture(fr["camera"], rollout.position[fr["frames"]])
+    text = rs.reasoning_text(scene, rollout, visible, times, seed=scene_seed, in_picture=inside)
     yaml_text = dump(scene)
     cam = fr["camera"]
     radii = np.array([bounding_radius(o) for o in scene.objects])

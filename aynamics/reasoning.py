@@ -6,7 +6,7 @@ visibility from segmentation masks (`visibility`). Shape, size and mass are the 
 
 Position bins (seven per axis, metres, world frame; the camera looks along +y):
 
-| bin | x                | y (depth from the camera) | z (height)              |
+| bin | x                | y (depth from the camera) | z (height above the floor) |
 | --- | ---------------- | ------------------------- | ----------------------- |
 | v < -2          | far left         | far in the foreground     | far below the surface   |
 | -2 <= v < -1    | moderately left  | in the foreground         | below the surface       |
@@ -81,6 +81,19 @@ def position_words(position: np.ndarray) -> tuple[str, str, str]:
     return tuple(BIN_WORDS[a][position_bin(position[i])] for i, a in enumerate("xyz"))  # type: ignore[return-value]
 
 
+def floor_heights(scene: Scene, position: np.ndarray) -> np.ndarray:
+    """Heights (..., ) m of points (..., 3) above the scene's floor plane (`environment.floor_offset`, tilted by
+    `floor_tilt`), along its normal: the world z when the scene has no environment item."""
+    from aynamics.simulate import _tilt_quaternion, quat_to_mat
+
+    env = scene.environment
+    pos = np.asarray(position, dtype=float)
+    if env is None:
+        return pos[..., 2]
+    normal = quat_to_mat(_tilt_quaternion(*env.floor_tilt))[:, 2]
+    return (pos - np.array([0.0, 0.0, env.floor_offset])) @ normal
+
+
 def direction_words(velocity: np.ndarray) -> list[str]:
     """Named directions of a velocity (3,), e.g. ['rightward', 'forward']; empty when at rest."""
     speed = float(np.linalg.norm(velocity))
@@ -104,6 +117,16 @@ def visibility(segmentation: np.ndarray, num_objects: int, min_pixels: int = MIN
     if counts is None:
         return np.zeros((0, num_objects), dtype=bool)
     return counts[:, 1:] >= min_pixels
+
+
+def centres_in_picture(camera, position: np.ndarray) -> np.ndarray:
+    """(F, N) bool: the centre of object i at sampled state f (`position` (F, N, 3), world) projects inside the
+    image of `camera` (`camera.CameraMatrices`) in front of it."""
+    pos = np.asarray(position, dtype=float)
+    uv, z = camera.project(pos.reshape(-1, 3))
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return inside.reshape(pos.shape[:2])
 
 
 # --------------------------------------------------------------------------------------------
@@ -155,6 +178,12 @@ _COLLIDES = ("Collides with {other} at t={t}s.", "Hits {other} at t={t}s.", "Mak
 _VISIBLE = ("{name} visible in {k}/{n} frames", "{name} is seen in {k}/{n} frames", "{name} appears in {k}/{n} frames")
 _LEAVES = ("leaves the view at t={t}s", "exits the frame at t={t}s", "goes out of view at t={t}s")
 _ENTERS = ("enters the view at t={t}s", "comes into the frame at t={t}s", "becomes visible at t={t}s")
+_HIDES = (  # no pixels while its centre is inside the picture: another object covers it, it did not leave
+    "is hidden behind another object at t={t}s",
+    "disappears behind another object at t={t}s",
+    "is covered by another object at t={t}s",
+)
+_REAPPEARS = ("reappears at t={t}s", "comes out from behind another object at t={t}s", "is uncovered at t={t}s")
 _SUMMARY_HITS = ("Interactions: {hits}.", "Summary of interactions: {hits}.", "Collisions: {hits}.")
 _SUMMARY_NONE = (
     "Interactions: no collisions between objects.",
@@ -197,7 +226,14 @@ def _cylinder_pose(orientation: np.ndarray) -> str:
     return "upright" if abs(axis_z) >= np.cos(np.pi / 4) else "lying"
 
 
-def reasoning_text(scene: Scene, rollout: Rollout, visible: np.ndarray, frame_times: np.ndarray, seed: int = 0) -> str:
+def reasoning_text(
+    scene: Scene,
+    rollout: Rollout,
+    visible: np.ndarray,
+    frame_times: np.ndarray,
+    seed: int = 0,
+    in_picture: np.ndarray | None = None,
+) -> str:
     """The motion-reasoning text of a simulated scene.
 
     Args:
@@ -206,12 +242,18 @@ def reasoning_text(scene: Scene, rollout: Rollout, visible: np.ndarray, frame_ti
         visible: (F, N) bool per sampled frame, from `visibility(segmentation, N)`.
         frame_times: (F,) s, time of each sampled frame.
         seed: picks one paraphrase template per fact.
+        in_picture: (F, N) bool, the object's centre projects inside the image (`centres_in_picture`): an object
+            that has no pixels there is hidden behind another one, not out of view. None: every change of
+            `visible` is told as leaving or entering the view.
     """
     n = len(scene.objects)
     visible = np.asarray(visible, dtype=bool)
     frame_times = np.asarray(frame_times, dtype=float)
     if visible.shape != (len(frame_times), n):
         raise ValueError(f"visible shape {visible.shape}: must be (frames, objects) = ({len(frame_times)}, {n})")
+    inside = np.zeros_like(visible) if in_picture is None else np.asarray(in_picture, dtype=bool)
+    if inside.shape != visible.shape:
+        raise ValueError(f"in_picture shape {inside.shape}: must be the shape of visible, {visible.shape}")
     if not rollout.valid:
         raise ValueError(f"rollout is invalid ({rollout.reason}): no reasoning text for a diverged simulation")
     rng = np.random.default_rng(seed)
@@ -221,7 +263,8 @@ def reasoning_text(scene: Scene, rollout: Rollout, visible: np.ndarray, frame_ti
         slots = {"Name": name[:1].upper() + name[1:], "mass": _f(obj.physics.mass), **_shape_slots(obj)}
         if isinstance(obj, Cylinder):
             slots["pose"] = _cylinder_pose(rollout.orientation[0, i])
-        x, y, z = position_words(rollout.position[0, i])
+        x, y, _ = position_words(rollout.position[0, i])
+        z = BIN_WORDS["z"][position_bin(floor_heights(scene, rollout.position[0, i : i + 1])[0])]
         text = _pick(rng, _SHAPE[obj.type]).format(**slots) + _pick(rng, _POSITION).format(x=x, y=y, z=z)
         v0 = rollout.linear_velocity[0, i]
         dirs = direction_words(v0)
@@ -257,9 +300,9 @@ def reasoning_text(scene: Scene, rollout: Rollout, visible: np.ndarray, frame_ti
         events = []
         for k in range(1, len(vis)):
             if vis[k - 1] and not vis[k]:
-                events.append(_pick(rng, _LEAVES).format(t=_f(frame_times[k])))
+                events.append(_pick(rng, _HIDES if inside[k, i] else _LEAVES).format(t=_f(frame_times[k])))
             elif vis[k] and not vis[k - 1]:
-                events.append(_pick(rng, _ENTERS).format(t=_f(frame_times[k])))
+                events.append(_pick(rng, _REAPPEARS if inside[k - 1, i] else _ENTERS).format(t=_f(frame_times[k])))
         seen.append(sentence + ("; " + ", ".join(events) if events else "") + ".")
     lines.append("Visibility: " + " ".join(seen))
 

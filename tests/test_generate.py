@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -516,3 +517,29 @@ def test_a_run_made_by_other_physics_is_neither_resumed_nor_read_silently(tmp_pa
     split = datasets.Dataset.from_dict({"frame_indices": [[0, 3]]})
     with pytest.warns(UserWarning, match="simulated with physics version 1, this code simulates version 2"):
         with_clock(PromptSpec(), out, split)
+
+
+@needs_gl
+def test_an_occluded_object_is_hidden_not_out_of_view():
+    """Record 15 of seed 0 (64×48): sphere_0 passes behind cylinder_0 in the middle of the picture (its centre
+    projects to about pixel (31, 15), covered by cylinder_0's mask). The text said it "leaves the view" / "exits
+    the frame" at 0.40 s and 0.70 s."""
+    from aynamics.render import Renderer
+
+    cfg = gen.GenerateConfig(width=64, height=48, workers=0)
+    with Renderer(64, 48) as renderer:
+        rec = gen.make_record(15, 0, cfg, renderer)
+    vis_line = rec["reasoning"].split("Visibility: ")[1].split("\n")[0]
+    sphere = vis_line.split("sphere_0 ")[1].split(" box_0 ")[0]
+    assert not rec["states"]["visible"][4][1]  # the record has the occlusion this test is about
+    assert "t=0.40s" in sphere and not re.search(r"leaves the view|exits the frame|goes out of view", sphere), sphere
+
+
+def test_a_run_labelled_by_older_code_is_not_resumed(tmp_path):
+    """The manifest records the labels version; a folder whose manifest has none (labels 1) is another run."""
+    assert CFG.to_json()["labels"] == gen.LABELS_VERSION
+    old = {"format": gen.FORMAT_VERSION, "num": 2, "seed": 0, "config": {**CFG.to_json()}}
+    del old["config"]["labels"]
+    (tmp_path / gen.MANIFEST).write_text(json.dumps(old))
+    with pytest.raises(ValueError, match="labels"):
+        gen.write_manifest(tmp_path, {"format": gen.FORMAT_VERSION, "num": 2, "seed": 0, "config": CFG.to_json()})

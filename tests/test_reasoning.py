@@ -168,3 +168,48 @@ def test_bad_input_is_named(simulated):
     scene, rollout = simulated[0]
     with pytest.raises(ValueError, match=r"visible shape \(3, 1\)"):
         rs.reasoning_text(scene, rollout, np.ones((3, 1), bool), np.zeros(3))
+
+
+def test_an_object_hidden_behind_another_is_not_said_to_leave_the_view(simulated):
+    """No pixels while the centre is inside the picture: "hidden behind another object", then "reappears"; only an
+    object whose centre is out of the picture "leaves the view"."""
+    scene, rollout = simulated[0]
+    n = len(scene.objects)
+    visible = np.ones((len(FRAMES), n), dtype=bool)
+    visible[3:5, 0] = False  # covered by another object at frames 9 and 12
+    visible[7:, 1] = False  # out of the picture from frame 21
+    inside = np.ones_like(visible)
+    inside[7:, 1] = False
+    times = rollout.t[FRAMES]
+    for seed in range(3):
+        line = rs.reasoning_text(scene, rollout, visible, times, seed=seed, in_picture=inside).split("\n")
+        vis_line = next(ln for ln in line if ln.startswith("Visibility:"))
+        first, second = vis_line.split(f" {rollout.names[1]} ")[0], vis_line.split(f" {rollout.names[1]} ")[1]
+        assert re.search(r"(?:hidden behind|disappears behind|covered by) another object at t=0\.30s", first), first
+        assert re.search(r"(?:reappears|comes out from behind another object|is uncovered) at t=0\.50s", first), first
+        assert not re.search(r"leaves the view|exits the frame|goes out of view|enters the view", first), first
+        assert re.search(r"(?:leaves the view|exits the frame|goes out of view) at t=0\.70s", second), second
+
+
+def test_the_height_words_are_above_the_floor_where_the_floor_is():
+    """A ball resting on a floor raised by `environment.floor_offset` 0.5 m (centre at z = 0.8) is "close to the
+    surface", as it touches the ground the whole second; it was called "slightly raised" (world z)."""
+    from aynamics.simulate import simulate
+
+    scene = parse(
+        """
+- type: sphere
+  radius: 0.3
+  state: {position: [0, 1, 0.8], orientation: [1, 0, 0, 0], linear_velocity: [0, 0, 0], angular_velocity: [0, 0, 0]}
+  physics: {mass: 1.0, friction: [0.5, 0.05], damping: -4}
+- type: camera
+  fovy: 50
+  orientation: 45
+  position: [0, -2, 3.5]
+- type: environment
+  floor_offset: 0.5
+"""
+    )
+    rollout = simulate(scene)
+    text = rs.reasoning_text(scene, rollout, rollout.in_view[FRAMES], rollout.t[FRAMES])
+    assert "close to the surface" in text and "raised" not in text, text
