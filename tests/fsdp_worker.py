@@ -51,6 +51,7 @@ def main(rank: int, dataset: str, out: str) -> None:
     data_parallel, sharded = grads(False), grads(True)
     if rank == 0:
         torch.save({"ddp": data_parallel, "fsdp": sharded}, out)
+    dist.barrier()  # neither process tears gloo down while the other still uses it (one aborted under load)
     dist.destroy_process_group()
 
 
