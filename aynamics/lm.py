@@ -212,6 +212,8 @@ class ModelSpec:
                 f"model attn_implementation = {self.attn_implementation!r}: must be one of {kernels} or null "
                 f"(transformers' default) for kind = {self.kind!r}"
             )
+        if self.path is not None:
+            object.__setattr__(self, "path", local_path(self.path))
         object.__setattr__(self, "lora_targets", tuple(self.lora_targets))
         object.__setattr__(self, "modules_to_save", tuple(self.modules_to_save))
         object.__setattr__(self, "tiny", dict(self.tiny))
@@ -221,6 +223,15 @@ class ModelSpec:
         from aynamics.tokenizer_build import TINY_ASSET_DIR
 
         return str(TINY_ASSET_DIR) if self.kind == "tiny" else str(self.path)
+
+
+def local_path(path: str | Path) -> str:
+    """A checkpoint folder as an absolute path with `~` expanded (an adapter records its base so, and is loaded
+    from any working directory); a hub id ('Qwen/Qwen2.5-VL-3B-Instruct', no such folder here) unchanged."""
+    folder = Path(path).expanduser()
+    if str(path).startswith((".", "/", "~")) or folder.is_dir():
+        return str(folder.resolve())
+    return str(path)
 
 
 def build_base(spec: ModelSpec) -> torch.nn.Module:

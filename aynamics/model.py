@@ -165,6 +165,8 @@ def load_pretrained(
     looks_local = str(name_or_path).startswith((".", "/", "~")) or isinstance(name_or_path, Path)
     if looks_local and not Path(name_or_path).expanduser().is_dir():
         raise FileNotFoundError(f"model path {str(name_or_path)!r} is not a directory (or pass a hub id)")
+    if looks_local:  # from_pretrained takes '~/models/x' for a hub id
+        name_or_path = Path(name_or_path).expanduser()
     if torch.get_default_device().type == "meta":
         return _empty_pretrained(name_or_path, dtype, attn_implementation, local_files_only)
     try:

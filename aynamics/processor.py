@@ -57,6 +57,10 @@ class PixelBoundsError(ValueError):
     """min_pixels above max_pixels: a setting to fix, not a checkpoint that could not be loaded."""
 
 
+# tokens every Qwen2.5-VL tokenizer holds: the chat turn end and the vision markers the processor writes
+VISION_TOKENS = ("<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>", "<|video_pad|>")
+
+
 class ImageOnlyQwenProcessor(Qwen2_5_VLProcessor):
     """Qwen2.5-VL processor whose videos are built from the PIL image processor (no torchvision).
 
@@ -107,10 +111,18 @@ class ImageOnlyQwenProcessor(Qwen2_5_VLProcessor):
         Arguments left as None take the values saved by `save_pretrained` (processor_config.json), else defaults.
         """
         kw = {"local_files_only": local_files_only}
+        if str(name_or_path).startswith("~"):  # from_pretrained takes '~/models/x' for a hub id
+            name_or_path = Path(name_or_path).expanduser()
         saved = _saved_processor_config(name_or_path)
         num_frames = num_frames if num_frames is not None else saved.get("num_frames")
         video_fps = video_fps if video_fps is not None else saved.get("video_fps", 2.0)
         tokenizer = AutoTokenizer.from_pretrained(str(name_or_path), **kw)
+        missing = [t for t in VISION_TOKENS if t not in tokenizer.get_vocab()]
+        if missing:  # a folder without tokenizer files loads a 1-token tokenizer that encodes every text to nothing
+            raise ValueError(
+                f"its tokenizer lacks {', '.join(missing)} (no Qwen2.5-VL tokenizer files: tokenizer.json or "
+                "vocab.json + merges.txt, with tokenizer_config.json)"
+            )
         image_processor = Qwen2VLImageProcessorPil.from_pretrained(str(name_or_path), **kw)
         size = dict(image_processor.size)
         size["shortest_edge"] = min_pixels or size["shortest_edge"]

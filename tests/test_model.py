@@ -232,6 +232,32 @@ def test_load_pretrained_on_meta_follows_the_checkpoint(tmp_path):
         load_pretrained(tmp_path / "empty", local_files_only=True)
 
 
+def test_a_home_relative_or_relative_model_path_is_a_folder(tmp_path, monkeypatch):
+    """model.path '~/x' or './x' loads that folder (from_pretrained took '~/x' for a hub id) and is recorded
+    absolute, so an adapter finds its base from any working directory; a hub id is kept as written. A folder
+    without tokenizer files is refused, naming what is missing (it loaded a 1-token tokenizer that encoded every
+    text to nothing)."""
+    from aynamics.lm import ModelSpec
+    from aynamics.processor import load_processor
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    build_tiny_model().save_pretrained(tmp_path / "qwen")
+    for f in TINY_ASSET_DIR.iterdir():
+        shutil.copy(f, tmp_path / "qwen")
+    assert ModelSpec(kind="pretrained", path="~/qwen").path == str(tmp_path / "qwen")
+    assert ModelSpec(kind="pretrained", path="./qwen").path == str(tmp_path / "qwen")
+    assert ModelSpec(kind="pretrained", path="Qwen/Qwen2.5-VL-3B-Instruct").path == "Qwen/Qwen2.5-VL-3B-Instruct"
+    assert load_pretrained("~/qwen", dtype=torch.float32, local_files_only=True).config.model_type == "qwen2_5_vl"
+    tiny_id = load_processor(TINY_ASSET_DIR).image_token_id
+    assert load_processor("~/qwen", local_files_only=True).image_token_id == tiny_id
+    for f in ("tokenizer.json", "tokenizer_config.json"):
+        (tmp_path / "qwen" / f).unlink()
+    lacks = r"model path '.*qwen': cannot load the processor \(its tokenizer lacks <\|im_end\|>"
+    with pytest.raises(OSError, match=lacks):
+        load_processor(tmp_path / "qwen", local_files_only=True)
+
+
 def test_completion_logprobs_match_the_sft_loss(proc, frames):
     """Scoring N completions of one prompt: the mean token log-prob equals minus the model's own SFT loss."""
     model = build_tiny_model()
