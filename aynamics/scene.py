@@ -80,9 +80,10 @@ RANGES: dict[str, Range] = {
         (2.0, 1.0),
         "-",
         "-",
-        "[sliding μ, rolling-resistance coefficient c_rr]: Coulomb friction against floor and objects, and the "
-        "rolling-resistance torque c_rr·r·N that slows rolling and tumbling (r: sphere/cylinder radius, box smallest "
-        "half-extent). The object's values are used against the floor; two objects use the larger of each",
+        "[sliding μ, rolling-resistance coefficient c_rr]: Coulomb friction against floor and objects, and a "
+        "rolling-resistance torque of at most c_rr·r·N (less when c_rr > μ/2: one friction cone) that slows rolling "
+        "and tumbling (r: sphere/cylinder radius, box smallest half-extent). The object's values are used against the "
+        "floor; two objects use the larger of each",
     ),
     "physics.damping": Range(
         -8.0,
@@ -96,8 +97,9 @@ RANGES: dict[str, Range] = {
         0.95,
         "-",
         "-",
-        "optional: normal bounce coefficient against the floor; two objects take the less bouncy one's (an object "
-        "without one: the other's), and bounce off each other more than e at low e; absent: MuJoCo's soft contact",
+        "optional: normal bounce coefficient, off the floor and objects alike (rebound 0.50-0.60 at e = 0.5, above e "
+        "at low e: it varies with the impact's phase in the physics step); two objects take the less bouncy one's (an "
+        "object without one: the other's); absent: MuJoCo's soft contact (rebound 0.09-0.15)",
     ),
     "physics.magnus": Range(
         -0.05,
@@ -125,10 +127,23 @@ RANGES: dict[str, Range] = {
     "camera.fovy": Range(10.0, 120.0, "deg", "-", "vertical field of view"),
     "gravity.gravity": Range(-30.0, 30.0, "m/s²", "world", "gravitational acceleration vector", (0.0, 0.0, -9.81)),
     "environment.air_density": Range(
-        0.0, 5.0, "kg/m³", "-", "optional: quadratic air drag ½ρC_d A|v|v on every object (MuJoCo fluid model)", 0.0
+        0.0,
+        5.0,
+        "kg/m³",
+        "-",
+        "optional: quadratic air drag on every object, MuJoCo's inertia-box fluid model: ½ρA_i·v_i² against each "
+        "velocity component v_i along the axes of the object's equivalent-inertia box (A_i its face: a box's own; a "
+        "sphere 2.4r² along its axes, 1.39r² along a body diagonal), and a torque on spin",
+        0.0,
     ),
     "environment.air_viscosity": Range(
-        0.0, 5.0, "Pa·s", "-", "optional: linear (Stokes) air drag on every object (MuJoCo <option viscosity>)", 0.0
+        0.0,
+        5.0,
+        "Pa·s",
+        "-",
+        "optional: linear air drag on every object (MuJoCo <option viscosity>): -3πη·d·v, d the mean side of the "
+        "equivalent-inertia box (a sphere: 0.775 of Stokes' 6πηrv), and a torque on spin",
+        0.0,
     ),
     "environment.wind": Range(
         -20.0, 20.0, "m/s", "world", "optional: air velocity; acts through the drag terms only", (0.0, 0.0, 0.0)

@@ -136,7 +136,9 @@ def restitution_solref(
     the spring's ω·dt and b·dt stay where they were measured: MuJoCo integrates the contact explicitly, and the
     same k and b gained energy (e = 0 rebounded higher than the drop at time_scale 2, dt = 1/120 s). At a finer
     step k is kept: stiffer contacts gain energy too (REFERENCE.md: k = 1e5). Measured rebound of a dropped
-    sphere (e = 0 / 0.5 / 0.8): 0.00 / 0.49 / 0.78 at 1/240 and 1/120 s, 0.08 / 0.55 / 0.81 at 1/480 s.
+    sphere, sqrt(rebound height / drop) over drops of 0.1-2 m (it varies with the impact's phase in the step),
+    e = 0 / 0.5 / 0.8: 0.00-0.14 / 0.48-0.60 / 0.77-0.84 at 1/240 s, 0.00-0.08 / 0.46-0.59 / 0.77-0.85 at 1/120 s,
+    0.00-0.11 / 0.50-0.56 / 0.79-0.82 at 1/480 s.
     """
     if e <= 0:
         zeta = 1.0
@@ -173,7 +175,7 @@ def build_spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
     spec = mujoco.MjSpec()
     spec.modelname = "aynamics_scene"
     spec.option.timestep = 1.0 / (FPS * SUBSTEPS)
-    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # exact Coulomb cone: rolling resistance matches c_rr·g/1.4
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # exact Coulomb cone; c_rr·g/1.4 for c_rr ≤ μ/2 (README)
     spec.visual.headlight.active = 0  # lighting comes from the scene's lights (rendering randomises them)
     world = spec.worldbody
     world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=[0, 0, 0])

@@ -223,7 +223,8 @@ def test_restitution_raises_the_bounce():
 def test_restitution_between_two_objects_is_the_less_bouncy_ones():
     """Two equal spheres meet head-on without gravity. MuJoCo takes the element-wise minimum of the two direct-form
     solrefs: the less bouncy sphere's e governs (the README had "the bouncier wins"), a sphere without restitution
-    takes the other's, and the parting speed is above e at low e (the README's measured 0.38 / 0.61 / 0.84)."""
+    takes the other's, and the parting speed is above e at low e (0.38 / 0.61 / 0.84 at this start gap; over the
+    step's phase 0.24-0.38 / 0.50-0.60 / 0.78-0.84, the README's ranges, as off the floor)."""
 
     def parting(e1, e2):
         kw1 = {} if e1 is None else {"restitution": e1}
