@@ -355,7 +355,9 @@ def loader_workers(num_workers: int | None, trainer, cache: bool = False) -> int
         return num_workers
     if _on_cpu(trainer) or cache:
         return 0
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    from aynamics.simulate import usable_cores
+
+    cores = usable_cores()
     environment = getattr(getattr(trainer, "strategy", None), "cluster_environment", None)
     own = bool(os.environ.get("SLURM_CPUS_PER_TASK")) and getattr(environment, "creates_processes_externally", False)
     share = cores if own else cores // max(trainer.num_devices, 1)  # srun's task per GPU has its own cores

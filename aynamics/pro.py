@@ -26,7 +26,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import os
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -260,8 +259,10 @@ class ProModule(lm.ExactResume, L.LightningModule):
         """MuJoCo threads per scoring batch: `nthread`, else this machine's cores shared by the local ranks."""
         if self.hparams.nthread is not None:
             return int(self.hparams.nthread)
+        from aynamics.simulate import usable_cores
+
         ranks = self.trainer.world_size // max(1, self.trainer.num_nodes) if self._trainer is not None else 1
-        return max(1, (os.cpu_count() or 1) // max(1, ranks))
+        return max(1, usable_cores() // max(1, ranks))
 
     def preference_loss(
         self,

@@ -20,7 +20,6 @@ In a multi-GPU run every rank calls these on its own batch, so each rank samples
 from __future__ import annotations
 
 import math
-import os
 from collections import Counter
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -32,6 +31,7 @@ import torch
 from aynamics.processor import append_response, collate, model_inputs, trim_completion
 from aynamics.scene import SceneError, parse
 from aynamics.scorer import EPE_INVALID, Observation, Score, score
+from aynamics.simulate import usable_cores
 
 METRICS = ("iou", "epe", "mix")
 SPANS = ("full", "first")
@@ -135,7 +135,7 @@ def score_completions(
         raise ValueError(f"workers = {workers}: must be >= 1")
     if workers == 1 or len(observations) == 1:
         return [_score_one(c, o, nthread) for c, o in zip(completions, observations, strict=True)]
-    per = max(1, (nthread or os.cpu_count() or 1) // workers)
+    per = max(1, (nthread or usable_cores()) // workers)
     with ThreadPoolExecutor(workers) as pool:
         return list(pool.map(lambda co: _score_one(co[0], co[1], per), zip(completions, observations, strict=True)))
 

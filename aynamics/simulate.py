@@ -476,8 +476,15 @@ def simulate(scene: Scene, config: SimConfig = SimConfig()) -> Rollout:
     return simulate_batch([scene], config, nthread=1)[0]
 
 
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity (a cluster job's allocation, a `taskset`), not the
+    node's count, which `os.cpu_count` gives (8 ranks of a 16-core job on a 128-core node would each start 16
+    MuJoCo threads)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def default_threads() -> int:
-    return max(1, min(os.cpu_count() or 1, 8))
+    return max(1, min(usable_cores(), 8))
 
 
 def simulate_batch(scenes: list[Scene], config: SimConfig = SimConfig(), nthread: int | None = None) -> list[Rollout]:

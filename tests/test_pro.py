@@ -830,3 +830,22 @@ def test_a_videos_weight_does_not_depend_on_how_videos_are_batched(dataset_dir, 
         apart = [module.preference_loss(prompts[k : k + 1], ids[k : k + 1], rewards[k : k + 1])[0] for k in (0, 1)]
     assert apart[0].item() == 0.0 and apart[1].item() > 0
     assert together.item() == pytest.approx((apart[0] + apart[1]).item() / 2, rel=1e-5)
+
+
+def test_scoring_threads_follow_the_cores_this_job_may_use(monkeypatch):
+    """MuJoCo's scoring threads come from the cores the process may run on (its affinity: a cluster job's
+    allocation), shared by the node's ranks, not from the node's count: 8 ranks of a 16-core job on a 128-core node
+    each started 16 threads (helper-64). `stage.module.nthread` still wins."""
+    from types import SimpleNamespace
+
+    from aynamics.simulate import default_threads
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 128)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(16)), raising=False)
+    trainer = SimpleNamespace(world_size=8, num_nodes=1)
+    module = SimpleNamespace(hparams=SimpleNamespace(nthread=None), _trainer=trainer, trainer=trainer)
+    assert ProModule.score_threads(module) == 2
+    module.hparams.nthread = 5
+    assert ProModule.score_threads(module) == 5
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: {0, 1, 2}, raising=False)
+    assert default_threads() == 3  # the scene evaluation's and the CLI's default
