@@ -22,7 +22,7 @@ import torch
 
 from aynamics import rng
 from aynamics import scene as scene_lib
-from aynamics.processor import IGNORE_INDEX, build_prompt, token_logprobs
+from aynamics.processor import IGNORE_INDEX, build_prompt, local_path, token_logprobs
 
 TARGETS = ("answer", "think_answer")  # stage.target: the YAML alone, or motion reasoning then the YAML
 MODALITIES = ("rgb", "flow")  # data.modality: the frames shown to the model
@@ -223,15 +223,6 @@ class ModelSpec:
         from aynamics.tokenizer_build import TINY_ASSET_DIR
 
         return str(TINY_ASSET_DIR) if self.kind == "tiny" else str(self.path)
-
-
-def local_path(path: str | Path) -> str:
-    """A checkpoint folder as an absolute path with `~` expanded (an adapter records its base so, and is loaded
-    from any working directory); a hub id ('Qwen/Qwen2.5-VL-3B-Instruct', no such folder here) unchanged."""
-    folder = Path(path).expanduser()
-    if str(path).startswith((".", "/", "~")) or folder.is_dir():
-        return str(folder.resolve())
-    return str(path)
 
 
 def build_base(spec: ModelSpec) -> torch.nn.Module:

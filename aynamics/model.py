@@ -30,6 +30,7 @@ from transformers import (
     Qwen2_5_VLForConditionalGeneration,
 )
 
+from aynamics.processor import checkpoint_error, local_path
 from aynamics.tokenizer_build import TINY_ASSET_DIR
 
 QWEN2_5_VL_3B = "Qwen/Qwen2.5-VL-3B-Instruct"  # the paper's model
@@ -162,24 +163,20 @@ def load_pretrained(
     every process but rank 0 builds under `trainer=fsdp`, to be given rank 0's weights once sharded
     (`aynamics.sharding`).
     """
-    looks_local = str(name_or_path).startswith((".", "/", "~")) or isinstance(name_or_path, Path)
-    if looks_local and not Path(name_or_path).expanduser().is_dir():
+    where = local_path(name_or_path)  # absolute: a folder (a hub id is never one)
+    if Path(where).is_absolute() and not Path(where).is_dir():
         raise FileNotFoundError(f"model path {str(name_or_path)!r} is not a directory (or pass a hub id)")
-    if looks_local:  # from_pretrained takes '~/models/x' for a hub id
-        name_or_path = Path(name_or_path).expanduser()
     if torch.get_default_device().type == "meta":
-        return _empty_pretrained(name_or_path, dtype, attn_implementation, local_files_only)
+        return _empty_pretrained(where, dtype, attn_implementation, local_files_only)
     try:
         model = Qwen2_5_VLForConditionalGeneration.from_pretrained(
-            str(name_or_path),
+            where,
             dtype=dtype,
             attn_implementation=attn_implementation,
             device_map=device_map,
             local_files_only=local_files_only,
         )
     except (OSError, ValueError) as e:  # not found, no hub, not a repo id, broken files
-        from aynamics.processor import checkpoint_error
-
         raise checkpoint_error(name_or_path, "model", e) from None
     _default_pad_id(model)
     return model
@@ -195,8 +192,6 @@ def _empty_pretrained(
     try:
         config = AutoConfig.from_pretrained(str(name_or_path), local_files_only=local_files_only)
     except (OSError, ValueError) as e:
-        from aynamics.processor import checkpoint_error
-
         raise checkpoint_error(name_or_path, "model", e) from None
     dtype = (getattr(config, "dtype", None) or torch.float32) if dtype == "auto" else dtype
     kernel = {} if attn_implementation is None else {"attn_implementation": attn_implementation}

@@ -111,19 +111,18 @@ class ImageOnlyQwenProcessor(Qwen2_5_VLProcessor):
         Arguments left as None take the values saved by `save_pretrained` (processor_config.json), else defaults.
         """
         kw = {"local_files_only": local_files_only}
-        if str(name_or_path).startswith("~"):  # from_pretrained takes '~/models/x' for a hub id
-            name_or_path = Path(name_or_path).expanduser()
-        saved = _saved_processor_config(name_or_path)
+        where = local_path(name_or_path)
+        saved = _saved_processor_config(where)
         num_frames = num_frames if num_frames is not None else saved.get("num_frames")
         video_fps = video_fps if video_fps is not None else saved.get("video_fps", 2.0)
-        tokenizer = AutoTokenizer.from_pretrained(str(name_or_path), **kw)
+        tokenizer = AutoTokenizer.from_pretrained(where, **kw)
         missing = [t for t in VISION_TOKENS if t not in tokenizer.get_vocab()]
         if missing:  # a folder without tokenizer files loads a 1-token tokenizer that encodes every text to nothing
             raise ValueError(
                 f"its tokenizer lacks {', '.join(missing)} (no Qwen2.5-VL tokenizer files: tokenizer.json or "
                 "vocab.json + merges.txt, with tokenizer_config.json)"
             )
-        image_processor = Qwen2VLImageProcessorPil.from_pretrained(str(name_or_path), **kw)
+        image_processor = Qwen2VLImageProcessorPil.from_pretrained(where, **kw)
         size = dict(image_processor.size)
         size["shortest_edge"] = min_pixels or size["shortest_edge"]
         size["longest_edge"] = max_pixels or size["longest_edge"]
@@ -133,7 +132,7 @@ class ImageOnlyQwenProcessor(Qwen2_5_VLProcessor):
                 f"takes the value of {str(name_or_path)!r}'s preprocessor_config.json): need min_pixels <= max_pixels"
             )
         image_processor.size = size
-        template = _saved_chat_template(name_or_path) or tokenizer.chat_template
+        template = _saved_chat_template(where) or tokenizer.chat_template
         if template is None:
             raise ValueError(f"{str(name_or_path)!r} holds no chat template (chat_template.jinja/.json or tokenizer's)")
         return cls(image_processor, tokenizer, chat_template=template, num_frames=num_frames, video_fps=video_fps)
@@ -289,6 +288,17 @@ def load_processor(
 class CheckpointError(FileNotFoundError):
     """A model checkpoint that cannot be loaded (a folder without weights, a hub id out of reach, broken files):
     a FileNotFoundError with a message only, which the `aynamics` commands report in one line, status 2."""
+
+
+def local_path(name_or_path: str | Path) -> str:
+    """Where `from_pretrained` should look: a checkpoint folder as an absolute path with `~` expanded
+    (from_pretrained takes '~/models/x' for a hub id; an adapter records its base so and is loaded from any working
+    directory), a hub id ('Qwen/Qwen2.5-VL-3B-Instruct', no such folder here) unchanged. A Path, or a string
+    starting with '.', '/' or '~', is a folder whether it exists or not."""
+    folder = Path(name_or_path).expanduser()
+    if isinstance(name_or_path, Path) or str(name_or_path).startswith((".", "/", "~")) or folder.is_dir():
+        return str(folder.resolve())
+    return str(name_or_path)
 
 
 def checkpoint_error(name_or_path: str | Path, what: str, error: Exception) -> OSError:
