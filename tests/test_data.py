@@ -308,6 +308,22 @@ def test_mean_scene_by_hand():
     assert avg.objects[0].physics.mass == pytest.approx(2.0)
 
 
+def test_mean_scene_keeps_an_optional_field_only_when_more_than_half_have_it():
+    """Two box scenes, one with restitution 0.4 and an environment item: 1 of 2 is not more than half, so the
+    average has neither. A third scene with restitution 0.6: 2 of 3 have it, kept as (0.4 + 0.6) / 2 = 0.5."""
+    box = (
+        "- {type: box, size: [0.2, 0.2, 0.2], state: {position: [0, 0, 0.2]}PHYS}\n"
+        "- {type: camera, position: [0, -2, 3]}\n"
+    )
+    env = "- {type: environment, air_density: 1.2}\n"
+    plain = parse(box.replace("PHYS", ""))
+    bouncy = parse(box.replace("PHYS", ", physics: {restitution: 0.4}") + env)
+    half = mean_scene([plain, bouncy])
+    assert half.objects[0].physics.restitution is None and half.environment is None
+    more = mean_scene([plain, bouncy, parse(box.replace("PHYS", ", physics: {restitution: 0.6}"))])
+    assert more.objects[0].physics.restitution == pytest.approx(0.5)
+
+
 def test_bad_input_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match="no data set"):
         load_splits(tmp_path / "nothing")
@@ -323,6 +339,9 @@ def test_frame_windows_by_hand():
     assert pairs[:2] == [(0, 5), (0, 6)] and pairs[-1] == (4, 9)
     triples = frame_windows(10, 3)  # linspace(0, 5, 3) = 0, 2.5, 5: rounded half to even
     assert len(triples) == 14 and triples[0] == (0, 2, 5) and (0, 4, 9) not in triples
+    # 5 stored frames, 4 steps: a window spanning exactly half of them (2 steps) counts, "at least half":
+    # (0, 2), (0, 3), (1, 3), (1, 4), (2, 4); (0, 4) is the model's (only (0, 3) and (1, 4) with more than half)
+    assert frame_windows(5, 2) == [(0, 2), (0, 3), (1, 3), (1, 4), (2, 4)]
     assert frame_windows(1, 1) == []
     with pytest.raises(ValueError, match="num_frames = 0"):
         frame_windows(10, 0)

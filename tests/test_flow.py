@@ -234,3 +234,14 @@ def test_motion_field_points_leaving_the_image_with_the_next_frame():
     )
     assert occluded.all()
     assert flow.tolist() == [[[3.0, 0.0], [-5.0, 0.0]], [[0.0, 3.0], [0.0, -5.0]]]
+
+
+def test_flow_to_color_vertical_directions_follow_middlebury():
+    """Down is orange-yellow, up blue-violet (image y points down). Down (0, 5): atan2(-5, -0) / π = -0.5, wheel
+    position (-0.5 + 1) / 2 · 54 = 13.5, halfway between colours 13 and 14 of the red→yellow segment (15 steps):
+    green 255 · (13/15 + 14/15) / 2 = 229.5 -> (255, 229, 0). Up (0, -5): +0.5 -> 40.5, between 40 and 41 of the
+    blue→magenta segment (13 steps from colour 36): red 255 · (4/13 + 5/13) / 2 = 88.3 -> (88, 0, 255). Both at
+    full magnitude (the largest: saturation 1), so the wheel colours are not paled."""
+    img = flowlib.flow_to_color(np.array([[[0.0, 5.0], [0.0, -5.0]]]))
+    assert img[0, 0].tolist() == [255, 229, 0]
+    assert img[0, 1].tolist() == [88, 0, 255]

@@ -261,3 +261,36 @@ def test_composition_shapes_are_a_multiset_not_a_set():
     sphere = "- {type: sphere, radius: 0.2, state: {position: [0, 0, 0.2]}}\n"
     count, shapes = metrics.composition_accuracy([_scene(box * 2 + sphere)], [_scene(box + sphere * 2)])
     assert count == [1.0] and shapes == [0.0]
+
+
+def test_state_mae_pairs_by_optimal_assignment_not_nearest():
+    """Unnamed boxes observed at x = 0 and 1, predicted at x = 0.4 and 2. The assignment minimises the summed
+    distance: p0-o0 + p1-o1 = 0.4 + 1.0 = 1.4 beats p0-o1 + p1-o0 = 0.6 + 2.0 = 2.6, so position MAE =
+    (0.4 + 1.0) / (2 objects x 3 components) = 1.4 / 6. Pairing every observed object with its nearest prediction
+    instead (both with p0: 0.4 and 0.6) would give 1.0 / 6 (the assignment's pairs must survive the zero-overlap
+    filter: their scores are all negative)."""
+    obj = "- {{type: box, size: [0.2, 0.2, 0.2], state: {{position: [{}, 0, 0.1]}}}}\n"
+    truth = _scene(obj.format(0) + obj.format(1))
+    pred = _scene(obj.format(0.4) + obj.format(2))
+    assert metrics.state_mae(pred, truth) == pytest.approx((1.4 / 6, 0.0))
+
+
+def test_state_mae_unpaired_video_object_takes_the_nearest_prediction():
+    """Observed x = 0, 1, 5; predicted x = 5 (p0) and 0.4 (p1). The assignment pairs p0-o2 (0) and p1-o0 (0.4)
+    (total 0.4; p1-o1 instead: 0.6). o1 is left over and meets its nearest prediction, p1 (0.6 m; p0 is 4 m away):
+    position MAE (0 + 0.4 + 0.6) / 9 = 1 / 9 (with the first prediction instead: (0 + 0.4 + 4) / 9)."""
+    obj = "- {{type: box, size: [0.2, 0.2, 0.2], state: {{position: [{}, 0, 0.1]}}}}\n"
+    truth = _scene(obj.format(0) + obj.format(1) + obj.format(5))
+    pred = _scene(obj.format(5) + obj.format(0.4))
+    assert metrics.state_mae(pred, truth) == pytest.approx((1 / 9, 0.0))
+
+
+def test_iou_pairs_objects_by_overlap_over_the_whole_sequence():
+    """Observed: object 0 on columns {0, 1}, object 1 on {2, 3} in all 3 frames. Predicted: swapped in frame 0,
+    right in frames 1 and 2. Sequence IoUs: p0-o0 = 4 / (6 + 6 - 4) = 0.5 = p1-o1; p0-o1 = 2 / (6 + 6 - 2) = 0.2
+    = p1-o0: the straight pairing (1.0 > 0.4) holds. Frame 0 then scores 0 (both pairs miss, 2 visible pairs),
+    frames 1 and 2 score 1: first = 0, full = 2/3. (Pairing by frame 0 alone would swap them: 1 and 1/3.)"""
+    obs = _seg([[0, 0, 1, 1]], [[0, 0, 1, 1]], [[0, 0, 1, 1]])
+    pred = _seg([[1, 1, 0, 0]], [[0, 0, 1, 1]], [[0, 0, 1, 1]])
+    first, full = metrics.segmentation_iou(pred, obs)
+    assert first == 0.0 and full == pytest.approx(2 / 3)

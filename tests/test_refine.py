@@ -92,6 +92,24 @@ def test_param_space_one_object_and_errors():
         param_space(scene, ["restitution"])  # absent on both objects
 
 
+def test_param_space_steps_by_hand(truth):
+    """Initial steps in normalised units: the field's step over its range. Position x, y: 0.3 m / 20 m = 0.015;
+    z (the vertical step): 0.05 m / (10 - (-0.5)) m; velocity x, y: 0.5 / 40 = 0.0125; z: 0.2 / 40 = 0.005; mass on
+    log10 over [log10 0.01, log10 100] = [-2, 2]: 0.3 / 4 = 0.075."""
+    space = param_space(truth, ["position", "linear_velocity", "mass"])
+    assert space.names[-1] == "sphere_0.physics.mass"
+    np.testing.assert_allclose(space.steps, [0.015, 0.015, 0.05 / 10.5, 0.0125, 0.0125, 0.005, 0.075])
+
+
+def test_param_space_decode_renormalises_quaternions(truth):
+    """Orientation components live in [-1, 1]: x = (0.65, 0.5, 0.5, 0.7) decodes to q = (0.3, 0, 0, 0.4), norm 0.5,
+    written as (0.6, 0, 0, 0.8); x = (0.515, 0.5, 0.5, 0.52) to (0.03, 0, 0, 0.04), norm 0.05, below the scene's
+    0.1 limit as it stands but the same rotation: also (0.6, 0, 0, 0.8), a valid scene."""
+    space = param_space(truth, ["orientation"])
+    for x in ([0.65, 0.5, 0.5, 0.7], [0.515, 0.5, 0.5, 0.52]):
+        assert space.decode(np.array(x)).objects[0].state.orientation == (0.6, 0.0, 0.0, 0.8)
+
+
 def test_cmaes_recovers_perturbed_scene(truth):
     """Trajectory objective (mean centre distance to the true rollout, physics only): from 0.4 m / 0.6 m/s off,
     CMA-ES over position and velocity gets within a few cm."""
@@ -416,6 +434,8 @@ def test_grounded_dims_freeze_resting_objects(truth):
     frozen = grounded_dims(truth)
     assert frozen == {"sphere_0.state.position[2]", "sphere_0.state.linear_velocity[2]"}
     assert grounded_dims(_shift(truth, (0.0, 0.0, 0.7), (0.0, 0.0, 0.0))) == set()
+    # on the floor but thrown up at 1 m/s (touching it in the first frame): vertical speed >= 0.05, not frozen
+    assert grounded_dims(_shift(truth, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))) == set()
     names = param_space(truth, ["position", "linear_velocity"], frozen).names
     assert names == [f"sphere_0.state.{f}[{k}]" for f in ("position", "linear_velocity") for k in (0, 1)]
 

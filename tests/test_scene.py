@@ -523,6 +523,15 @@ def test_text_length_limit_is_inclusive():
         S.load_yaml("#" * (S.MAX_TEXT_CHARS + 1))
 
 
+def test_quaternion_norm_limit_is_inclusive():
+    """A norm of exactly MIN_QUATERNION_NORM = 0.1 names a rotation (the table: "norm must be ≥ 0.1"):
+    [0.06, 0, 0, 0.08] has norm √(0.0036 + 0.0064) = 0.1 and is kept as written; [0.0999, 0, 0, 0] is refused."""
+    box = "- {type: box, size: [0.2, 0.2, 0.2], state: {position: [0, 0, 0.2], orientation: [%s, 0, 0, %s]}}\n"
+    assert S.parse(box % (0.06, 0.08) + CAMERA).objects[0].state.orientation == (0.06, 0.0, 0.0, 0.08)
+    with pytest.raises(S.SceneError, match=r"norm 0.0999 < 0.1"):
+        S.parse(box % (0.0999, 0) + CAMERA)
+
+
 def test_dump_at_zero_decimals_reparses():
     """decimals = 0 is allowed (-1 is not): whole numbers written without a point; friction 0.4 rounds to 0, the
     gravity -9.81 to -10; the text parses back to those values."""
