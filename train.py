@@ -75,6 +75,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
+    # Lightning's CSV logger deletes the metrics.csv it finds when it starts: a resume keeps its rows aside and
+    # puts them back in front of the resumed ones
+    csv_logs = keep_csv_logs(loggers) if cfg.get("ckpt_path") else []
     # val_check_interval counts steps, as checkpoints do: Lightning counts batches, accumulation times as many
     accumulate = int(cfg.trainer.get("accumulate_grad_batches") or 1)
     batches = {} if interval is None else {"val_check_interval": interval * accumulate}
@@ -102,6 +105,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if resumed is not None and resumed >= trainer.global_step:  # nothing trained
         validated_last = interval is not None and resumed % interval == 0
         if recorded_step(out) == resumed or not validated_last:  # the results stay as they were
+            if trainer.is_global_zero:
+                join_csv_logs(csv_logs, resumed)
             logging.getLogger(__name__).warning(
                 f"ckpt_path = {cfg.ckpt_path!r} had reached step {resumed}, trainer.max_steps = "
                 f"{cfg.trainer.max_steps}: nothing trained, {out / 'metrics.json'} left as it was; give a larger "
@@ -118,6 +123,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
         metrics = {k: v for k, v in metrics.items() if math.isfinite(v) or k.startswith("val/")}
     if trainer.is_global_zero:
+        join_csv_logs(csv_logs, resumed)
         overrides = OmegaConf.to_container(cfg, resolve=False) if cfg.get("save_config", True) else {}
         record = {"metrics": metrics, "global_step": trainer.global_step, "config": overrides}
         if evaluation is not None and evaluation.step is not None:
@@ -147,6 +153,78 @@ def earlier_run(out: Path, checkpoints: str | None) -> str | None:
     if names:
         return str(folder / ("last.ckpt" if "last.ckpt" in names else names[-1]))
     return str(out / "metrics.json") if (out / "metrics.json").is_file() else None
+
+
+CSV_KEPT = "metrics.before-resume.csv"
+
+
+def keep_csv_logs(loggers: list) -> list[Path]:
+    """The `metrics.csv` of each CSV logger in `loggers`. Lightning's CSVLogger deletes the one it finds when it
+    starts, so before a resume its rows are copied beside it (`metrics.before-resume.csv`, joined to those of an
+    earlier resume that was stopped before `join_csv_logs`); rank 0 only, as the logger."""
+    from lightning.fabric.utilities.rank_zero import rank_zero_only
+    from lightning.pytorch.loggers import CSVLogger
+
+    paths = [Path(log.log_dir) / "metrics.csv" for log in loggers if isinstance(log, CSVLogger)]
+    if rank_zero_only.rank == 0:
+        for path in paths:
+            if path.is_file():
+                _write_csv(path.with_name(CSV_KEPT), *_joined_rows(path.with_name(CSV_KEPT), path))
+    return paths
+
+
+def join_csv_logs(paths: list[Path], resumed_step: int | None) -> None:
+    """Each `metrics.csv` of `paths` whole again after a resume from `resumed_step`: the kept rows logged before
+    that step (a run stopped after its last checkpoint logged steps the resume trains again), then the resumed
+    run's."""
+    for path in paths:
+        kept = path.with_name(CSV_KEPT)
+        if kept.is_file():
+            _write_csv(path, *_joined_rows(kept, path, until=resumed_step))
+            kept.unlink()
+
+
+def _joined_rows(older: Path, newer: Path, until: int | None = None) -> tuple[list[str], list[dict]]:
+    """The columns and rows of two Lightning CSV logs (either may be missing), `older`'s first: those of its rows
+    logged before step `until`, the step the newer run resumed from, or without it before the first training step
+    `newer` logs. (The step column counts from 0: a checkpoint at step 5 holds the rows of steps 0-4 and of a
+    validation at step 5, which is logged as 4.)"""
+    import csv
+
+    def read(path: Path) -> tuple[list[str], list[dict]]:
+        if not path.is_file():
+            return [], []
+        with path.open(newline="") as file:
+            reader = csv.DictReader(file)
+            return list(reader.fieldnames or []), list(reader)
+
+    def step(row: dict) -> float:
+        try:
+            return float(row.get("step") or "nan")
+        except ValueError:
+            return math.nan
+
+    def validation_only(row: dict) -> bool:
+        return all(k in ("epoch", "step") or k.startswith("val/") or not v for k, v in row.items())
+
+    (old_fields, old_rows), (new_fields, new_rows) = read(older), read(newer)
+    if until is None:
+        until = min((step(r) for r in new_rows if not validation_only(r) and math.isfinite(step(r))), default=math.inf)
+    old_rows = [r for r in old_rows if not step(r) >= until]  # a row without a step is kept
+    fields = old_fields + [f for f in new_fields if f not in old_fields]
+    return fields, old_rows + new_rows
+
+
+def _write_csv(path: Path, fields: list[str], rows: list[dict]) -> None:
+    """`rows` under the header `fields`, written beside `path` and renamed into it."""
+    import csv
+
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with tmp.open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=fields, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
 
 
 def recorded_step(out: Path) -> int | None:

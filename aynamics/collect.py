@@ -85,9 +85,11 @@ def collect(root: str | Path, metrics: tuple[str, ...] = DEFAULT_METRICS) -> lis
             try:
                 record = json.loads(metrics_file.read_text())
                 values = record.get("metrics", {})
-                # val_step: the step of the val/ metrics (the last validation's; earlier records: the final step)
+                # val_step: the step of the val/ metrics (the last validation's; earlier records: the final step;
+                # a run that never validated: none)
                 step = record.get("global_step")
-                row |= {"status": "done", "step": step, "val_step": record.get("val_step", step)}
+                validated = any(str(k).startswith("val/") for k in values)
+                row |= {"status": "done", "step": step, "val_step": record.get("val_step", step if validated else None)}
                 row |= {m: values.get(m) for m in metrics}
             except (ValueError, AttributeError):  # not JSON, or not train.py's {"global_step", "metrics": {...}}
                 row |= {"status": "unreadable metrics.json", "step": None, "val_step": None}

@@ -189,7 +189,8 @@ def test_collect_multirun_folder(tmp_path):
     assert [r["val/iou_full"] for r in rows] == [0.5, 0.25, None, None, None, None]
     statuses = ["done", "done", "failed (train.log)"] + ["unreadable metrics.json"] * 2 + ["done"]
     assert [r["status"] for r in rows] == statuses
-    assert rows[5]["step"] == rows[5]["val_step"] == 3  # a record without val_step: its final step
+    assert rows[0]["val_step"] == 20  # a record without val_step but with val/ metrics: its final step
+    assert (rows[5]["step"], rows[5]["val_step"]) == (3, None)  # no val/ metrics: the run never validated
     assert "| 1 | flow | answer | done | 20 |" in to_markdown(rows)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         collect(tmp_path / "nope")

@@ -1277,3 +1277,57 @@ def test_every_n_validations_keeps_its_cadence_across_a_resume(tmp_path, dataset
     for run in ("straight", "resumed"):
         files = sorted(p.name for p in (tmp_path / run / "eval").glob("predictions_step*.jsonl"))
         assert files == ["predictions_step000002.jsonl", "predictions_step000004.jsonl"], run
+
+
+def test_resuming_a_finished_run_keeps_its_csv_log(tmp_path, dataset_dir):
+    """Lightning's CSV logger deletes the metrics.csv it finds when it starts: resuming a finished run at its own
+    max_steps trained nothing and left csv/metrics.csv gone (helper-67). It is put back as it was."""
+    common = [f"data.dir={dataset_dir}", "logger=csv", "callbacks.evaluation=null", "trainer.max_steps=1"]
+    common += ["trainer.log_every_n_steps=1"]
+    out = tmp_path / "run"
+    train(_cfg(out, *common))
+    log = out / "csv" / "metrics.csv"
+    before = log.read_text()
+    assert "train/loss" in before
+    train(_cfg(out, *common, f"ckpt_path={out / 'checkpoints' / 'last.ckpt'}"))
+    assert log.read_text() == before
+
+
+def test_resuming_into_the_same_folder_keeps_the_earlier_csv_rows(tmp_path, dataset_dir):
+    """A resume from step 2 to 4 in the run's folder, validating every 2 steps: Lightning's CSV logger would start
+    metrics.csv again (steps 2-3 only). The step column counts from 0 and a validation at step n is logged as n - 1:
+    the first run's rows (steps 0, 1, validation 1) stay in front of the resumed run's (2, 3, validation 3)."""
+    common = [f"data.dir={dataset_dir}", "logger=csv", "trainer.log_every_n_steps=1", "trainer.val_check_interval=2"]
+    common += ["callbacks.evaluation.num_samples=1", "callbacks.evaluation.max_new_tokens=4"]
+    out = tmp_path / "run"
+    train(_cfg(out, *common, "trainer.max_steps=2"))
+    log = out / "csv" / "metrics.csv"
+    first = log.read_text().splitlines()
+    train(_cfg(out, *common, "trainer.max_steps=4", f"ckpt_path={out / 'checkpoints' / 'last.ckpt'}"))
+    rows = list(csv.DictReader(log.open()))
+    kind = ["train" if r["train/loss"] else "val" for r in rows]
+    assert [(r["step"], k) for r, k in zip(rows, kind)] == [
+        ("0", "train"), ("1", "train"), ("1", "val"), ("2", "train"), ("3", "train"), ("3", "val")
+    ]  # fmt: skip
+    assert log.read_text().splitlines()[1:4] == first[1:4]
+    assert not (out / "csv" / "metrics.before-resume.csv").exists()
+
+
+def test_joined_csv_rows_drop_the_steps_a_resume_logs_again(tmp_path):
+    """A run logged steps 0-6 (a validation at step 5 logged as 4) and was stopped; its checkpoint is at step 5.
+    Resumed from 5, the kept rows are those before step 5: 0-4 and the validation, then the resumed run's 5, 6.
+    Without the resume step (an earlier resume stopped before the join), the first training step the newer log
+    holds takes its place: a validation row it starts with (logged as 4) does not count."""
+    from train import _joined_rows
+
+    older, newer = tmp_path / "older.csv", tmp_path / "newer.csv"
+    older.write_text("epoch,step,train/loss,val/x\n" + "".join(f"0,{s},{s}.0,\n" for s in range(7)) + "0,4,,9\n")
+    newer.write_text("epoch,step,train/loss,train/lr\n0,5,5.5,1\n0,6,6.5,1\n")
+    fields, rows = _joined_rows(older, newer, until=5)
+    assert fields == ["epoch", "step", "train/loss", "val/x", "train/lr"]
+    assert [(r["step"], r["train/loss"]) for r in rows] == [
+        ("0", "0.0"), ("1", "1.0"), ("2", "2.0"), ("3", "3.0"), ("4", "4.0"), ("4", ""), ("5", "5.5"), ("6", "6.5")
+    ]  # fmt: skip
+    newer.write_text("epoch,step,train/loss,val/x\n0,4,,8\n0,5,5.5,\n")
+    assert [r["step"] for r in _joined_rows(older, newer)[1]] == ["0", "1", "2", "3", "4", "4", "4", "5"]
+    assert [r["step"] for r in _joined_rows(tmp_path / "missing.csv", newer)[1]] == ["4", "5"]
