@@ -264,10 +264,12 @@ def _unit_quaternion(q: tuple[float, ...]) -> tuple[float, ...]:
     # so that parse(dump(s)) == s). Only a near-zero quaternion, which names no rotation, is refused.
     norm = math.sqrt(sum(x * x for x in q))
     if norm < MIN_QUATERNION_NORM:
+        # as many digits as show it below the bound: at 3 ([0.07071, 0.07071, 0, 0]) it read "norm 0.1 < 0.1"
+        shown = next(t for p in range(3, 18) if float(t := f"{norm:.{p}g}") < MIN_QUATERNION_NORM)
         raise PydanticCustomError(
             "range",
             "{msg}",
-            {"msg": f"must be a rotation quaternion [w, x, y, z] (norm {norm:.3g} < {MIN_QUATERNION_NORM})"},
+            {"msg": f"must be a rotation quaternion [w, x, y, z] (norm {shown} < {MIN_QUATERNION_NORM})"},
         )
     return q
 
@@ -655,9 +657,32 @@ def _checked_text(text: str | bytes) -> str:
     return text
 
 
+MAX_FLOW_DEPTH = 32  # levels of `[` / `{`: a scene needs 3 even in flow style, [{state: {position: [0, 0, 1]}}]
+_BRACKET = re.compile(r"[\[\]{}]")
+
+
+def _too_deep(text: str) -> Problem | None:
+    """A problem when `[` / `{` nest more than MAX_FLOW_DEPTH levels, else None. PyYAML's Python scanner keeps
+    one possible key per open flow level and walks them all at every token: 2 001 nested `[` (4 kB, a model's
+    repetition loop) took 6 s to refuse, 300 lines of 300 levels (181 kB) 18 s. Brackets in quotes and comments
+    count too (never 32 deep in a scene); closers there can only hide depth, which the loaders still bound."""
+    depth = 0
+    for m in _BRACKET.finditer(text):
+        depth = depth + 1 if m.group() in "[{" else max(depth - 1, 0)
+        if depth > MAX_FLOW_DEPTH:
+            line = text.count("\n", 0, m.start()) + 1
+            column = m.start() - text.rfind("\n", 0, m.start())
+            msg = f"nested too deeply: more than {MAX_FLOW_DEPTH} levels of [ and {{ (line {line}, column {column})"
+            return Problem("yaml", _NO_VALUE, msg)
+    return None
+
+
 def load_yaml(text: str | bytes) -> Any:
-    """Parse YAML text safely: no tags that build Python objects, no aliases, bounded size."""
+    """Parse YAML text safely: no tags that build Python objects, no aliases, bounded size and flow nesting."""
     text = _checked_text(text)
+    deep = _too_deep(text)
+    if deep is not None:
+        raise SceneError([deep])
     try:
         return yaml.load(text, Loader=_loader_for(text))  # noqa: S506 - safe loaders only
     except yaml.YAMLError as e:

@@ -180,6 +180,11 @@ class Observation:
                 "(a grey PNG mask: 0 background, v = id + 1)"
             )
         n_frames, full_h, full_w = seg.shape
+        if seg.size == 0:  # 0 frames read "sample_frames(n_frames=0, stride=3): both must be >= 1", naming no file
+            raise ValueError(
+                f"{root / 'segmentation'}: {n_frames} frame(s) of {full_w}×{full_h} pixels: need at least one frame "
+                "of at least 1×1"
+            )
         width, height = scoring_size(full_w, full_h, width, height)
         frames = sample_frames(n_frames)
         grid = SampleGrid.nearest(full_w, full_h, width, height)

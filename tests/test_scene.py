@@ -67,6 +67,16 @@ def test_quaternions_are_normalised_like_mujoco():
         S.parse(EXAMPLE.replace("0.97, 0.0, 0.0, 0.23", "0.01, 0.0, 0.0, 0.05"))
 
 
+def test_a_quaternion_just_below_the_norm_bound_shows_a_norm_below_it():
+    """[0.07071, 0.07071, 0, 0], read at 4 decimals as [0.0707, 0.0707, 0, 0], has norm 0.0707·√2 = 0.099985: it
+    read "(norm 0.1 < 0.1)" at 3 digits."""
+    with pytest.raises(S.SceneError) as err:
+        S.parse(EXAMPLE.replace("0.97, 0.0, 0.0, 0.23", "0.07071, 0.07071, 0, 0"))
+    assert "(norm 0.09998 < 0.1)" in str(err.value)
+    with pytest.raises(S.SceneError, match=r"\(norm 0.05 < 0.1\)"):  # a short norm stays short
+        S.parse(EXAMPLE.replace("0.97, 0.0, 0.0, 0.23", "0.05, 0, 0, 0"))
+
+
 def test_defaults_names_and_gravity_filled_in():
     s = S.parse(
         """
@@ -390,6 +400,27 @@ def test_deep_nesting_is_a_scene_error_not_a_crash(text):
     assert len(text) < S.MAX_TEXT_CHARS and S._loader_for(text) is S._NoAliasLoader
     with pytest.raises(S.SceneError, match="nested too deeply"):
         S.load_yaml(text)
+
+
+def test_deep_flow_nesting_is_refused_at_once_naming_where():
+    """PyYAML's Python scanner walks every open `[` at each token: 2 001 nested `[` (4 kB, a model's repetition loop)
+    took 6 s to refuse and 300 lines of 300 (181 kB) 18 s, per parse (`evaluate_texts` parses a response 4 times).
+    More than 32 levels are refused before loading; the 33rd `[` is at column 33, or 35 after `- `."""
+    cases = [("[" * 2001 + "]" * 2001, 1, 33), (("- " + "[" * 300 + "1" + "]" * 300 + "\n") * 300, 1, 35)]
+    cases.append((OK_BOX + "  # " + "[" * 40 + "\n" + CAMERA, 5, 37))  # in a comment too: 37 = 4 + 33
+    for text, line, column in cases:
+        t = time.perf_counter()
+        with pytest.raises(S.SceneError) as err:
+            S.parse(text)
+        assert time.perf_counter() - t < 0.5
+        assert str(err.value) == (
+            f"invalid scene (1 problem): yaml: nested too deeply: more than 32 levels of [ and {{ "
+            f"(line {line}, column {column})"
+        )
+    with pytest.raises(S.SceneError, match=r"items\[0\] = '<list>'"):  # 32 levels are read (and then refused)
+        S.parse("[" * 32 + "]" * 32)
+    flow = "[{type: box, size: [0.2, 0.2, 0.2], state: {position: [0, 0, 0.2]}}, {type: camera, position: [0, -3, 3]}]"
+    assert S.parse(flow) == S.parse(OK_BOX.replace("name: b", "name: box_0") + CAMERA)  # 3 levels: a scene
 
 
 def test_numbers_are_read_as_yaml_1_2():

@@ -216,6 +216,15 @@ def test_observation_from_dir_errors(tmp_path):
     assert np.isfinite(obs.flow).all() and obs.occluded[1, 2, 2]
 
 
+def test_observed_masks_without_frames_or_pixels_are_named(tmp_path):
+    """A segmentation.npy of 0 frames read "sample_frames(n_frames=0, stride=3): both must be >= 1", naming no file."""
+    for shape, what in (((0, 8, 8), "0 frame(s) of 8×8 pixels"), ((30, 0, 8), "30 frame(s) of 8×0 pixels")):
+        np.save(tmp_path / "segmentation.npy", np.zeros(shape, np.int16))
+        message = f"segmentation: {what}: need at least one frame of at least 1×1"
+        with pytest.raises(ValueError, match=re.escape(message)):
+            scorer.Observation.from_dir(tmp_path)
+
+
 def test_observed_ids_beyond_int16_are_refused(tmp_path):
     """Ids the int16 masks cannot hold wrapped silently (40000 -> -25536: background; 65536 -> object 0)."""
     for bad in (40000, 65536, -5):
