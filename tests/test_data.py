@@ -373,6 +373,45 @@ def test_warmup_views_are_other_frames_with_their_targets(dataset_dir, as_video)
     assert [again.window(i) for i in range(len(again))] == [views.window(i) for i in range(len(views))]
 
 
+def test_warmup_views_are_drawn_from_the_data_seed():
+    """Each scene's views are a permutation of its frame windows drawn from (data.seed, scene): 5 stored frames,
+    2 a view: the 5 windows (0, 2), (0, 3), (1, 3), (1, 4), (2, 4) (`frame_windows(5, 2)`), all 5 views of a scene
+    each once, in the order of `default_rng([seed, scene]).permutation(5)`; another seed, another order (a seed
+    left out of the draw gave every data.seed the same views)."""
+    import datasets
+    import numpy as np
+
+    split = datasets.Dataset.from_dict({"rgb": [[0] * 5] * 3, "segmentation": [[0] * 5] * 3, "shapes": [["box"]] * 3})
+    windows = [(0, 2), (0, 3), (1, 3), (1, 4), (2, 4)]
+    prompt = lm.PromptSpec(num_frames=2)
+    drawn = {}
+    for seed in (0, 1):
+        views = WarmupViews(split, None, prompt, views=5, seed=seed)
+        assert views.windows == windows and len(views) == 15
+        drawn[seed] = [views.window(i) for i in range(15)]
+        for scene in range(3):
+            order = np.random.default_rng([seed, scene]).permutation(5)
+            assert drawn[seed][5 * scene : 5 * scene + 5] == [windows[k] for k in order]
+    assert drawn[0] != drawn[1]
+
+
+def test_loaders_serve_their_own_split_and_limits(dataset_dir):
+    """The tiny data set holds 5 train, 4 validation and 3 test scenes (records say their split). The test loader
+    serves the 3 test records (batches of 2: 2 + 1), the validation loader the 4 validation ones; data.limit_val = 3
+    keeps the first min(3, 4) = 3 validation records, limit 2 the first 2 train ones, a limit past the split all."""
+    dm = _dm(dataset_dir)
+    sizes = {s: len(dm.splits[s]) for s in ("train", "validation", "test")}
+    assert sizes == {"train": 5, "validation": 4, "test": 3}
+    for split, loader in (("test", dm.test_dataloader()), ("validation", dm.val_dataloader())):
+        assert set(loader.dataset.split["split"]) == {split}
+        assert loader.dataset.split["index"] == dm.splits[split]["index"]
+    assert [len(b["input_ids"]) for b in dm.test_dataloader()] == [2, 1]
+    limited = _dm(dataset_dir, limit_val=3).val_dataloader().dataset
+    assert len(limited) == 3 and limited.split["index"] == dm.splits["validation"]["index"][:3]
+    assert len(dm.dataset("train", 2)) == 2 and dm.dataset("train", 2).split["index"] == dm.splits["train"]["index"][:2]
+    assert len(dm.dataset("train", 99)) == 5
+
+
 def test_warmup_views_misconfigurations_are_named(dataset_dir):
     with pytest.raises(ValueError, match="data.warmup_views = 2: .*visual_targets=true"):
         _dm(dataset_dir, warmup_views=2)
@@ -393,6 +432,9 @@ def test_validation_is_split_over_the_processes(dataset_dir):
 
     assert [eval_shard(5, trainer(r, 2)) for r in (0, 1)] == [[0, 2, 4], [1, 3, 0]]
     assert [eval_shard(3, trainer(r, 3)) for r in range(3)] == [[0], [1], [2]]
+    # 4 over 3: ceil(4 / 3) = 2 each, 6 slots, padded with the first 6 - 4 = 2 items: [0, 1, 2, 3, 0, 1], then
+    # every 3rd from the rank (a pad of 4 % 3 = 1 item gave rank 2 one item and the others two)
+    assert [eval_shard(4, trainer(r, 3)) for r in range(3)] == [[0, 3], [1, 0], [2, 1]]
     assert eval_shard(2, trainer(1, 3)) is None and eval_shard(5, trainer(0, 1)) is None and eval_shard(5, None) is None
     dm = _dm(dataset_dir)
     n = len(dm.dataset("validation"))

@@ -52,6 +52,9 @@ def test_records_load_with_load_from_disk(reference):
     assert sum(len(dd[s]) for s in dd) == NUM
     rows = [r for s in dd for r in dd[s]]
     assert sorted(r["index"] for r in rows) == list(range(NUM))
+    for s in dd:  # chunks joined in index order: seed 11 puts scenes 0-3 (chunks [0, 1], [2, 3]) all in train
+        assert dd[s]["index"] == [i for i in range(NUM) if gen.split_of(SEED, i, CFG.splits) == s]
+    assert dd["train"]["index"] == [0, 1, 2, 3]
     for r in rows:
         assert r["split"] in gen.SPLITS and gen.split_of(SEED, r["index"], CFG.splits) == r["split"]
         scene = parse(r["scene_yaml"])
@@ -192,6 +195,47 @@ def test_config_files_and_overrides(tmp_path):
     assert default == gen.GenerateConfig()  # the documented file is the defaults
 
 
+def test_each_resample_draws_from_its_own_attempts_seed(monkeypatch):
+    """Attempt a of scene i of a run with seed s samples from `default_rng(scene_seed(s, i, a))`: a scene that
+    fails is resampled from new numbers, not the same scene again (3 attempts: 3 different first draws, each that
+    of its attempt's generator; all failing, the error names the count)."""
+    from aynamics import sampler as smp
+
+    first_draws = []
+
+    def failing(rng, config):
+        first_draws.append(int(rng.integers(2**31)))
+        raise RuntimeError("no room")
+
+    monkeypatch.setattr(gen.smp, "sample_scene", failing)
+    config = dataclasses.replace(CFG, max_attempts=3)
+    with pytest.raises(RuntimeError, match="scene 5 .seed 7.: all 3 attempts failed: no room; no room; no room"):
+        gen.sample_simulated(5, 7, config)
+    want = [int(np.random.default_rng(smp.scene_seed(7, 5, a)).integers(2**31)) for a in range(3)]
+    assert first_draws == want and len(set(want)) == 3
+
+
+def test_a_chunk_interrupted_while_written_is_not_taken_as_done(tmp_path, monkeypatch):
+    """A kill while a chunk is saved leaves no `chunks/000003` (the folder a resume takes as finished), only a
+    temporary one that the next run of that chunk removes."""
+    from types import SimpleNamespace
+
+    from aynamics import dataset_store
+
+    def killed(path, *args, **kwargs):
+        Path(path).mkdir(parents=True)
+        (Path(path) / "data-00000-of-00001.arrow").write_bytes(b"half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(datasets.Dataset, "from_list", lambda *a, **k: SimpleNamespace(save_to_disk=killed))
+    with pytest.raises(KeyboardInterrupt):
+        dataset_store.write_chunk(tmp_path, 3, [])
+    assert not dataset_store.chunk_dir(tmp_path, 3).exists()
+    assert [p.name for p in (tmp_path / "chunks").iterdir()] == [f".tmp-000003-{os.getpid()}"]
+    dataset_store.remove_partial_chunks(tmp_path, [3])
+    assert list((tmp_path / "chunks").iterdir()) == []
+
+
 def test_shards_are_disjoint_and_cover():
     chunks = [gen.shard_chunks(50, 4, k, 3) for k in range(3)]
     assert sorted(c for cs in chunks for c in cs) == list(range(13))
@@ -239,6 +283,41 @@ def test_in_context_selection_covers_shapes_and_extremes():
     assert set(missed) == set(targets) - union
     greedy_best = max(len(c) for c in covered)
     assert len(union) >= greedy_best  # at least as good as the single best record
+
+
+def test_coverage_counts_values_within_five_percent_of_the_span():
+    """Camera fovy 40, 41, 50, 59, 60 in five scenes: span 20, tolerance 0.05 * 20 = 1, so 40 and 41 (<= 41) are at
+    the minimum and 59 and 60 (>= 59) at the maximum, 50 at neither; shapes are covered by the structure."""
+    from types import SimpleNamespace
+
+    def scene(fovy: float, shapes: list[str]):
+        camera = SimpleNamespace(fovy=fovy, orientation=0.0, position=[0.0, -5.0, 2.0])
+        return SimpleNamespace(objects=[], structure=shapes, camera=camera, gravity=[0.0, 0.0, -9.81])
+
+    scenes = [scene(40, ["box"]), scene(41, []), scene(50, ["sphere"]), scene(59, []), scene(60, ["cylinder"])]
+    targets, covered = coverage_targets(scenes)
+    assert {"min:camera.fovy", "max:camera.fovy", "shape:box"} <= set(targets)
+    fovy = [sorted(t for t in c if t.endswith("camera.fovy")) for c in covered]
+    assert fovy == [["min:camera.fovy"], ["min:camera.fovy"], [], ["max:camera.fovy"], ["max:camera.fovy"]]
+    assert [sorted(t for t in c if t.startswith("shape:")) for c in covered] == [
+        ["shape:box"],
+        [],
+        ["shape:sphere"],
+        [],
+        ["shape:cylinder"],
+    ]
+
+
+def test_in_context_examples_come_from_the_train_split(tmp_path_factory, tmp_path):
+    """The shared tiny data set holds 5 train, 4 validation and 3 test scenes: the 3 examples written into every
+    prompt are train scenes (a held-out scene shown as an example would leak it into its own evaluation)."""
+    from train_fixtures import tiny_dataset
+
+    data = tiny_dataset(tmp_path_factory)
+    dd = datasets.load_from_disk(str(data))
+    assert (len(dd["train"]), len(dd["validation"]), len(dd["test"])) == (5, 4, 3)
+    examples = json.loads((write_in_context(data, tmp_path / "ic") / "examples.json").read_text())["examples"]
+    assert len(examples) == 3 and {e["index"] for e in examples} <= set(dd["train"]["index"])
 
 
 @needs_gl

@@ -127,6 +127,21 @@ def test_lora_hits_only_the_language_model():
         apply_lora(build_tiny_model(), target_modules=["nope_proj"])
 
 
+def test_model_spec_defaults_adapt_every_projection_at_scale_two():
+    """`lm.ModelSpec()`'s adapter: LoRA rank 16, alpha 32 (scale 32 / 16 = 2) on all 7 projections of each of the
+    tiny model's 2 layers: 14 LoRA A matrices of 16 rows, the tower frozen."""
+    from aynamics import lm
+
+    spec = lm.ModelSpec()
+    assert spec.lora_targets == ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
+    model = lm.build_model(spec)
+    adapted = [m for n, m in model.named_modules() if hasattr(m, "lora_A") and "default" in m.lora_A]
+    assert len(adapted) == 7 * 2
+    assert {n.rsplit(".", 1)[-1] for n, m in model.named_modules() if m in adapted} == set(spec.lora_targets)
+    assert all(m.lora_A["default"].weight.shape[0] == 16 and m.scaling["default"] == 2.0 for m in adapted)
+    assert not any(p.requires_grad for n, p in model.named_parameters() if "visual" in n)
+
+
 def test_vision_trainable_flag():
     model = apply_lora(build_tiny_model(), train_vision=True)
     vis = [(n, p) for n, p in model.named_parameters() if "visual" in n and p.requires_grad]

@@ -277,6 +277,16 @@ def test_sample_frames_and_processor_options(proc, frames, tmp_path):
     assert "torchvision" not in sys.modules
 
 
+def test_a_saved_processor_keeps_its_video_frame_rate(frames, tmp_path):
+    """Frames given at 5 fps: a frame pair (temporal patch 2) lasts 2 / 5 = 0.4 s, and still does after a save
+    and load (the adapter's processor; at the default 2 fps it would be 2 / 2 = 1 s)."""
+    fast = load_processor(TINY_ASSET_DIR, video_fps=5)
+    fast.save_pretrained(tmp_path)
+    again = load_processor(tmp_path)
+    assert again.video_fps == 5.0
+    assert again.process_video(frames[:2])["second_per_grid_ts"].tolist() == pytest.approx([0.4])
+
+
 def test_apply_chat_template_tokenize_matches_build_prompt(proc, frames):
     """transformers' own path (images inside the messages) gives the same ids and pixels as `build_prompt`."""
     from PIL import Image

@@ -882,6 +882,29 @@ def test_fsdp_resumes_checkpoints_of_other_strategies(tmp_path, dataset_dir):
     assert done.returncode != 0 and "this run's of" in done.stderr, done.stderr[-3000:]
 
 
+def test_saved_optimizer_ids_are_named_by_their_place_in_the_groups():
+    """`named_optimizer_state` by hand: a module of weights frozen, a, b, c and an optimizer of groups [c, a] and
+    [b] (not the module's order). A checkpoint numbering them 0, 1 | 2 (the optimizer's own order, as a one-process
+    run saves) names 0 -> c, 1 -> a, 2 -> b, whatever the module's order or a frozen weight before them; groups
+    of other sizes (another LoRA setting) are refused, naming both."""
+    from aynamics.sharding import named_optimizer_state
+
+    module = torch.nn.Module()
+    for name in ("frozen", "a", "b", "c"):
+        module.register_parameter(name, torch.nn.Parameter(torch.zeros(1), requires_grad=name != "frozen"))
+    optimizer = torch.optim.SGD([{"params": [module.c, module.a]}, {"params": [module.b], "lr": 0.5}], lr=0.1)
+    saved = {
+        "state": {0: {"m": 10}, 1: {"m": 11}, 2: {"m": 12}},
+        "param_groups": [{"params": [0, 1], "lr": 0.1}, {"params": [2], "lr": 0.5}],
+    }
+    named = named_optimizer_state(saved, optimizer, module)
+    assert named["state"] == {"c": {"m": 10}, "a": {"m": 11}, "b": {"m": 12}}
+    assert named["param_groups"] == [{"params": ["c", "a"], "lr": 0.1}, {"params": ["b"], "lr": 0.5}]
+    other = {"state": {}, "param_groups": [{"params": [0]}, {"params": [1, 2]}]}
+    with pytest.raises(ValueError, match=r"groups of \[1, 2\] parameters, this run's of \[2, 1\]"):
+        named_optimizer_state(other, optimizer, module)
+
+
 @pytest.mark.slow
 def test_fsdp_with_the_7b_config(tmp_path, dataset_dir):
     """`model=qwen2_5_vl_7b trainer=fsdp` as a GPU user runs it (bfloat16 base, float32 LoRA, gradient

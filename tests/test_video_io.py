@@ -433,6 +433,8 @@ def test_32_bit_and_float_grey_images_are_scaled_to_8_bits():
 
     assert grey([0, 200], np.int32) == [0, 200]
     assert grey([0, 300, 65535], np.int32) == [0, 1, 255]
+    # 16-bit to 8: / 257 (65535 / 255), so 51400 = 200 * 257 -> 200 exactly (/ 256 gave 200.8 -> 201)
+    assert grey([0, 51400, 65535], np.uint16) == grey([0, 51400, 65535], np.int32) == [0, 200, 255]
     assert grey([0, 50000, 100000], np.int32) == [0, 128, 255]
     assert grey([0.0, 0.5, 1.0], np.float32) == [0, 128, 255]
 
