@@ -127,6 +127,60 @@ def test_lagging_measured_velocities_are_corrected_by_the_early_flight():
         assert bound[0] <= err <= bound[1], (refine, err)
 
 
+def test_early_flight_correction_on_the_time_scale_candidates_clock():
+    """The same lagging toss recorded at time_scale s = 1.25 (frame t shows the physical instant 1.25 t): x =
+    0.8 τ, z = 0.4 - 0.3 τ - 4.905 τ², τ = s t. The velocity columns are backward differences on the data clock, so
+    vz(0) reads s·vz0 + g s² dt / 2 = -0.375 + 9.81 · 1.5625 / 296 = -0.32322 (data m/s). Simulated under the
+    candidate with s = 1.25 the measured velocities are divided by s and the early residual is fitted against
+    physical time s·t: exact in free flight again (2e-5 m over τ < 0.15 s, as at s = 1). Without the division the
+    start is 25 % too fast (29 mm off); the residual's slope on t / s instead of s·t over-corrects by s² (1.3 mm)."""
+    from aynamics.effects import simulate_tracks
+
+    s, dt = 1.25, 1 / 148
+    t = np.arange(40) / 148
+
+    def xz(tau):
+        return 0.8 * tau, 0.4 - 0.3 * tau - 4.905 * tau * tau
+
+    (x, z), (x_prev, z_prev) = xz(s * t), xz(s * (t - dt))
+    rows = ["trajectory,t,object,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz"]
+    rows += [
+        f"0,{t[k]},cube,{x[k]},0,{z[k]},1,0,0,0,{(x[k] - x_prev[k]) / dt},0,{(z[k] - z_prev[k]) / dt},0,0,0"
+        for k in range(40)
+    ]
+    path = Path(tempfile.mkdtemp()) / "toss.csv"
+    path.write_text("\n".join(rows))
+    track = read_csv(str(path)).tracks["0"]
+    assert track.velocity[0, 0, 2] == pytest.approx(-0.32322, abs=1e-5)
+    scene = scenelib.parse((Path(__file__).resolve().parents[1] / "data" / "cube.yaml").read_text())
+    free = s * t < 0.15  # before the contact
+    for refine, bound in ((False, (1.5e-3, 3e-3)), (True, (0.0, 3e-5))):
+        sim = simulate_tracks(scene, [track], {"mu": 0.3, "time_scale": s}, ["time_scale"], refine=refine)
+        err = np.abs(sim.position[0][free, 0] - np.stack([x, 0 * x, z], 1)[free]).max()
+        assert bound[0] <= err <= bound[1], (refine, err)
+
+
+def test_wind_blows_through_real_air_and_the_lowest_point_is_the_half_diagonal():
+    """The wind candidate acts through drag, so without a fitted air density it writes 1.2 kg/m³ (real air) beside
+    the wind (3, -2, 0); a fitted density (2.0) is kept. `sim_lowest`: a box of half-extents (0.3, 0.4, 1.2) can
+    reach sqrt(0.09 + 0.16 + 1.44) = 1.3 m below its centre, a sphere its radius."""
+    from aynamics.effects import sim_lowest
+
+    scene = scenelib.parse((Path(__file__).parent / "assets" / "paper_example.yaml").read_text())
+    values = {"wind_x": 3.0, "wind_y": -2.0, "air_density": 2.0}
+    env = scene_with(scene, values, ["wind"]).environment
+    assert (env.air_density, env.wind) == (1.2, (3.0, -2.0, 0.0))
+    assert scene_with(scene, values, ["air_drag_quadratic", "wind"]).environment.air_density == 2.0
+    box, sphere = scenelib.parse(
+        """
+- {type: box, size: [0.3, 0.4, 1.2], state: {position: [0, 0, 1.2]}}
+- {type: sphere, radius: 0.25, state: {position: [2, 0, 0.25]}}
+- {type: camera, position: [0, -2, 3]}
+"""
+    ).objects
+    assert sim_lowest(box) == pytest.approx(1.3) and sim_lowest(sphere) == 0.25
+
+
 def test_a_fixed_held_out_split_is_kept_and_the_rest_split_by_seed():
     ids = [str(k) for k in range(23)]
     held = every_nth(ids, 5)

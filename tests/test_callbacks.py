@@ -464,7 +464,7 @@ def test_evaluation_split_over_two_processes_equals_one_process(monkeypatch, tru
         monkeypatch.setattr(cb, "_write", lambda trainer, texts, recs, per: written.append((texts, per)))
         monkeypatch.setattr(callbacks, "_gather_objects", gather)
         module = SimpleNamespace(log=lambda k, v, **kw: logged.__setitem__(k, v), model=torch.nn.Linear(1, 1))
-        return cb.evaluate(trainer, module), made, written, logged
+        return cb.evaluate(trainer, module), made, written, logged, cb.evaluated
 
     one = run(0, 1, lambda obj, world: [obj])
     sent = []
@@ -473,6 +473,7 @@ def test_evaluation_split_over_two_processes_equals_one_process(monkeypatch, tru
     assert one[1] == [0, 1, 2] and zero[1] == [0, 2] and other[1] == [1]
     assert other[0] == {} and other[2] == [] and other[3] == {}
     assert zero[0] == one[0] and zero[3] == one[3] and zero[2] == one[2]
+    assert zero[4] == one[4] == 3  # rank 0 reports all 3 records evaluated (train.py prints it), not its own 2
     texts, per = zero[2][0]
     assert texts == [answers[i] for i in range(3)] and per["yaml_valid"] == [1.0, 1.0, 0.0]
     assert per["velocity_mae"][0] == 0.0 and per["velocity_mae"][1] > 0

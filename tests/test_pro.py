@@ -816,6 +816,46 @@ def test_sft_term_never_imitates_an_invalid_candidate(dataset_dir):
     assert loss.item() == pytest.approx(soft_preference_loss(seq, mixed, 0.1).item() + sft.item() / 2, abs=1e-4)
 
 
+def test_sft_term_with_skipped_ties_is_on_the_kept_videos_best(dataset_dir):
+    """skip_ties=true (the default) with sft_weight=1: video 0's candidates all tie (skipped), video 1's best is valid
+    (0.8). The SFT mask of valid bests is over the kept videos (one), so the term is video 1's, and both terms are
+    means over the batch's 2 videos: loss = soft(ℓ₁, r₁) / 2 + sft(video 1) / 2."""
+    from aynamics.preference import sft_on_best, soft_preference_loss
+    from aynamics.processor import model_inputs, token_logprobs
+
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=4, skip_ties=True, sft_weight=1.0, tau=0.1).eval()
+    module.ensure_processor()
+    prompts, ids, rewards = _fixed_candidates(module, dataset_dir)
+    mixed = torch.stack([torch.zeros(4), rewards[1]])
+    with torch.no_grad():
+        loss, seq = module.preference_loss(prompts, ids, mixed)
+        pad = module.processor.tokenizer.pad_token_id
+        one = rw.candidate_batch(prompts[1:], ids[1:], pad, forbidden=rw.vision_token_ids(module.model))
+        lp, m = token_logprobs(module.model(**model_inputs(one)).logits, one["labels"])
+        sft = sft_on_best(lp.view(1, 4, -1), m.view(1, 4, -1), rewards[1:])
+    expected = soft_preference_loss(seq[1:], mixed[1:], 0.1).item() / 2 + sft.item() / 2
+    assert loss.item() == pytest.approx(expected, abs=1e-4)
+
+
+def test_training_step_logs_the_share_of_informative_videos(monkeypatch):
+    """Offline rows with rewards [0.1, 0.9, 0.5] (a preference) and [0.3, 0.3, 0.3] (all tied): train/informative =
+    1/2; train/margin = (ℓ(best, index 1) 1 - ℓ(worst, index 0) 0 + 0 for the tie) / 2 = 0.5 with ℓ = [[0, 1, 2],
+    [5, 4, 3]]; train/loss is the preference loss returned."""
+    module = ProModule(SPEC, prompt=PROMPT, mode="offline", num_samples=3)
+    monkeypatch.setattr(module, "prompts", lambda clips: [None] * len(clips))
+    seq = torch.tensor([[0.0, 1.0, 2.0], [5.0, 4.0, 3.0]])
+    monkeypatch.setattr(module, "preference_loss", lambda prompts, ids, rewards: (torch.tensor(0.25), seq))
+    logged = {}
+    monkeypatch.setattr(module, "log_dict", lambda metrics, **kw: logged.update(metrics))
+    rows = [
+        {"frames": None, "completion_ids": [[1], [2], [3]], "rewards": [0.1, 0.9, 0.5]},
+        {"frames": None, "completion_ids": [[1], [2], [3]], "rewards": [0.3, 0.3, 0.3]},
+    ]
+    assert module.training_step(rows, 0).item() == 0.25
+    got = {k: float(v) for k, v in logged.items()}
+    assert got == pytest.approx({"train/loss": 0.25, "train/margin": 0.5, "train/informative": 0.5})
+
+
 @pytest.mark.parametrize("loss", ["soft", "ranking"])
 def test_a_videos_weight_does_not_depend_on_how_videos_are_batched(dataset_dir, loss):
     """Two videos, one whose candidates all tie (skipped) and one informative: one batch of both gives the loss that

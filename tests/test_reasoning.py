@@ -36,6 +36,8 @@ def test_direction_words():
     assert rs.direction_words(np.array([4.3, 2.5, 0.0])) == ["rightward", "forward"]
     assert rs.direction_words(np.array([-1.0, -0.1, 0.0])) == ["leftward"]
     assert rs.direction_words(np.array([0.0, 0.0, 0.001])) == []
+    # "at least a quarter": |v| = sqrt(1 + 15) = 4 exactly, and x = 1 is exactly 0.25 × 4: named
+    assert rs.direction_words(np.array([1.0, np.sqrt(15.0), 0.0])) == ["rightward", "forward"]
 
 
 def test_visibility_from_segmentation():
@@ -213,3 +215,65 @@ def test_the_height_words_are_above_the_floor_where_the_floor_is():
     rollout = simulate(scene)
     text = rs.reasoning_text(scene, rollout, rollout.in_view[FRAMES], rollout.t[FRAMES])
     assert "close to the surface" in text and "raised" not in text, text
+
+
+def test_sizes_poses_and_the_collision_summary_by_hand():
+    """Box half-extents (0.3, 0.2, 0.1) are told as full edges, "0.60 x 0.40 x 0.20 m". A cylinder turned 90° about z
+    (w = z = √½) still stands: its axis' world z is 1 - 2(x² + y²) = 1, "upright"; one turned 90° about x (w = x = √½)
+    has 1 - 2·½ = 0 < cos 45°, "lying". Two spheres 0.6 m apart (gap between surfaces) closing at 3 m/s without
+    gravity meet 0.2 s in, first touching at frame 7 (7/30 = 0.23 s): the summary names the pair once."""
+    h = 0.7071067811865476
+    scene = parse(
+        f"""
+- {{type: sphere, radius: 0.2, state: {{position: [-0.5, 1, 1], linear_velocity: [1.5, 0, 0]}},
+   physics: {{mass: 1.0, friction: [0.0, 0.0], damping: -8}}}}
+- {{type: sphere, radius: 0.2, state: {{position: [0.5, 1, 1], linear_velocity: [-1.5, 0, 0]}},
+   physics: {{mass: 1.0, friction: [0.0, 0.0], damping: -8}}}}
+- {{type: box, size: [0.3, 0.2, 0.1], state: {{position: [-1.5, 2.5, 0.1]}}}}
+- {{type: cylinder, radius: 0.1, height: 0.4, state: {{position: [1.5, 2.5, 0.2], orientation: [{h}, 0, 0, {h}]}}}}
+- {{type: cylinder, radius: 0.1, height: 0.4, state: {{position: [0, 3, 0.1], orientation: [{h}, {h}, 0, 0]}}}}
+- {{type: camera, position: [0, -2, 3], orientation: 45, fovy: 60}}
+- {{type: gravity, gravity: [0, 0, 0]}}
+"""
+    )
+    from aynamics.simulate import simulate
+
+    rollout = simulate(scene)
+    for seed in range(3):
+        lines = rs.reasoning_text(scene, rollout, rollout.in_view[FRAMES], rollout.t[FRAMES], seed=seed).split("\n")
+        assert "0.60 x 0.40 x 0.20 m" in lines[2], lines[2]
+        assert re.search(r"\bupright\b", lines[3]) and "lying" not in lines[3], lines[3]
+        assert re.search(r"\blying\b", lines[4]) and "upright" not in lines[4], lines[4]
+        hits = re.match(r"(?:Interactions|Summary of interactions|Collisions): (.*?)\. ", lines[-1]).group(1)
+        assert hits == "sphere_0 and sphere_1 at t=0.23s", lines[-1]
+
+
+def test_an_object_coming_into_the_picture_enters_the_view(simulated):
+    """No pixels with its centre outside the picture at frames 0, 3 and 6 (t = 0, 0.1, 0.2), then seen with its
+    centre inside from frame 9 on: it "enters the view at t=0.30s"; "reappears" is for an object that was hidden
+    while its centre was in the picture."""
+    scene, rollout = simulated[0]
+    visible = np.ones((len(FRAMES), len(scene.objects)), dtype=bool)
+    visible[:3, 0] = False
+    inside = visible.copy()
+    for seed in range(3):
+        lines = rs.reasoning_text(scene, rollout, visible, rollout.t[FRAMES], seed=seed, in_picture=inside)
+        vis_line = next(ln for ln in lines.split("\n") if ln.startswith("Visibility:"))
+        first = vis_line.split(f" {rollout.names[1]} ")[0]
+        assert re.search(r"(?:enters the view|comes into the frame|becomes visible) at t=0\.30s", first), first
+        assert not re.search(r"reappears|comes out from behind|is uncovered", first), first
+
+
+def test_height_above_a_tilted_floor_is_along_its_normal():
+    """floor_tilt (10, 0) turns the floor's normal to Rx(10°)·ẑ = (0, -sin 10°, cos 10°) = (0, -0.17365, 0.98481):
+    the point (0, 2, 1.1) over a floor raised 0.1 m is 2·(-0.17365) + 1·0.98481 = 0.63752 m above it ("slightly
+    raised"; the normal's sign flipped would give 1.33211, "raised")."""
+    scene = parse(
+        """
+- {type: sphere, radius: 0.2, state: {position: [0, 2, 1.1]}}
+- {type: camera, position: [0, -2, 3]}
+- {type: environment, floor_tilt: [10, 0], floor_offset: 0.1}
+"""
+    )
+    assert rs.floor_heights(scene, np.array([[0.0, 2.0, 1.1]])) == pytest.approx([0.63752], abs=1e-5)
+    assert rs.BIN_WORDS["z"][rs.position_bin(0.63752)] == "slightly raised"

@@ -106,3 +106,35 @@ def test_objects_listed_left_to_right_in_the_first_frame():
         assert s.camera == d.camera and s.gravity == d.gravity
         reordered += [o.state.position for o in s.objects] != [o.state.position for o in d.objects]
     assert reordered >= 5  # the draw order is not already left to right
+
+
+def test_object_counts_span_min_to_max_inclusive():
+    """`min_objects`..`max_objects` inclusive: 40 scenes of 1-3 objects hold each of 1, 2 and 3 (a uniform draw
+    misses one of three counts in 40 tries with chance 3·(2/3)^40 < 1e-6); min = max = 2 gives exactly 2."""
+    assert {len(s.objects) for s in _scenes(40, SamplerConfig(min_objects=1, max_objects=3))} == {1, 2, 3}
+    assert {len(s.objects) for s in _scenes(10, SamplerConfig(min_objects=2, max_objects=2))} == {2}
+
+
+def test_spheres_start_rolling_without_slipping():
+    """ω = ẑ × v / r: the contact point's velocity v + ω × (0, 0, -r) is 0. E.g. v = (1, 2, 0) at r = 0.2:
+    ω = (-2, 1, 0) / 0.2 = (-10, 5, 0), and ω × (0, 0, -0.2) = (5·(-0.2), -(-10)·(-0.2), 0) = (-1, -2, 0) = -v.
+    (The cap at 50 rad/s never binds: speed <= 5 m/s and r >= 0.1 m; 1e-3 m/s: the scene stores its numbers rounded.)"""
+    cfg = SamplerConfig(shape_weights=(0, 1, 0), moving_share=1.0, collision_share=0.0)  # aimed-at spheres stand still
+    spheres = [o for s in _scenes(20, cfg) for o in s.objects]
+    assert len(spheres) >= 20
+    for o in spheres:
+        v, w = np.array(o.state.linear_velocity), np.array(o.state.angular_velocity)
+        assert np.linalg.norm(v) > 0.4
+        np.testing.assert_allclose(v + np.cross(w, [0.0, 0.0, -o.radius]), 0.0, atol=1e-3)
+
+
+def test_gravity_and_restitution_shares_are_chances_of_the_optional_values():
+    """gravity_share 0: every scene has g = (0, 0, -9.81); 1: every g_z is drawn from gravity_z = [-15, -5]
+    (rounded to 0.01). restitution_share 0: no object has `restitution`; 1: every object has one in [0, 0.8]."""
+    never = _scenes(15, SamplerConfig(gravity_share=0.0, restitution_share=0.0))
+    assert {s.gravity for s in never} == {(0.0, 0.0, -9.81)}
+    assert all(o.physics.restitution is None for s in never for o in s.objects)
+    always = _scenes(15, SamplerConfig(gravity_share=1.0, restitution_share=1.0))
+    gz = [s.gravity[2] for s in always]
+    assert all(-15.0 <= g <= -5.0 and g == round(g, 2) for g in gz) and len(set(gz)) >= 10
+    assert all(0.0 <= o.physics.restitution <= 0.8 for s in always for o in s.objects)

@@ -698,3 +698,114 @@ def test_a_still_ball_with_restitution_is_at_rest_from_the_start():
     r = sim.simulate(scene)
     assert np.abs(r.position[:, 0] - r.position[0, 0]).max() < 1e-3  # it does not move
     assert r.rest_time == (0.0,)
+
+
+# --------------------------------------------------------------------------------------------
+# Hand-worked checks of the conversions (mutation audit helper-68)
+# --------------------------------------------------------------------------------------------
+def test_rolling_friction_is_written_on_a_boxs_smallest_half_extent():
+    """geom_friction = [μ, 0 (torsional), c_rr · r]: a box of half-extents (0.3, 0.2, 0.1) with c_rr 0.2 rolls on
+    its smallest half-extent, 0.2 × 0.1 = 0.02 (not 0.2 × 0.3 = 0.06); a sphere of radius 0.25 with c_rr 0.2 on its
+    radius, 0.05."""
+    s = scene([box(mu=0.4, crr=0.2, size=(0.3, 0.2, 0.1)), sphere(x=2.0, r=0.25, mu=0.6, crr=0.2)])
+    model, tpl = sim.compile_scene(s)
+    np.testing.assert_allclose(model.geom_friction[tpl.geom_ids], [[0.4, 0.0, 0.02], [0.6, 0.0, 0.05]], rtol=1e-12)
+
+
+def test_floor_tilt_turns_the_floor_about_world_x_then_y():
+    """floor_tilt (a, b) in degrees is Rx(a) first, then Ry(b) (world axes): the floor's normal is
+    Ry(b)·Rx(a)·ẑ = Ry(b)·(0, -sin a, cos a) = (cos a sin b, -sin a, cos a cos b). At (10, 20):
+    (0.98481 · 0.34202, -0.17365, 0.98481 · 0.93969) = (0.33682, -0.17365, 0.92542); y first would give
+    (sin b, -sin a cos b, cos a cos b) = (0.34202, -0.16318, 0.92542). A +x tilt alone turns the normal to -y:
+    (10, 0) gives (0, -0.17365, 0.98481)."""
+    for tilt, normal in (((10.0, 20.0), (0.33682, -0.17365, 0.92542)), ((10.0, 0.0), (0.0, -0.17365, 0.98481))):
+        model, tpl = sim.compile_scene(scene([sphere()], environment={"floor_tilt": list(tilt)}))
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, model.geom_quat[tpl.floor_geom])
+        np.testing.assert_allclose(rot.reshape(3, 3)[:, 2], normal, atol=2e-5)
+
+
+def test_tunnelling_is_measured_against_the_smallest_half_extent():
+    """A plank of half-extents (1, 1, 0.05) whose centre is 0.1 m below the floor has gone through it: 0.1 is more
+    than its smallest half-extent, 0.05 (against its largest, 1 m, it would pass); 0.04 m below is a plank pressed
+    into the floor, not through it."""
+    s = scene([box(v=(0, 0, 0), size=(1.0, 1.0, 0.05))])
+    t = np.arange(2) / 30
+    pos, vel = np.zeros((2, 1, 3)), np.zeros((2, 1, 6))
+    pos[0, 0, 2], pos[1, 0, 2] = 0.05, -0.1
+    ok, reason = sim.check_states(s, pos, vel, 0, t)
+    assert not ok and reason.startswith("tunnelled: box_0 fell through the floor at t=0.033s"), reason
+    pos[1, 0, 2] = -0.04
+    assert sim.check_states(s, pos, vel, 0, t) == (True, None)
+
+
+@pytest.mark.parametrize(
+    "field, value, valid",
+    [
+        ("speed", 200.0, True),  # MAX_SPEED 200 m/s: strictly beyond it blew up
+        ("speed", 201.0, False),
+        ("spin", 1000.0, True),  # MAX_SPIN 1000 rad/s
+        ("spin", 1001.0, False),
+        ("distance", 999.0, True),  # MAX_DISTANCE 1000 m from the origin
+        ("distance", 1001.0, False),
+    ],
+)
+def test_blow_up_limits_of_speed_spin_and_distance(field, value, valid):
+    """Each of the three limits on its own, one frame at the limit (valid) or 1 beyond it (invalid, named)."""
+    s = scene([sphere(z=0.2)])
+    t = np.arange(2) / 30
+    pos, vel = np.zeros((2, 1, 3)), np.zeros((2, 1, 6))
+    pos[:, 0, 2] = 0.2
+    if field == "speed":
+        vel[1, 0, 0] = value
+    elif field == "spin":
+        vel[1, 0, 5] = value
+    else:
+        pos[1, 0, 0] = value
+    ok, reason = sim.check_states(s, pos, vel, 0, t)
+    assert ok == valid, reason
+    if not valid:
+        assert reason.startswith("blew up: sphere_0 at t=0.033s"), reason
+
+
+def test_the_camera_inside_test_works_in_the_objects_own_frame():
+    """A long box (half-extents 1, 0.1, 0.1) at (0, 0, 1) yawed +45°: its long axis runs along world (1, 1, 0)/√2.
+    A camera 0.5 m along x and y from its centre is at Rᵀ·(0.5, 0.5, 0) = (0.707, 0, 0) in the box's frame:
+    inside (0.707 < 1, 0 < 0.1); with R instead of Rᵀ it would be at (0, 0.707, 0), outside. A camera at
+    (0.5, -0.5) from the centre is at (0, -0.707, 0): outside (R would put it at (0.707, 0, 0), inside)."""
+    c, s = math.cos(math.pi / 8), math.sin(math.pi / 8)
+    position = np.array([[[0.0, 0.0, 1.0]]])
+    orientation = np.array([[[c, 0.0, 0.0, s]]])
+    for cam_xy, inside in (((0.5, 0.5), True), ((0.5, -0.5), False)):
+        cam = {"type": "camera", "position": [*cam_xy, 1.0], "orientation": 30, "fovy": 60}
+        sc = scene([box(v=(0, 0, 0), size=(1.0, 0.1, 0.1))], camera=cam)
+        assert sim.camera_inside(sc, position, orientation).tolist() == [[inside]], cam_xy
+
+
+@pytest.mark.parametrize("time_scale, rest", [(1.0, 0.4), (0.5, 0.8)])
+def test_rest_time_by_hand_in_real_time_and_slow_motion(time_scale, rest):
+    """Zero gravity, damping 1 (k = 10/s), v0 = 1 m/s: the damping is exact per step, so the speed at frame n is
+    exp(-k·s·n/30) (s = time_scale). The frame's mean speed (its displacement × fps / s, physical m/s) is above the
+    instant speed while slowing, so the object moves while exp(-k s n / 30) > REST_LINEAR = 0.02.
+    s = 1: exp(-n/3) > 0.02 for n < 3 ln 50 = 11.74: frame 11 is the last moving one, at rest from t[12] = 0.4 s.
+    s = 0.5 (slow motion): exp(-n/6) > 0.02 for n < 23.47: at rest from t[24] = 0.8 s. (The mean speed as
+    displacement × fps × s would be a quarter of the physical 1.088 exp(-n/6), below 0.02 from n = 16: 0.533 s.)"""
+    env = None if time_scale == 1.0 else {"time_scale": time_scale}
+    s = scene([sphere(z=3.0, v=(1.0, 0, 0), damping=1.0)], gravity=(0, 0, 0), environment=env)
+    r = run(s)
+    k = 10.0 * time_scale / 30
+    np.testing.assert_allclose(r.linear_velocity[:, 0, 0], np.exp(-k * np.arange(31)), rtol=1e-6)
+    assert r.rest_time == (pytest.approx(rest, abs=1e-9),)
+
+
+def test_view_test_by_hand_at_the_frustums_side_and_behind_the_camera():
+    """A camera at the origin looking along +z with 45° half-angles (K = I, a 2 × 2 image: tan = (2/2)/1 = 1): the
+    right side plane is x = z, at distance (x - z)/√2 from a centre. Radius 0.4: (1.5, 0, 1) is 0.5/√2 = 0.354 from
+    it, so the sphere reaches into the view; (1.6, 0, 1) is 0.6/√2 = 0.424 away, out of it. Behind the camera,
+    (0, 0, -0.3) still reaches z = +0.1 in front (and is 0.3/√2 from each side plane): in view; (0, 0, -0.5) does
+    not reach the camera plane."""
+    from aynamics import camera as camlib
+
+    cam = camlib.CameraMatrices(K=np.eye(3), R=np.eye(3), t=np.zeros(3), width=2, height=2)
+    centres = np.array([[1.5, 0.0, 1.0], [1.6, 0.0, 1.0], [0.0, 0.0, -0.3], [0.0, 0.0, -0.5]])
+    assert camlib.sphere_in_view(cam, centres, 0.4).tolist() == [True, False, True, False]

@@ -597,6 +597,59 @@ def test_type_weights_reach_the_training_loss_only(dataset_dir):
     assert abs(weighted - plain) > 1e-4
 
 
+def test_training_step_trains_on_the_weighted_loss_plus_the_visual_term(dataset_dir, monkeypatch):
+    """`training_step` returns (and logs as train/loss) the type-weighted mean NLL, not the plain one, and with the
+    dense visual loss returns train/loss + vision_aux_weight · train/vision_aux (= train/total_loss): 0.5 · aux
+    here. train/response_tokens is the batch's labelled-token count."""
+    dm = SceneDataModule(
+        str(dataset_dir),
+        lm.ModelSpec(kind="tiny").processor_path,
+        num_frames=2,
+        batch_size=2,
+        type_weight=5.0,
+        visual_targets=True,
+    )
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    module = SFTModule(lm.ModelSpec(kind="tiny", train_vision=True), vision_aux_weight=0.5)
+    logged = {}
+    monkeypatch.setattr(module, "log", lambda name, value, **kw: logged.__setitem__(name, float(value)))
+    monkeypatch.setattr(module, "optimizers", lambda: torch.optim.SGD(module.parameters(), lr=0.1))
+    with torch.no_grad():
+        weighted, n, _ = module._loss(batch, weighted=True)
+        plain = module._loss(batch)[0].item()
+        returned = module.training_step(batch, 0).item()
+    assert abs(weighted.item() - plain) > 1e-4  # the weights matter on this batch
+    assert logged["train/loss"] == pytest.approx(weighted.item(), rel=1e-5)
+    assert returned == pytest.approx(weighted.item() + 0.5 * logged["train/vision_aux"], rel=1e-5)
+    assert logged["train/total_loss"] == pytest.approx(returned, rel=1e-5) and logged["train/vision_aux"] > 0
+    assert logged["train/response_tokens"] == n.item()
+
+
+def test_image_gap_is_the_loss_on_other_frames_minus_the_loss_on_its_own(dataset_dir):
+    """val/image_gap: each batch's loss with every example's frames replaced by the next one's (`shifted_visuals`)
+    minus its loss on its own frames, averaged over the split's response tokens (positive: the model reads its
+    own frames better)."""
+    import lightning as L
+
+    spec = lm.ModelSpec(kind="tiny")
+    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2, eval_batch_size=2)
+    dm.setup("fit")
+    module = SFTModule(spec).eval()
+    gap = tokens = 0.0
+    with torch.no_grad():
+        for batch in dm.val_dataloader():
+            shifted = lm.shifted_visuals(batch)
+            assert shifted is not None
+            loss, n, _ = module._loss(batch)
+            gap += (module._loss(shifted)[0].item() - loss.item()) * n.item()
+            tokens += n.item()
+    assert abs(gap) > 1e-4 * tokens  # the sign is seen
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False)
+    metrics = trainer.validate(module, datamodule=dm, verbose=False)[0]
+    assert metrics["val/image_gap"] == pytest.approx(gap / tokens, rel=1e-4, abs=1e-6)
+
+
 def test_validation_means_are_over_tokens_not_batches(dataset_dir):
     """val/loss is the split's total response NLL over its token count, and val/type_acc the share of right type
     tokens, whatever the batch sizes: one example per batch, answers of different lengths (a mean of batch means
