@@ -99,6 +99,10 @@ def test_split_is_by_whole_trajectory_and_initial_state_recovers_a_parabola(tmp_
     (tmp_path / "p.csv").write_text("\n".join(rows))
     s = initial_state(read_csv(str(tmp_path / "p.csv")).tracks["0"], 0)
     np.testing.assert_allclose(s["linear_velocity"], [2.0, -1.0, 3.0], atol=1e-6)  # exact for a parabola
+    # a clock running at time scale s = 2 (a frame stamped t happened at 2t): the physical velocity is v / s
+    slow = initial_state(read_csv(str(tmp_path / "p.csv")).tracks["0"], 0, time_scale=2.0)
+    np.testing.assert_allclose(slow["linear_velocity"], [1.0, -0.5, 1.5], atol=1e-6)
+    np.testing.assert_allclose(slow["position"], [0.1, 0.0, 1.0], atol=1e-6)  # positions do not scale
 
 
 def test_lagging_measured_velocities_are_corrected_by_the_early_flight():
@@ -321,6 +325,13 @@ def test_null_control_answers_none_and_leaves_the_error_unchanged(tmp_path):
     result = audit(read_csv(case.csv), scenelib.load(case.scene), max_causes=1)
     assert result.verdict == "none" and result.causes == [], [r for r in result.rows if r.significant]
     assert result.held_out_error_after == result.held_out_error_before
+    # the held-out errors are those of the held-out trajectories (not the validation ones), under the baseline
+    from aynamics.fit import track_errors
+
+    held = read_csv(case.csv).subset(result.splits["held_out"])
+    before = track_errors(scenelib.load(case.scene), held, result.baseline.values, [])
+    np.testing.assert_allclose(result.held_before, before)
+    assert result.held_out_error_before == pytest.approx(math.sqrt(np.mean(before**2)))
 
 
 @pytest.mark.slow
@@ -464,3 +475,53 @@ def test_a_runner_up_leaving_many_times_the_error_is_not_ambiguous():
     best = row("air_drag_quadratic", 0.0027)
     assert ambiguous_with(best, [row("air_drag_linear", 0.0499)], 0.17) == []
     assert ambiguous_with(best, [row("wind", 0.0030)], 0.17) == ["wind"]
+    # "about as well" is in mean square: from 0.2 m to 0.1 m gains 0.04 - 0.01 = 0.03 m², and a runner-up at
+    # 0.12 m is 0.0144 - 0.01 = 0.0044 m² short of the best, more than 10 % of the gain (0.003), though within
+    # 1.25 × 0.1 m; at 0.11 m it is 0.0021 short: ambiguous. (In RMS, 0.02 of a 0.1 gain would pass.)
+    best = row("floor_offset", 0.1)
+    assert ambiguous_with(best, [row("wind", 0.12), row("floor_tilt", 0.11)], 0.2) == ["floor_tilt"]
+
+
+def test_a_candidate_is_significant_only_when_the_bic_drops_by_more_than_the_margin(monkeypatch):
+    """`_candidate` with the fit and the validation errors stubbed. n = n_eff = 100, the current model k = 1 with
+    rss 100 (BIC 100 · ln 1 + 1 · ln 100 = 4.61); a floor offset fit (k = 2) with rss / n = e^-0.1 has BIC
+    -10 + 2 · 4.61, dBIC = -10 + 4.61 = -5.39: above -10, not significant, though validation halves on every
+    track (drop 50 %) and z = 0.02 / 0.001 = 20. With rss / n = e^-0.2, dBIC = -20 + 4.61 = -15.39: significant."""
+    import aynamics.audit as audit_module
+    from aynamics.fit import FitResult
+
+    cov = np.diag([1e-6, 1e-6])
+    cur = FitResult({"mu": 0.3}, [], {"mu": 1e-3}, 100.0, 100, 100.0, 1, 0, cov[:1, :1], ["mu"])
+    monkeypatch.setattr(audit_module, "track_errors", lambda *a: np.full(4, 0.5))
+    fits = []
+    for ln_ratio, d_bic, significant in ((-0.1, -5.395, False), (-0.2, -15.395, True)):
+        res = FitResult(
+            {"mu": 0.3, "floor_offset": 0.02}, ["floor_offset"], {"mu": 1e-3, "floor_offset": 1e-3},
+            100.0 * math.exp(ln_ratio), 100, 100.0, 2, 0, cov, ["mu", "floor_offset"],
+        )  # fmt: skip
+        fits.append(res)
+        monkeypatch.setattr(audit_module, "fit", lambda *a, res=res, **k: res)
+        row, _ = audit_module._candidate(None, [], [], cur, np.ones(4), "floor_offset", 0)
+        assert row.d_bic == pytest.approx(d_bic, abs=1e-3) and row.val_drop == pytest.approx(0.5)
+        assert row.z == pytest.approx(20.0) and row.significant is significant
+    # the full fit starts from the screening fit: when it ends worse (rss e^-0.1 against the screening's e^-0.2), the
+    # screening fit is kept
+    monkeypatch.setattr(audit_module, "fit", lambda *a, **k: fits[0])
+    row, kept = audit_module._candidate(None, [], [], cur, np.ones(4), "floor_offset", 0, start=fits[1])
+    assert kept is fits[1] and row.d_bic == pytest.approx(-15.395, abs=1e-3)
+
+
+def test_support_height_is_the_lowest_corner_whichever_way_the_body_is_turned():
+    """A box of half-extents (0.1, 0.2, 0.3) with its centre at z = 1: upside down (180° about x, q = (0, 1, 0, 0))
+    the world z row of R is (0, 0, -1), lowest point 1 - 0.3 = 0.7; turned -90° about x (q = (√½, -√½, 0, 0)) the
+    row is (0, -1, 0), 1 - 0.2 = 0.8 (a signed row would put the lowest point above the centre). A cylinder
+    (r 0.1, height 0.4) upright: 1 - 0.2 = 0.8; lying (90° about x): 1 - 0.1 = 0.9. A sphere of r 0.25: 0.75."""
+    from aynamics.measured import support_height
+
+    h = math.sqrt(0.5)
+    pos = np.array([[0.0, 0.0, 1.0]] * 2)
+    box = support_height(pos, np.array([[0.0, 1.0, 0.0, 0.0], [h, -h, 0.0, 0.0]]), "box", np.array([0.1, 0.2, 0.3]))
+    assert box == pytest.approx([0.7, 0.8])
+    cyl = support_height(pos, np.array([[1.0, 0.0, 0.0, 0.0], [h, h, 0.0, 0.0]]), "cylinder", np.array([0.1, 0.4]))
+    assert cyl == pytest.approx([0.8, 0.9])
+    assert support_height(pos, None, "sphere", np.array([0.25])) == pytest.approx([0.75, 0.75])

@@ -66,6 +66,14 @@ CASES = [
     ("reduce the y-velocity of cylinder_0 by 0.2 m/s", {"cylinder_0.state.linear_velocity[1]": -0.7}),
     ("reduce the z-gravity by 2 m/s^2", {"gravity.gravity[2]": -9.0}),
     ("increase the z-velocity of box_0 by 1 m/s", {"box_0.state.linear_velocity[2]": 1.0}),
+    # a rate added to the decay rate, not subtracted: log10(1e-4 + 1e-4) = log10(2e-4) = -3.69897
+    ("increase the damping of box_0 by 0.0001 /s", {"box_0.physics.damping": -3.69897}),
+    ("move the cylinder 0.2 m back", {"cylinder_0.state.position[1]": 0.6}),  # back = -y: 0.8 - 0.2
+    # stop zeroes the spin too: the spin set first is gone again, so only the velocity changes
+    (
+        "set the spin of box_0 to [0, 0, 2]; stop box_0",
+        {"box_0.state.linear_velocity[0]": 0.0, "box_0.state.linear_velocity[1]": 0.0},
+    ),
 ]
 
 

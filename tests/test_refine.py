@@ -679,3 +679,98 @@ def test_refine_takes_its_groups_as_one_string(truth):
     assert one.after.iou_full == pytest.approx(1.0)
     with pytest.raises(ValueError, match="unknown group 'spin'"):
         refine(truth, observed, params="position, spin", budget=4)
+
+
+def test_cmaes_tells_a_candidate_without_a_value_as_worse_than_the_worst(truth, monkeypatch):
+    """One generation with a recording stand-in for `cmaes.CMA`: 3 position dims -> population 4 + int(3 ln 3)
+    = 4 + int(3.30) = 7, a budget of exactly 7. Values 1.0, -inf, 0.5, 0.25, 0.75, 0.5, 0.5: CMA minimises, so it is
+    told minus each value, and the -inf candidate the worst finite value less 1, 0.25 - 1 = -0.75 -> cost 0.75 (the
+    largest: not -2.0, which would make it the best). The best candidate (value 1.0, the first) is kept. CMA-ES
+    searches the unit box [0, 1] per dim (what `decode` maps onto the ranges) with sigma the largest step."""
+    import aynamics.refine_search as rs
+
+    told, made = [], []
+
+    class Recorder:
+        def __init__(self, **kwargs):
+            self.k = 0
+            made.append(kwargs)
+
+        def ask(self):
+            self.k += 1
+            return np.full(3, 0.4 + 0.01 * self.k)
+
+        def tell(self, solutions):
+            told.extend(cost for _, cost in solutions)
+
+        def should_stop(self):
+            return False
+
+    monkeypatch.setattr(rs, "CMA", Recorder)
+    values = [1.0, -math.inf, 0.5, 0.25, 0.75, 0.5, 0.5]
+    space = param_space(truth, ["position"])
+    assert len(space.steps) == 3
+    budget = Budget(7, 60.0)
+    found = cmaes_search(lambda scenes: values[: len(scenes)], space, space.encode(truth), 0.0, budget)
+    assert told == pytest.approx([-1.0, 0.75, -0.5, -0.25, -0.75, -0.5, -0.5])
+    assert (found.value, budget.used, found.generations) == (1.0, 7, 1)
+    assert found.x == pytest.approx(np.full(3, 0.41))
+    assert np.array_equal(made[0]["bounds"], [[0.0, 1.0]] * 3) and made[0]["population_size"] == 7
+    assert made[0]["sigma"] == pytest.approx(space.steps.max())
+
+
+def test_budget_left_counts_simulations_and_stops_at_its_seconds():
+    """10 simulations, 4 used: 6 left; the same budget started 1.0 s ago with 1.0 s to spend: 0 left (not once
+    3 s have passed); with 2.0 s to spend, still 6."""
+    import time
+
+    now = time.perf_counter()
+    assert Budget(10, 60.0, used=4).left() == 6
+    assert Budget(10, 1.0, used=4, start=now - 1.0).left() == 0
+    assert Budget(10, 2.0, used=4, start=now - 1.0).left() == 6
+    assert Budget(10, 60.0, used=12).left() == 0
+
+
+def test_refine_keeps_the_start_when_the_track_fit_is_worse(truth):
+    """The true scene as the start (IoU 1.0) with the track stage forced (track_below 1.1), no grounding rollout
+    (fix_grounded off) and a budget of 25: 1 to score the start, 24 (TRACK_STAGE_SIMS) for the track stage, whose
+    fits only approximate the truth, and no polish (cap int(0.2 · 25) = 5 < 8) nor score generation (population
+    7 > the 1 left). The fits score below 1.0, so the start is returned unchanged."""
+    from aynamics.scorer import Observation
+
+    result = refine(
+        truth, Observation.from_scene(truth), params=["position"], budget=25, track_below=1.1, fix_grounded=False
+    )
+    assert any(stage == "track-fit" for *_, stage in result.trace)
+    assert result.before.iou_full == pytest.approx(1.0) and result.after.iou_full == pytest.approx(1.0)
+    assert dump(result.scene) == dump(truth)
+
+
+def test_refine_keeps_a_resting_objects_height_and_narrows_its_steps_after_a_track_fit(truth, monkeypatch):
+    """The sphere rests on the floor (centre height 0.3 = its radius): `fix_grounded` freezes z, so however far the
+    search moves it sideways its height stays 0.3. The track stage finds the start 0.4 m / 0.6 m/s off, so the
+    score stage's steps are sigma_scale × track_sigma = 0.3 × 0.3 = 0.09 of the ranges (the polish on the track
+    objective keeps the default, 1.0)."""
+    import aynamics.refine as refine_module
+    from aynamics.scorer import Observation
+
+    scales = []
+
+    def recording(*args, **kwargs):
+        scales.append(kwargs.get("sigma_scale", 1.0))
+        return cmaes_search(*args, **kwargs)
+
+    monkeypatch.setattr(refine_module, "cmaes_search", recording)
+    pred = _shift(truth, (0.4, -0.3, 0.0), (-0.6, 0.4, 0.0))
+    result = refine(pred, Observation.from_scene(truth), budget=80, seed=0, params=["position", "linear_velocity"])
+    assert result.after.iou_full > result.before.iou_full
+    assert result.scene.objects[0].state.position[2] == 0.3
+    assert result.scene.objects[0].state.linear_velocity[2] == 0.0
+    assert scales[-1] == pytest.approx(0.09) and all(s in (1.0, pytest.approx(0.09)) for s in scales)
+    # a start 0.18 m off (IoU 0.66, above track_below: the score stages alone, whose search moves the height when
+    # it is not frozen: to 0.325 m here): its height and vertical velocity stay
+    near = _shift(truth, (0.15, -0.1, 0.0), (-0.2, 0.1, 0.0))
+    result = refine(near, Observation.from_scene(truth), budget=80, seed=0, params=["position", "linear_velocity"])
+    assert result.after.iou_full > result.before.iou_full > 0.5 and scales[-1] == pytest.approx(0.3)
+    assert result.scene.objects[0].state.position[2] == 0.3
+    assert result.scene.objects[0].state.linear_velocity[2] == 0.0

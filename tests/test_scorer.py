@@ -386,3 +386,17 @@ def test_colour_and_palette_masks_follow_the_names_in_meta_json(tmp_path):
         im.save(pal / "segmentation" / f"{k:03d}.png")
     seg = scorer.Observation.from_dir(pal, width=8, height=8).segmentation
     assert (seg[:, :, :4] == 0).all() and (seg[:, :, 4:] == 1).all()
+
+
+def test_scoring_size_keeps_the_videos_aspect_from_either_side():
+    """A 480×320 video (3:2): by default 80 rows and 80 · 480 / 320 = 120 columns; given the width 60 alone, the
+    height is 60 · 320 / 480 = 40; given the height 40 alone, the width is 40 · 480 / 320 = 60. A 100×50 video
+    smaller than 80 rows keeps its own 50 rows. 120×90 is off 3:2 by 15 columns: refused."""
+    from aynamics.scorer import scoring_size
+
+    assert scoring_size(480, 320) == (120, 80)
+    assert scoring_size(480, 320, width=60) == (60, 40)
+    assert scoring_size(480, 320, height=40) == (60, 40)
+    assert scoring_size(100, 50) == (100, 50)
+    with pytest.raises(ValueError, match="off the video's aspect ratio"):
+        scoring_size(480, 320, 120, 90)

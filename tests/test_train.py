@@ -1407,3 +1407,28 @@ def test_joined_csv_rows_drop_the_steps_a_resume_logs_again(tmp_path):
     newer.write_text("epoch,step,train/loss,val/x\n0,4,,8\n0,5,5.5,\n")
     assert [r["step"] for r in _joined_rows(older, newer)[1]] == ["0", "1", "2", "3", "4", "4", "4", "5"]
     assert [r["step"] for r in _joined_rows(tmp_path / "missing.csv", newer)[1]] == ["4", "5"]
+
+
+def test_a_second_resume_after_one_stopped_before_the_join_keeps_the_csv_rows_in_order(tmp_path):
+    """A run logged steps 0-6 and was resumed from step 5; that resume logged 5, 6, 7 into a new metrics.csv and
+    was stopped before the join, leaving metrics.before-resume.csv (0-6) beside it. The next resume's keep puts
+    the older file first and keeps its rows before the first step the newer one trained (5): 0-4, then 5, 6, 7.
+    (Kept the other way round, the stale 5, 6 of the first run would come after step 7, and 7 would be lost.) A
+    row without a step (written by hand: 0,,9.9) cannot be placed before or after the resume and is kept."""
+    from lightning.pytorch.loggers import CSVLogger
+
+    from train import CSV_KEPT, keep_csv_logs
+
+    logger = CSVLogger(tmp_path, name="csv", version="")
+    log = Path(logger.log_dir) / "metrics.csv"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.with_name(CSV_KEPT).write_text(
+        "epoch,step,train/loss\n" + "".join(f"0,{s},{s}.0\n" for s in range(7)) + "0,,9.9\n"
+    )
+    log.write_text("epoch,step,train/loss\n" + "".join(f"0,{s},{s}.5\n" for s in (5, 6, 7)))
+    assert keep_csv_logs([object(), logger]) == [log]
+    rows = list(csv.DictReader(log.with_name(CSV_KEPT).open()))
+    assert [(r["step"], r["train/loss"]) for r in rows] == [
+        ("0", "0.0"), ("1", "1.0"), ("2", "2.0"), ("3", "3.0"), ("4", "4.0"), ("", "9.9"),
+        ("5", "5.5"), ("6", "6.5"), ("7", "7.5"),
+    ]  # fmt: skip
