@@ -371,3 +371,42 @@ def test_a_named_object_after_the():
     )
     (change,) = apply_instruction(crate, "set the mass of the crate to 3 kg").changes
     assert (change.path, change.after) == ("crate.physics.mass", 3.0)
+
+
+def test_what_if_files_hold_the_edited_flow_and_tiles_in_place(tmp_path, scene):
+    """The edited flow saved and given to the synthesiser is the edited scene's own (motion_flow on its rendering,
+    which differs from the original's: the cylinder is 2 m/s faster in y), and the animation's tiles stand as
+    labelled: at frame 20 the top-left tile is nearer the original's frame, the top-right the edited one's."""
+    from aynamics.render import Renderer, gl_available
+
+    ok, why = gl_available()
+    if not ok:
+        pytest.skip(why)
+    import imageio.v3 as iio
+
+    from aynamics.flow import motion_flow
+    from aynamics.simulate import simulate_batch
+    from aynamics.whatif import render_what_if
+
+    edited = apply_instruction(scene, "increase the y-velocity of cylinder_0 by 2 m/s").scene
+    given = []
+    report = render_what_if(
+        scene, edited, tmp_path, width=96, height=64, synthesize=lambda f, flow, p: given.append(flow) or f[None]
+    )
+    rollouts = simulate_batch([scene, edited], nthread=1)
+    with Renderer(96, 64) as r:
+        frames = [r.render(s, ro, seed=0) for s, ro in zip((scene, edited), rollouts, strict=True)]
+    flows = [
+        motion_flow(s, ro, f.depth, f.camera, f.segmentation)[0]
+        for s, ro, f in zip((scene, edited), rollouts, frames, strict=True)
+    ]
+    assert not np.allclose(flows[0], flows[1], equal_nan=True)
+    saved = np.load(report["files"]["edited_flow"])["flow"]
+    np.testing.assert_array_equal(saved, flows[1])
+    np.testing.assert_array_equal(given[0], flows[1])
+    gif = iio.imread(report["files"]["side_by_side"]).astype(float)[20][..., :3]
+    original, changed = (f.rgb[20].astype(float) for f in frames)
+    assert np.abs(original - changed).mean() > 1  # the two videos differ at frame 20
+    left, right = gif[:64, :96], gif[:64, 96:]
+    assert np.abs(left - original).mean() < np.abs(left - changed).mean()
+    assert np.abs(right - changed).mean() < np.abs(right - original).mean()
