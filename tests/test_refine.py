@@ -151,6 +151,23 @@ def test_track_objective_is_zero_at_truth(truth):
     assert good == pytest.approx(0.0, abs=1e-9) and bad < -0.05
 
 
+def test_track_objective_averages_over_visible_pairs_only(truth):
+    """Two sampled frames of one sphere, 120×80: frame 0's centroid is its projected centre, frame 1's is 40 px to
+    the right of it, 40 / 80 = 0.5 image heights off. Both visible: −(0 + 0.5) / 2 = −0.25. Frame 1 hidden (the
+    object left the view or is occluded): its centroid is not evidence, so the mean is over frame 0 alone: 0, not
+    −(0 + 0.5) / 2 with a hidden pair counted."""
+    from aynamics import camera as camlib
+    from aynamics.simulate import simulate
+
+    frames = np.array([0, 6])
+    uv, _ = camlib.matrices(truth.camera, 120, 80).project(simulate(truth).position[frames])
+    uv[1, 0, 0] += 40.0
+    both = Tracks(uv, np.ones((2, 1), bool), frames, 120, 80)
+    first = Tracks(uv, np.array([[True], [False]]), frames, 120, 80)
+    assert track_objective(both)([truth])[0] == pytest.approx(-0.25, abs=1e-9)
+    assert track_objective(first)([truth])[0] == pytest.approx(0.0, abs=1e-9)
+
+
 def test_refine_with_scorer(truth):
     """Against the fast scorer: a sphere 0.35 m and 0.8 m/s off is pulled towards the observed motion."""
     from aynamics.scorer import Observation
@@ -744,6 +761,39 @@ def test_refine_keeps_the_start_when_the_track_fit_is_worse(truth):
     assert any(stage == "track-fit" for *_, stage in result.trace)
     assert result.before.iou_full == pytest.approx(1.0) and result.after.iou_full == pytest.approx(1.0)
     assert dump(result.scene) == dump(truth)
+
+
+def test_track_stage_keeps_its_fit_when_the_polish_scores_worse(truth, monkeypatch):
+    """The polish searches the track objective, not IoU, so its scene can score worse than the fit it started
+    from: the stage keeps whichever scores better on the scorer. With the polish forced (POLISH_BELOW above any
+    IoU) and made to return the sphere 1.2 m off (far outside its 0.3 m radius: IoU ~0 against the fit's),
+    the stage returns the fit and the fit's value; made to return the true scene (IoU 1), it takes it."""
+    import aynamics.refine as refine_module
+    from aynamics.refine_search import Search
+    from aynamics.scorer import Observation
+
+    observed = Observation.from_scene(truth)
+    pred = _shift(truth, (0.4, -0.3, 0.0), (-0.6, 0.4, 0.0))
+    monkeypatch.setattr(refine_module, "POLISH_BELOW", 1.01)
+
+    def run(polished):
+        monkeypatch.setattr(refine_module, "cmaes_search", lambda *a, **k: Search(np.zeros(1), 0.0, polished, [], 0, 1))
+        trace = []
+        params = ["position", "linear_velocity"]
+        left = Budget(200, 60.0)
+        scene, value, _ = refine_module._track_stage(
+            pred, 0.0, observed, params, set(), left, 40, 30.0, 0, 0.0, 1, trace
+        )
+        return scene, value, trace
+
+    far = _shift(truth, (1.2, 0.0, 0.0), (0.0, 0.0, 0.0))
+    scene, value, trace = run(far)
+    fit_value = trace[0][2]
+    assert [stage for *_, stage in trace] == ["track-fit", "track-polish"]
+    assert 0.0 < fit_value < 1.0 and value == fit_value and trace[1][2] == fit_value
+    assert dump(scene) != dump(far)
+    scene, value, trace = run(truth)
+    assert value == pytest.approx(1.0) and dump(scene) == dump(truth)
 
 
 def test_refine_keeps_a_resting_objects_height_and_narrows_its_steps_after_a_track_fit(truth, monkeypatch):
