@@ -21,6 +21,7 @@ Every problem in a text is reported at once in one `SceneError`, each as
 from __future__ import annotations
 
 import math
+import os
 import re
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
@@ -412,12 +413,21 @@ def _lookup(data: Any, loc: tuple) -> Any:
 
 def _pydantic_problems(prefix: str, err: ValidationError, item: Any = None) -> list[Problem]:
     out = []
+    short: dict[str, int] = {}  # vector path -> its place in `out`
     for e in err.errors(include_url=False):
         loc = e["loc"]
         if e["type"] == "missing" and loc and isinstance(loc[-1], int):
-            # a vector with too few values: report the vector, not its missing element
+            # a vector with too few values: report the vector once (pydantic names each missing element), with
+            # its length; the last missing element's index + 1 is the length it must have
             path = prefix + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc[:-1])
-            out.append(Problem(path, _lookup(item, loc[:-1]), f"has too few values (element {loc[-1]} missing)"))
+            value = _lookup(item, loc[:-1])
+            got = f", got {len(value)}" if isinstance(value, list | tuple) else ""
+            problem = Problem(path, value, f"must have {loc[-1] + 1} values{got}")
+            if path in short:
+                out[short[path]] = problem
+            else:
+                short[path] = len(out)
+                out.append(problem)
             continue
         path = prefix + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
         msg = e["msg"]
@@ -432,9 +442,9 @@ def _pydantic_problems(prefix: str, err: ValidationError, item: Any = None) -> l
             msg = str(e.get("ctx", {}).get("error", msg))
         elif e["type"] in ("too_short", "too_long"):
             ctx = e.get("ctx", {})
-            msg = f"must have {ctx.get('max_length', ctx.get('min_length'))} values"
-            if "expected" in ctx:
-                msg = f"must have {ctx['expected']} values"
+            msg = f"must have {ctx.get('expected', ctx.get('max_length', ctx.get('min_length')))} values"
+            if ctx.get("actual_length") is not None:
+                msg += f", got {ctx['actual_length']}"
         else:
             msg = _PYDANTIC_MESSAGES.get(e["type"], msg)
         out.append(Problem(path, value, msg))
@@ -451,7 +461,9 @@ def from_items(items: Any) -> Scene:
     if items is None:
         raise SceneError([Problem("", _NO_VALUE, "empty scene: no YAML items found")])
     if not isinstance(items, list):
-        raise SceneError([Problem("scene", _short_type(items), "must be a YAML list of items (- type: ...)")])
+        raise SceneError(
+            [Problem("scene", items, f"must be a YAML list of items (- type: ...), got {_type_name(items)}")]
+        )
     objects: list[Object] = []
     cameras: list[Camera] = []
     gravities: list[tuple[float, float, float]] = []
@@ -460,7 +472,9 @@ def from_items(items: Any) -> Scene:
     n_obj = 0
     for i, item in enumerate(items):
         if not isinstance(item, dict):
-            problems.append(Problem(f"items[{i}]", _short_type(item), "must be a mapping with a 'type' key"))
+            problems.append(
+                Problem(f"items[{i}]", item, f"must be a mapping with a 'type' key, got {_type_name(item)}")
+            )
             continue
         kind = item.get("type")
         known = isinstance(kind, str)  # a list or mapping (`type: [box]`) would not even hash: an unknown type
@@ -532,8 +546,8 @@ def from_items(items: Any) -> Scene:
     )
 
 
-def _short_type(value: Any) -> str:
-    return f"<{type(value).__name__}>"
+def _type_name(value: Any) -> str:
+    return "a mapping" if isinstance(value, dict) else type(value).__name__
 
 
 # --------------------------------------------------------------------------------------------
@@ -643,6 +657,13 @@ def _loader_for(text: str) -> type:
     return _FAST_LOADER
 
 
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def _line_column(text: str, offset: int) -> str:
+    return f"line {text.count(chr(10), 0, offset) + 1}, column {offset - text.rfind(chr(10), 0, offset)}"
+
+
 def _checked_text(text: str | bytes) -> str:
     """`text` as a string (bytes decoded as UTF-8), refused when binary or longer than MAX_TEXT_CHARS."""
     if isinstance(text, bytes):
@@ -652,6 +673,11 @@ def _checked_text(text: str | bytes) -> str:
             raise SceneError([Problem("text", _NO_VALUE, f"not UTF-8 text (byte {e.start}): binary input?")]) from None
     if "\x00" in text:
         raise SceneError([Problem("text", _NO_VALUE, "contains NUL bytes: binary input?")])
+    surrogate = _SURROGATE.search(text)
+    if surrogate is not None:  # no UTF-8 form: the YAML reader would refuse it by its offset in the text
+        where = _line_column(text, surrogate.start())
+        msg = f"contains a lone surrogate character {surrogate.group()!r} ({where}): not valid Unicode text"
+        raise SceneError([Problem("text", _NO_VALUE, msg)])
     if len(text) > MAX_TEXT_CHARS:
         raise SceneError([Problem("text", len(text), f"too long: at most {MAX_TEXT_CHARS} characters")])
     return text
@@ -670,9 +696,7 @@ def _too_deep(text: str) -> Problem | None:
     for m in _BRACKET.finditer(text):
         depth = depth + 1 if m.group() in "[{" else max(depth - 1, 0)
         if depth > MAX_FLOW_DEPTH:
-            line = text.count("\n", 0, m.start()) + 1
-            column = m.start() - text.rfind("\n", 0, m.start())
-            msg = f"nested too deeply: more than {MAX_FLOW_DEPTH} levels of [ and {{ (line {line}, column {column})"
+            msg = f"nested too deeply: more than {MAX_FLOW_DEPTH} levels of [ and {{ ({_line_column(text, m.start())})"
             return Problem("yaml", _NO_VALUE, msg)
     return None
 
@@ -689,6 +713,12 @@ def load_yaml(text: str | bytes) -> Any:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         problem = getattr(e, "problem", None) or str(e)
+        if isinstance(e, yaml.reader.ReaderError) and isinstance(e.character, int):
+            # a control character, located by an offset (in bytes with the C loader): by line and column instead;
+            # the reader stops at the first unacceptable character, so its first occurrence is the one
+            offset = text.find(chr(e.character))
+            problem = f"unacceptable character #x{e.character:04x}: {e.reason}"
+            where = f" ({_line_column(text, offset if offset >= 0 else e.position)})"
         if isinstance(e, yaml.constructor.ConstructorError) and problem.startswith("could not determine a constructor"):
             problem = f"refused YAML tag: {problem}"
         raise SceneError([Problem("yaml", _NO_VALUE, f"{problem}{where}")]) from None
@@ -774,7 +804,7 @@ def parse(text: str | bytes) -> Scene:
     if isinstance(text, bytes):  # a file's contents: decoded and checked, not parsed (it may wrap the YAML)
         text = _checked_text(text)
     if not isinstance(text, str):
-        raise SceneError([Problem("text", _short_type(text), "must be a string")])
+        raise SceneError([Problem("text", _NO_VALUE, f"must be a string, got {_type_name(text)}")])
     if not text.strip():
         raise SceneError([Problem("text", _NO_VALUE, "empty text: no YAML found")])
     body, data = _extract(text)
@@ -785,9 +815,13 @@ def load(path: str) -> Scene:
     """Read and parse a scene file; a missing file raises SceneError naming the path."""
     try:
         with open(path, "rb") as f:
-            data = f.read(4 * MAX_TEXT_CHARS + 4)  # UTF-8: up to 4 bytes a character; the length check is in chars
+            data = f.read(4 * MAX_TEXT_CHARS + 1)  # UTF-8: up to 4 bytes a character; the length check is in chars
+            size = max(os.fstat(f.fileno()).st_size, len(data))  # a pipe has no size: what was read
     except OSError as e:
         raise SceneError([Problem("file", path, e.strerror or str(e))]) from None
+    if size > 4 * MAX_TEXT_CHARS:  # refused by its size, not by a decoding error where the read stopped
+        msg = f"too large: {size} bytes, and a scene is at most {MAX_TEXT_CHARS} characters"
+        raise SceneError([Problem("file", path, msg)])
     return parse(data)
 
 

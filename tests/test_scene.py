@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import subprocess
 import sys
 import time
@@ -248,6 +249,37 @@ def test_all_problems_reported_at_once():
     assert "objects[0].physics.mass = -2: must be > 0" in str(err.value)
 
 
+@pytest.mark.parametrize(
+    ("size", "message"),
+    [
+        ("[]", "objects[0].size = []: must have 3 values, got 0"),
+        ("[0.2]", "objects[0].size = [0.2]: must have 3 values, got 1"),
+        ("[0.2, 0.2, 0.2, 0.2]", "objects[0].size = [0.2, 0.2, 0.2, 0.2]: must have 3 values, got 4"),
+    ],
+)
+def test_a_vector_of_the_wrong_length_is_one_problem_with_its_length(size, message):
+    """A box's size needs 3 half-extents: `[]` is one problem (pydantic reports each of the 3 missing elements),
+    naming how many it must have and how many it has."""
+    with pytest.raises(S.SceneError) as err:
+        S.parse(_box(size=size))
+    assert [str(p) for p in err.value.problems] == [message]
+
+
+def test_an_item_or_scene_of_the_wrong_kind_is_shown_with_its_kind():
+    """The value itself is shown (not '<list>'), and its kind named."""
+    with pytest.raises(S.SceneError) as err:
+        S.parse("a: 1\n")
+    assert (
+        str(err.value)
+        == "invalid scene (1 problem): scene = {'a': 1}: must be a YAML list of items (- type: ...), got a mapping"
+    )
+    with pytest.raises(S.SceneError) as err:
+        S.parse("- [1, 2]\n" + OK_BOX + CAMERA)
+    assert [str(p) for p in err.value.problems] == ["items[0] = [1, 2]: must be a mapping with a 'type' key, got list"]
+    with pytest.raises(S.SceneError, match=r"^invalid scene \(1 problem\): text: must be a string, got int$"):
+        S.parse(12)
+
+
 def test_alias_bomb_is_refused_quickly():
     t = time.perf_counter()
     with pytest.raises(S.SceneError, match="aliases are not allowed"):
@@ -258,6 +290,37 @@ def test_alias_bomb_is_refused_quickly():
 def test_missing_file_is_a_scene_error(tmp_path):
     with pytest.raises(S.SceneError, match="No such file"):
         S.load(str(tmp_path / "nope.yaml"))
+
+
+def test_a_file_too_large_is_named_with_its_size(tmp_path):
+    """Only 4 × MAX_TEXT_CHARS + 1 bytes are read, so a file of 2-byte characters was refused as 'not UTF-8' when
+    the read stopped inside one, or by the characters read; it is refused by its size (1 000 021 bytes: the 21
+    bytes of `- type: box\n  name: ` and `\n`, and 500 000 two-byte é)."""
+    big = tmp_path / "big.yaml"
+    big.write_text("- type: box\n  name: " + "é" * 500_000 + "\n", encoding="utf-8")
+    with pytest.raises(S.SceneError) as err:
+        S.load(str(big))
+    assert str(err.value.problems[0]) == (
+        f"file = '{big}': too large: 1000021 bytes, and a scene is at most {S.MAX_TEXT_CHARS} characters"
+    )
+
+
+def test_unreadable_characters_are_located_by_line_and_column():
+    """A control character in the third line, after a line of 2-byte characters (PyYAML's C loader gives its
+    offset in bytes, 37 here, the Python one in characters, 32; a `*` in a comment sends the text to the Python
+    one), and a lone surrogate (no UTF-8 form) in the second line."""
+    for comment in ("", "  # *\n"):
+        with pytest.raises(S.SceneError) as err:
+            S.parse("- type: box\n  name: ééééé\n  x: a\x07b\n" + comment)
+        assert re.fullmatch(
+            r"yaml: unacceptable character #x0007: (control|special) characters are not allowed \(line 3, column 7\)",
+            str(err.value.problems[0]),
+        )
+    with pytest.raises(S.SceneError) as err:
+        S.parse("- type: box\n  name: a\ud800b\n")
+    assert str(err.value.problems[0]) == (
+        "text: contains a lone surrogate character '\\ud800' (line 2, column 10): not valid Unicode text"
+    )
 
 
 def test_cli_subprocess_reports_invalid_scene_cleanly(tmp_path):
@@ -417,7 +480,9 @@ def test_deep_flow_nesting_is_refused_at_once_naming_where():
             f"invalid scene (1 problem): yaml: nested too deeply: more than 32 levels of [ and {{ "
             f"(line {line}, column {column})"
         )
-    with pytest.raises(S.SceneError, match=r"items\[0\] = '<list>'"):  # 32 levels are read (and then refused)
+    with pytest.raises(
+        S.SceneError, match=r"items\[0\] = \[\[\[.*\]\]\]: must be a mapping with a 'type' key, got list"
+    ):  # 32 levels are read (and then refused)
         S.parse("[" * 32 + "]" * 32)
     flow = "[{type: box, size: [0.2, 0.2, 0.2], state: {position: [0, 0, 0.2]}}, {type: camera, position: [0, -3, 3]}]"
     assert S.parse(flow) == S.parse(OK_BOX.replace("name: b", "name: box_0") + CAMERA)  # 3 levels: a scene
@@ -466,7 +531,9 @@ def test_the_message_names_the_first_problems_and_counts_the_rest():
     with pytest.raises(S.SceneError) as err:
         S.parse("- 1\n" * 45_000)
     assert len(err.value.problems) == 45_002 and len(str(err.value)) < 2_000
-    assert str(err.value).startswith("invalid scene (45002 problems): items[0] = '<int>'")
+    assert str(err.value).startswith(
+        "invalid scene (45002 problems): items[0] = 1: must be a mapping with a 'type' key, got int"
+    )
     assert str(err.value).endswith("; and 44982 more")
 
 
