@@ -52,6 +52,7 @@ WIDTH, HEIGHT = 120, 80  # scorer resolution: a quarter of 480×320 per side
 REFERENCE_WIDTH = 480  # EPE is reported in pixels of an image this wide
 EPE_INVALID = 100.0  # px (at 480 wide): the EPE of a candidate that cannot be parsed or simulated
 VIDEO_FRAMES = 30  # frames of an observed video (states 0..29 of a 1 s rollout at 30 FPS)
+MAX_FLOW_SIZES = 10  # observed flow longer than this many image sizes (width or height, the larger) is refused
 MAX_OBJECT_ID = int(np.iinfo(np.int16).max) - 1  # observed masks are held as int16 (-1 background)
 
 
@@ -212,6 +213,20 @@ class Observation:
                 raise ValueError(
                     f"{root / 'flow.npy'}: {int(bad.sum())} sampled pixels hold NaN or infinite flow "
                     f"(the first in flow {frames[f]}): mark pixels without flow in occlusion.npy instead"
+                )
+            # a pixel cannot move MAX_FLOW_SIZES image sizes in a frame: such a value is a unit or file error, and
+            # it swamps every candidate's EPE (one pixel of 1e38 px gave the true scene an EPE of 1.9e36 px)
+            limit = MAX_FLOW_SIZES * max(width, height)
+            huge = np.hypot(flow[..., 0].astype(np.float64), flow[..., 1]) > limit
+            if occluded is not None:
+                huge &= ~occluded
+            if huge.any():
+                f, v, u = (int(k) for k in np.argwhere(huge)[0])
+                value = full_flow[frames[f], grid.rows[v], grid.columns[u]].tolist()
+                raise ValueError(
+                    f"{root / 'flow.npy'}: {int(huge.sum())} sampled pixels move more than {MAX_FLOW_SIZES} image "
+                    f"sizes in one frame (the first in flow {frames[f]}, row {grid.rows[v]}, column "
+                    f"{grid.columns[u]}: {value} px): is it in pixels per frame?"
                 )
         names, fps = None, sim.FPS
         if (root / "meta.json").is_file():

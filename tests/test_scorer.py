@@ -214,6 +214,22 @@ def test_observation_from_dir_errors(tmp_path):
     np.save(tmp_path / "occlusion.npy", occluded)
     obs = scorer.Observation.from_dir(tmp_path, width=8, height=8)
     assert np.isfinite(obs.flow).all() and obs.occluded[1, 2, 2]
+    # a pixel moving more than 10 image sizes (10 × 8 = 80 px here) in one frame is refused, named with its
+    # place and value (one object pixel of 1e38 px gave the true scene an EPE of 1.9e36 px); 80 px exactly is kept
+    flow[6, 4, 5] = (80.0, 0.0)
+    np.save(tmp_path / "flow.npy", flow)
+    assert scorer.Observation.from_dir(tmp_path, width=8, height=8).flow[2, 4, 5, 0] == 80.0
+    flow[6, 4, 5] = (3.0, 1e38)
+    np.save(tmp_path / "flow.npy", flow)
+    with pytest.raises(ValueError) as err:
+        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    assert str(err.value).endswith(
+        "flow.npy: 1 sampled pixels move more than 10 image sizes in one frame (the first in flow 6, row 4, "
+        f"column 5: [3.0, {float(np.float32(1e38))}] px): is it in pixels per frame?"
+    )
+    occluded[6, 4, 5] = True  # where occlusion.npy marks it, never read
+    np.save(tmp_path / "occlusion.npy", occluded)
+    assert scorer.Observation.from_dir(tmp_path, width=8, height=8).occluded[2, 4, 5]
 
 
 def test_observed_masks_without_frames_or_pixels_are_named(tmp_path):
