@@ -326,17 +326,36 @@ class ResumableLoader(DataLoader):
             )
 
 
-def eval_shard(n: int, trainer) -> list[int] | None:
+class EvalShard(list):
+    """`eval_shard`'s indices: the first `real` are this process's own items, the rest padding."""
+
+    def __init__(self, indices: list[int], real: int) -> None:
+        super().__init__(indices)
+        self.real = real
+
+
+def eval_shard(n: int, trainer) -> EvalShard | None:
     """The indices of `n` validation items this process evaluates under ddp / fsdp: every world-th from its
     rank, the list padded with the first items to ceil(n / world) for each process (as torch's
-    DistributedSampler pads: every process runs the same batches, which sharded weights need, and `sync_dist`
-    then averages equal shares). None (all items, every process) for one process or fewer items than processes.
+    DistributedSampler pads: every process runs the same batches, which sharded weights need). The padding comes
+    last in each list and is not counted (`real_rows`), so the logged means are over the n items, each once.
+    None (all items, every process) for one process or fewer items than processes.
     """
     if trainer is None or trainer.world_size == 1 or n < trainer.world_size:
         return None
-    world = trainer.world_size
+    world, rank = trainer.world_size, trainer.global_rank
     padded = list(range(n)) + list(range(math.ceil(n / world) * world - n))
-    return padded[trainer.global_rank :: world]
+    return EvalShard(padded[rank::world], len(range(rank, n, world)))
+
+
+def real_rows(loader, batch_idx: int, rows: int) -> int:
+    """How many of the `rows` rows of batch `batch_idx` of an evaluation `loader` are items of its own, not the
+    padding of `eval_shard` (which comes last): all of them for a loader without padding. E.g. 5 items over 2
+    processes, batches of 2: rank 1 evaluates items 1, 3 and 0 (padding), so its batch 1 has 0 real rows of 1."""
+    real = getattr(getattr(loader, "sampler", None), "real", None)
+    if real is None:
+        return rows
+    return max(0, min(rows, real - batch_idx * loader.batch_size))
 
 
 MAX_AUTO_WORKERS = 4

@@ -37,6 +37,7 @@ from torch.utils.data import DataLoader
 
 from aynamics import lm, sharding
 from aynamics import reward as rw
+from aynamics.data import real_rows
 from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
 from aynamics.sft import check_gradients
@@ -325,13 +326,19 @@ class ProModule(lm.ExactResume, L.LightningModule):
         with own_random_stream(self.device, VAL_SEED + 1_000_003 * self.global_rank + batch_idx):
             _, _, greedy, _ = self.sample_and_score(batch, 1, 0.0)
             _, _, scores, rewards = self.sample_and_score(batch, hp.num_samples, hp.temperature)
+        # the rows of `eval_shard`'s padding (repeats, last) ran with the others (the same calls in every process)
+        # but are not counted: the means are over the held-out videos, each once, whatever the number of processes
+        real = real_rows(getattr(self.trainer, "val_dataloaders", None), batch_idx, len(batch))
+        if real == 0:
+            return
+        greedy, scores, rewards = greedy[:real], scores[:real], rewards[:real]
         modes = rw.evaluation_modes([row[0] for row in greedy], scores, rewards)
         metrics = {f"val/{k}": v for k, v in modes.items()}
         metrics |= {f"val/{k.split('/')[1]}": v for k, v in modes.items() if k.startswith("greedy/")}
         metrics |= rw.RewardStats.of(rewards, scores).to_metrics("val/reward_")
         if not getattr(self.trainer.datamodule, "val_flow", True):  # the same keys from every batch and process
             metrics = {k: v for k, v in metrics.items() if "/epe_" not in k}
-        self.log_dict(metrics, batch_size=len(batch), sync_dist=True)
+        self.log_dict(metrics, batch_size=real, sync_dist=True)
 
     def on_train_start(self) -> None:
         self.model.train()  # the tiny model is built in eval mode; sampling switches modes itself

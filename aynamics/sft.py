@@ -19,8 +19,9 @@ import lightning as L
 import torch
 
 from aynamics import lm, sharding, visual_targets
+from aynamics.data import real_rows
 from aynamics.model import find_visual
-from aynamics.processor import model_inputs
+from aynamics.processor import IGNORE_INDEX, model_inputs
 
 SCHEDULES = ("cosine", "constant")
 log = logging.getLogger(__name__)
@@ -291,7 +292,19 @@ class SFTModule(lm.ExactResume, L.LightningModule):
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=bs, on_step=True, on_epoch=False)
         return loss if aux is None else loss + self.hparams.vision_aux_weight * aux
 
+    def _without_padding(self, batch: dict[str, torch.Tensor], loader, batch_idx: int) -> dict[str, torch.Tensor]:
+        """The batch with the labels of `eval_shard`'s padding rows (repeats, which come last) masked, so that the
+        token-weighted means count each held-out item once whatever the number of processes. The rows still run
+        (every process makes the same calls); the dense visual loss's statistics still include them."""
+        real = real_rows(loader, batch_idx, batch["labels"].shape[0])
+        if real == batch["labels"].shape[0]:
+            return batch
+        labels = batch["labels"].clone()
+        labels[real:] = IGNORE_INDEX
+        return {**batch, "labels": labels}
+
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        batch = self._without_padding(batch, getattr(self.trainer, "val_dataloaders", None), batch_idx)
         loss, n, logits = self._loss(batch)
         bs = batch["input_ids"].shape[0]
         # Weighted by token counts, the epoch values are means over every response token of the split (not means
@@ -314,7 +327,9 @@ class SFTModule(lm.ExactResume, L.LightningModule):
                 self.log("val/type_acc_other_frames", acc, batch_size=n_types, sync_dist=True)
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
-        loss, n, _ = self._loss(batch)
+        loss, n, _ = self._loss(
+            self._without_padding(batch, getattr(self.trainer, "test_dataloaders", None), batch_idx)
+        )
         if int(n):  # a mean over the split's tokens, as val/loss
             self.log("test/loss", loss, batch_size=int(n), sync_dist=True)
 

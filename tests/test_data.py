@@ -436,6 +436,9 @@ def test_validation_is_split_over_the_processes(dataset_dir):
     # every 3rd from the rank (a pad of 4 % 3 = 1 item gave rank 2 one item and the others two)
     assert [eval_shard(4, trainer(r, 3)) for r in range(3)] == [[0, 3], [1, 0], [2, 1]]
     assert eval_shard(2, trainer(1, 3)) is None and eval_shard(5, trainer(0, 1)) is None and eval_shard(5, None) is None
+    # the padding is last and not the process's own: [0, 3] holds 2 of them, [1, 0] and [2, 1] one each
+    assert [eval_shard(4, trainer(r, 3)).real for r in range(3)] == [2, 1, 1]
+    assert [eval_shard(5, trainer(r, 2)).real for r in (0, 1)] == [3, 2]
     dm = _dm(dataset_dir)
     n = len(dm.dataset("validation"))
     assert n >= 2
@@ -448,6 +451,28 @@ def test_validation_is_split_over_the_processes(dataset_dir):
     dm.trainer = None
     assert shares == [eval_shard(n, trainer(r, 2)) for r in (0, 1)] and list(dm.val_dataloader().sampler) == list(
         range(n)
+    )
+
+
+def test_real_rows_leave_out_the_padding_of_each_batch():
+    """5 items over 2 processes, batches of 2: rank 1 evaluates [1, 3 | 0], 0 padding: batch 0 has 2 real rows,
+    batch 1 none (0 of 1); rank 0 [0, 2 | 4]: 2 and 1. 7 over 4, batches of 1: rank 3 [3, 0]: 1 then 0. A loader
+    without `eval_shard` (one process, a plain sampler) counts every row."""
+    from types import SimpleNamespace
+
+    from aynamics.data import eval_shard, real_rows
+
+    def loader(n, rank, world, batch):
+        return SimpleNamespace(
+            sampler=eval_shard(n, SimpleNamespace(global_rank=rank, world_size=world)), batch_size=batch
+        )
+
+    assert [real_rows(loader(5, 1, 2, 2), b, r) for b, r in ((0, 2), (1, 1))] == [2, 0]
+    assert [real_rows(loader(5, 0, 2, 2), b, r) for b, r in ((0, 2), (1, 1))] == [2, 1]
+    assert [real_rows(loader(7, 3, 4, 1), b, 1) for b in (0, 1)] == [1, 0]
+    assert (
+        real_rows(loader(5, 0, 1, 2), 1, 2) == 2
+        and real_rows(SimpleNamespace(sampler=range(4), batch_size=2), 1, 2) == 2
     )
 
 

@@ -602,6 +602,38 @@ def _flow_logged_keys(tmp_path, kw) -> None:
     assert {"val/epe_full", "val/bestN/epe_first"} <= logged[1]
 
 
+def test_validation_leaves_out_the_padding_of_its_share():
+    """Rank 1 of 2 over 5 videos evaluates [1, 3 | 0]: the repeat of video 0 (padding, so that both processes run
+    the same batches) runs but is not counted. Greedy IoUs 0.2, 0.4 and 1.0 (the padding): val/iou_full =
+    (0.2 + 0.4) / 2 = 0.3 over 2 videos, not 1.6 / 3; a batch of padding alone logs nothing."""
+    import types
+
+    from aynamics.data import EvalShard
+    from aynamics.scorer import Score
+
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=2)
+    loader = types.SimpleNamespace(sampler=EvalShard([1, 3, 0], 2), batch_size=3)
+    module._trainer = types.SimpleNamespace(
+        datamodule=types.SimpleNamespace(val_flow=True), global_rank=1, val_dataloaders=loader
+    )
+    ious = [0.2, 0.4, 1.0]
+    module.sample_and_score = lambda videos, n, t: (
+        None,
+        None,
+        [[Score(v, v, 1.0, 2.0, True)] * n for v in ious[: len(videos)]],
+        torch.ones(len(videos), n),
+    )
+    logged = []
+    module.log_dict = lambda metrics, **kw: logged.append((metrics, kw["batch_size"]))
+    module.validation_step([None] * 3, 0)
+    ((metrics, batch_size),) = logged
+    assert batch_size == 2 and metrics["val/iou_full"] == pytest.approx(0.3)
+    assert metrics["val/bestN/iou_full"] == pytest.approx(0.3) and metrics["val/reward_invalid"] == 0.0
+    loader.batch_size = 1  # batches of one: [1], [3], [0]: the third is padding alone
+    module.validation_step([None], 2)
+    assert len(logged) == 1
+
+
 def test_offline_pro_shows_the_frames_on_the_clock_they_were_sampled_on(tmp_path, dataset_dir):
     """Preferences sampled from a data set's videos (`aynamics preferences`: the prompt takes the videos' clock) are
     trained offline on the same clock: the offline data module kept the default 30 fps clip, so a video's temporal

@@ -678,6 +678,36 @@ def test_validation_means_are_over_tokens_not_batches(dataset_dir):
     assert metrics["val/type_acc"] == pytest.approx(right / typed, rel=1e-5)
 
 
+def test_the_padding_of_a_process_share_is_not_counted(dataset_dir, monkeypatch):
+    """Under several processes `eval_shard` pads each share with repeats of the first items (every process runs the
+    same batches): a share of the validation items followed by item 0 again, marked as padding (`EvalShard.real`),
+    gives the same val/loss, type_acc and image_gap, and test/loss, as the items once each (counted, item 0 weighed
+    twice and the means moved)."""
+    import lightning as L
+
+    from aynamics import data as data_module
+
+    spec = lm.ModelSpec(kind="tiny")
+    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2, eval_batch_size=2)
+    dm.setup("fit")
+    module = SFTModule(spec).eval()
+
+    def run(shard):
+        monkeypatch.setattr(data_module, "eval_shard", lambda n, trainer: shard(n))
+        trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False)
+        metrics = trainer.validate(module, datamodule=dm, verbose=False)[0]
+        return metrics | trainer.test(module, datamodule=dm, verbose=False)[0]
+
+    once = run(lambda n: None)
+    for pad in ([0], [0, 1]):  # batches of 2: the padding shares a batch with an item, or fills one
+        padded = run(lambda n, pad=pad: data_module.EvalShard([*range(n), *pad], n))
+        assert set(once) == set(padded) >= {"val/loss", "val/type_acc", "val/image_gap", "test/loss"}
+        for k in ("val/loss", "val/type_acc", "val/image_gap", "test/loss"):
+            assert padded[k] == pytest.approx(once[k], rel=1e-5), k
+    counted = run(lambda n: [*range(n), 0])  # the padding taken for items: the means move
+    assert abs(counted["val/loss"] - once["val/loss"]) > 1e-5
+
+
 def test_vision_aux_is_logged_and_misconfigurations_are_named(tmp_path, dataset_dir):
     """The dense visual loss and its warm-up reach the CSV; wrong combinations fail before training, naming the keys."""
     cfg = _cfg(
