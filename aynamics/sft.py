@@ -210,8 +210,11 @@ class SFTModule(lm.ExactResume, L.LightningModule):
             "data.visual_targets=true"
         )
 
-    def _vision_aux(self, batch: dict[str, torch.Tensor], bs: int, prefix: str) -> torch.Tensor | None:
-        """The dense visual loss of the forward just run (None when off), with its statistics logged."""
+    def _vision_aux(
+        self, batch: dict[str, torch.Tensor], bs: int, prefix: str, real: int | None = None
+    ) -> torch.Tensor | None:
+        """The dense visual loss of the forward just run (None when off), with its statistics logged; with `real`,
+        of the batch's first `real` examples only (the rest `eval_shard`'s padding; none: nothing logged)."""
         if self.visual_head is None:
             return None
         if "visual_targets" not in batch:
@@ -221,6 +224,13 @@ class SFTModule(lm.ExactResume, L.LightningModule):
             got = None if tokens is None else tuple(tokens.shape)
             raise ValueError(f"visual tokens {got} do not match visual_targets {tuple(targets.shape)}")
         grid = batch["video_grid_thw"] if "video_grid_thw" in batch else batch["image_grid_thw"]
+        self._visual_tokens = None
+        if real is not None and real < bs:  # an example's grid rows (its frames, or its video) are consecutive
+            if real == 0:
+                return None
+            grid = grid[: real * (grid.shape[0] // bs)]
+            keep = sum(visual_targets.frame_tokens(grid, self._merge_size))
+            tokens, targets, bs = tokens[:keep], targets[:keep], real
         aux, stats = visual_targets.aux_loss(
             self.visual_head(tokens),
             targets,
@@ -230,7 +240,6 @@ class SFTModule(lm.ExactResume, L.LightningModule):
         self.log(f"{prefix}/vision_aux", aux, batch_size=bs, sync_dist=prefix != "train")
         for k, v in stats.items():
             self.log(f"{prefix}/vision_{k}", v, batch_size=bs, sync_dist=prefix != "train")
-        self._visual_tokens = None
         return aux
 
     def on_fit_start(self) -> None:
@@ -292,19 +301,21 @@ class SFTModule(lm.ExactResume, L.LightningModule):
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=bs, on_step=True, on_epoch=False)
         return loss if aux is None else loss + self.hparams.vision_aux_weight * aux
 
-    def _without_padding(self, batch: dict[str, torch.Tensor], loader, batch_idx: int) -> dict[str, torch.Tensor]:
+    def _without_padding(
+        self, batch: dict[str, torch.Tensor], loader, batch_idx: int
+    ) -> tuple[dict[str, torch.Tensor], int]:
         """The batch with the labels of `eval_shard`'s padding rows (repeats, which come last) masked, so that the
-        token-weighted means count each held-out item once whatever the number of processes. The rows still run
-        (every process makes the same calls); the dense visual loss's statistics still include them."""
+        token-weighted means count each held-out item once whatever the number of processes, and how many rows are
+        real. The padding rows still run (every process makes the same calls)."""
         real = real_rows(loader, batch_idx, batch["labels"].shape[0])
         if real == batch["labels"].shape[0]:
-            return batch
+            return batch, real
         labels = batch["labels"].clone()
         labels[real:] = IGNORE_INDEX
-        return {**batch, "labels": labels}
+        return {**batch, "labels": labels}, real
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
-        batch = self._without_padding(batch, getattr(self.trainer, "val_dataloaders", None), batch_idx)
+        batch, real = self._without_padding(batch, getattr(self.trainer, "val_dataloaders", None), batch_idx)
         loss, n, logits = self._loss(batch)
         bs = batch["input_ids"].shape[0]
         # Weighted by token counts, the epoch values are means over every response token of the split (not means
@@ -312,7 +323,7 @@ class SFTModule(lm.ExactResume, L.LightningModule):
         tokens = int(n)
         if tokens:  # a batch without response tokens has no loss to average in
             self.log("val/loss", loss, prog_bar=True, batch_size=tokens, sync_dist=True)
-        self._vision_aux(batch, bs, "val")
+        self._vision_aux(batch, bs, "val", real)
         types = batch.get("type_tokens")
         n_types = 0 if types is None else lm.token_count(batch["labels"], types)
         if n_types:  # teacher-forced: which shape comes next, or the camera (no more)
@@ -328,7 +339,7 @@ class SFTModule(lm.ExactResume, L.LightningModule):
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         loss, n, _ = self._loss(
-            self._without_padding(batch, getattr(self.trainer, "test_dataloaders", None), batch_idx)
+            self._without_padding(batch, getattr(self.trainer, "test_dataloaders", None), batch_idx)[0]
         )
         if int(n):  # a mean over the split's tokens, as val/loss
             self.log("test/loss", loss, batch_size=int(n), sync_dist=True)

@@ -681,16 +681,18 @@ def test_validation_means_are_over_tokens_not_batches(dataset_dir):
 def test_the_padding_of_a_process_share_is_not_counted(dataset_dir, monkeypatch):
     """Under several processes `eval_shard` pads each share with repeats of the first items (every process runs the
     same batches): a share of the validation items followed by item 0 again, marked as padding (`EvalShard.real`),
-    gives the same val/loss, type_acc and image_gap, and test/loss, as the items once each (counted, item 0 weighed
-    twice and the means moved)."""
+    gives the same val/loss, type_acc, image_gap and dense visual loss statistics, and test/loss, as the items once
+    each (counted, item 0 weighed twice and the means moved)."""
     import lightning as L
 
     from aynamics import data as data_module
 
-    spec = lm.ModelSpec(kind="tiny")
-    dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2, eval_batch_size=2)
+    spec = lm.ModelSpec(kind="tiny", train_vision=True)
+    dm = SceneDataModule(
+        str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2, eval_batch_size=2, visual_targets=True
+    )
     dm.setup("fit")
-    module = SFTModule(spec).eval()
+    module = SFTModule(spec, vision_aux_weight=0.5).eval()
 
     def run(shard):
         monkeypatch.setattr(data_module, "eval_shard", lambda n, trainer: shard(n))
@@ -701,8 +703,8 @@ def test_the_padding_of_a_process_share_is_not_counted(dataset_dir, monkeypatch)
     once = run(lambda n: None)
     for pad in ([0], [0, 1]):  # batches of 2: the padding shares a batch with an item, or fills one
         padded = run(lambda n, pad=pad: data_module.EvalShard([*range(n), *pad], n))
-        assert set(once) == set(padded) >= {"val/loss", "val/type_acc", "val/image_gap", "test/loss"}
-        for k in ("val/loss", "val/type_acc", "val/image_gap", "test/loss"):
+        assert set(once) == set(padded) >= {"val/loss", "val/type_acc", "val/image_gap", "test/loss", "val/vision_aux"}
+        for k in once:
             assert padded[k] == pytest.approx(once[k], rel=1e-5), k
     counted = run(lambda n: [*range(n), 0])  # the padding taken for items: the means move
     assert abs(counted["val/loss"] - once["val/loss"]) > 1e-5
