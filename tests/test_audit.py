@@ -317,7 +317,10 @@ def test_hidden_floor_offset_is_found_and_the_cli_writes_the_report(tmp_path, ca
     assert scenelib.parse(got["extended_scene"]).environment.floor_offset == pytest.approx(size, rel=0.25)
     for f in ("report.md", "residuals.png", "phases.png", "worst.png", "extended_scene.yaml"):
         assert (out / f).stat().st_size > 0
-    assert "floor_offset" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "floor_offset" in report
+    before, after = got["held_out_error_before"], got["held_out_error_after"]  # the table's rows, in metres
+    assert f"| baseline (refitted μ) | {before:.4f} |" in report and f"| extended | {after:.4f} |" in report
 
 
 def test_null_control_answers_none_and_leaves_the_error_unchanged(tmp_path):
@@ -525,3 +528,31 @@ def test_support_height_is_the_lowest_corner_whichever_way_the_body_is_turned():
     cyl = support_height(pos, np.array([[1.0, 0.0, 0.0, 0.0], [h, h, 0.0, 0.0]]), "cylinder", np.array([0.1, 0.4]))
     assert cyl == pytest.approx([0.8, 0.9])
     assert support_height(pos, None, "sphere", np.array([0.25])) == pytest.approx([0.75, 0.75])
+
+
+def test_bounce_matching_bisects_towards_the_measured_bounce(monkeypatch):
+    """Bounces grow with the restitution e: with a stand-in simulator whose every first-impact bounce is e itself
+    and 5 fit tracks whose measured bounces are 0.5, 7 halvings of [0.02, 0.9] close in on e = 0.5 (the last
+    interval is 0.88 / 2^7 = 0.0069 wide, its middle within 0.0035); the held-out error of a track at 0.5 then is
+    sqrt(3) × |e - 0.5| (three coordinates off by e - 0.5). 4 measured bounces, or restitution fitted already,
+    give no bounce-matched model."""
+    import types
+
+    from aynamics import audit_report as ar
+
+    def bounces(scene, tracks, positions, orientations):  # a position stands for its track's first bounce
+        return [float(np.mean(p)) for p in positions]
+
+    def simulate(scene, tracks, values, active):
+        assert active[-1] == "restitution"
+        e = values["restitution"]
+        return types.SimpleNamespace(position=[np.full((3, 1, 3), e)] * len(tracks), orientation=[None] * len(tracks))
+
+    monkeypatch.setattr(ar, "_first_bounce", bounces)
+    monkeypatch.setattr(ar, "simulate_tracks", simulate)
+    tracks = [types.SimpleNamespace(position=np.full((3, 1, 3), 0.5), orientation=None) for _ in range(5)]
+    got = ar.bounce_matched(None, tracks, tracks[:1], {"mu": 0.3}, [])
+    assert got["restitution"] == pytest.approx(0.5, abs=0.0035) and got["fit_bounce_measured"] == 0.5
+    assert got["held_errors"] == pytest.approx([math.sqrt(3) * abs(got["restitution"] - 0.5)])
+    assert ar.bounce_matched(None, tracks[:4], tracks[:1], {"mu": 0.3}, []) is None
+    assert ar.bounce_matched(None, tracks, tracks[:1], {"mu": 0.3}, ["restitution"]) is None

@@ -225,9 +225,11 @@ def test_predict_cli_errors_are_clear(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "short' (20 frames at 30 fps) lasts 0.667 s (its last frame comes at 0.633 s), but frames up" in err
     assert "but frames up to 0.9 s are needed" in err
-    for bad in ("0", "nan", "-30"):
+    for bad in ("0", "nan", "-30", "inf"):
         assert main(["predict", "--adapter", str(tmp_path), str(short), "--fps", bad]) == 2
         assert f"predict: --fps {float(bad)}: must be a finite number > 0" in capsys.readouterr().err
+    assert main(["predict", "--adapter", str(tmp_path), str(short), "--max-new-tokens", "0"]) == 2
+    assert "predict: --max-new-tokens = 0: must be >= 1" in capsys.readouterr().err
 
 
 def test_inference_device_names_a_device_this_machine_lacks(tmp_path, capsys):
@@ -324,6 +326,145 @@ def test_export_adapter_refuses_a_folder_that_is_not_an_adapter(tmp_path, capsys
         assert main(["export-adapter", str(tmp_path / "none.ckpt"), "--out", str(out)]) == 2
         assert "no such checkpoint" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
+
+
+def test_predict_reads_the_response_and_exits_by_its_validity(tmp_path, monkeypatch, capsys):
+    """`aynamics predict` with the model swapped for fixed responses (the adapter's files are not read past
+    aynamics.json). "<think> why </think><answer>SCENE</answer>": reasoning "why" (stripped), the canonical YAML of
+    SCENE, valid, exit 0, printed as "# reasoning", "why", a blank line, then the YAML. A response cut inside its
+    <think> by the token limit: the reasoning so far ("the box slides"), no scene, exit 1, the response printed
+    after the line naming its problems."""
+    from aynamics import lm
+    from aynamics.cli import main
+    from aynamics.predict import predict
+
+    scene = load(str(ASSET))
+    response = [f"<think>\n why \n</think><answer>\n{dump(scene)}</answer>"]
+    monkeypatch.setattr(lm, "load_adapter", lambda adapter, device: (None, lm.ModelSpec(), lm.PromptSpec()))
+    monkeypatch.setattr(lm, "load_processor", lambda spec, prompt: None)
+    monkeypatch.setattr(lm, "prompt_inputs", lambda processor, prompt, frames: {"frames": len(frames)})
+    monkeypatch.setattr(lm, "greedy_texts", lambda model, processor, prompts, max_new_tokens: response[:1])
+    got = predict(tmp_path, [], max_new_tokens=8, device="cpu")
+    assert got == {"response": response[0], "reasoning": "why", "yaml": dump(scene), "valid": True, "problems": []}
+    (tmp_path / "aynamics.json").write_text(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
+    frames = _clip_folder(tmp_path / "frames")
+    args = ["predict", "--adapter", str(tmp_path), str(frames), "--device", "cpu"]
+    assert main(args) == 0
+    assert capsys.readouterr().out == f"# reasoning\nwhy\n\n{dump(scene)}"
+    response[0] = "<think> the box slides"
+    got = predict(tmp_path, [], max_new_tokens=8, device="cpu")
+    assert got["reasoning"] == "the box slides" and got["yaml"] is None and not got["valid"] and got["problems"]
+    assert main(args) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[:2] == ["# reasoning", "the box slides"] and out[-1] == response[0]
+    assert out[3].startswith("# the response holds no valid scene: ")
+
+
+def test_evaluate_scores_refines_and_counts_by_hand(truth, monkeypatch):
+    """`_score` of 2 scorable records (responses: the true scene, and no scene) of the 3 read from a split of 10,
+    with refinement swapped for one that returns the true scene and stops, by the time limit, 1 search for the
+    model's starts and 2 for the average scene's: 1 + 2 = 3 cut short; 3 read - 2 scored = 1 left out; valid YAML
+    1/2 for the model, 2/2 refined, 0/2 for an average "scene" that is none, 2/2 for it refined. The line above the
+    table says "of 10 (--num)" only while fewer than the split were read (2 scored + 1 left out of a split of 3: all
+    of it)."""
+    from aynamics import evaluate as ev
+
+    scene, obs = truth
+    records = [{"index": k, "scene_yaml": dump(scene), "scene": scene, "observation": obs} for k in range(2)]
+    searched = []
+
+    def fixed(texts, recs, budget, seconds, progress=False):
+        searched.append((list(texts), budget, seconds))
+        return [dump(scene)] * len(texts), len(searched)
+
+    monkeypatch.setattr(ev, "refine_texts", fixed)
+    texts = [dump(scene), "no scene"]
+    result = ev._score(
+        records,
+        texts,
+        average="none",
+        refine_budget=5,
+        refine_seconds=2.0,
+        progress=False,
+        n=3,
+        split_size=10,
+        what="x",
+    )
+    assert searched == [(texts, 5, 2.0), (["none", "none"], 5, 2.0)]
+    assert (result.refine_timed_out, result.left_out, result.split_size) == (3, 1, 10)
+    valid = {name: column["yaml_valid"] for name, column in result.table.items()}
+    assert valid == {"model": 0.5, "average scene": 0.0, "model + refine": 1.0, "average scene + refine": 1.0}
+    assert result.refined == [dump(scene)] * 2 and result.refined_per_item["yaml_valid"] == [1.0, 1.0]
+    cut = "3 refinements stopped by --refine-seconds before their budget"
+    assert ev.describe(result, "test") == f"test: 2 scenes of 10 (--num), 1 left out (named above), {cut}"
+    result.split_size = 3
+    assert ev.describe(result, "test") == f"test: 2 scenes, 1 left out (named above), {cut}"
+    result.left_out, result.refine_timed_out, result.records = 0, 0, records[:1]
+    assert ev.describe(result, None) == "videos: 1 video of 3 (--num)"
+
+
+def test_evaluate_command_passes_its_settings_and_writes_them(tmp_path, capsys, monkeypatch):
+    """`aynamics evaluate` with the scoring swapped for a fixed result (1 video scored, 1 left out, of 5): --videos
+    writes settings with no split (videos have none) and prints "videos: 1 video of 5 (--num), 1 left out"; --data
+    hands the split, --num and the baseline choice to the evaluation, and --json prints metrics.json less the
+    settings."""
+    from aynamics import evaluate as ev
+    from aynamics.cli import main
+
+    calls = []
+
+    def fixed(adapter, source, **kwargs):
+        calls.append((source, kwargs))
+        per = {"yaml_valid": [1.0], "reason": [None]}
+        return ev.Evaluation({"model": {"yaml_valid": 1.0}}, [{"index": "v0"}], ["t"], per, left_out=1, split_size=5)
+
+    monkeypatch.setattr(ev, "evaluate_videos", fixed)
+    monkeypatch.setattr(ev, "evaluate_adapter", fixed)
+    (tmp_path / "adapter").mkdir()
+    base = ["evaluate", "--adapter", str(tmp_path / "adapter"), "--num", "2", "--quiet"]
+    assert main([*base, "--videos", "V", "--out", str(tmp_path / "v")]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == "videos: 1 video of 5 (--num), 1 left out (named above)"
+    written = json.loads((tmp_path / "v" / "metrics.json").read_text())
+    assert (written["scenes"], written["left_out"], written["split_size"]) == (1, 1, 5)
+    assert written["settings"]["split"] is None and written["settings"]["videos"] == "V"
+    assert main([*base, "--data", "D", "--split", "validation", "--no-baseline", "--json"]) == 0
+    summary = {"table": {"model": {"yaml_valid": 1.0}}, "scenes": 1, "left_out": 1, "split_size": 5}
+    assert json.loads(capsys.readouterr().out) == summary | {"refine_timed_out": 0}
+    assert [source for source, _ in calls] == ["V", "D"]
+    assert calls[1][1]["split"] == "validation" and calls[1][1]["baseline"] is False and calls[1][1]["num"] == 2
+
+
+def test_evaluate_reads_only_num_records_of_a_split_or_folder(tmp_path, tmp_path_factory):
+    """An adapter of the tiny model (2 new tokens: no scene) on the tiny data set's test split of 3 scenes: --num 2
+    scores 2 of a split of 3; --num 100 scores the 3 there are. On 2 video folders (a: 10 frames beside 30 masks;
+    b: masks only, unreadable), --num 1 reads a alone: b is never read, so never named as left out."""
+    import warnings
+
+    from train_fixtures import tiny_dataset
+
+    from aynamics import lm
+    from aynamics.evaluate import evaluate_adapter, evaluate_videos
+
+    spec = lm.ModelSpec(kind="tiny", lora_rank=8, lora_alpha=16.0, lora_dropout=0.0)
+    prompt = lm.PromptSpec(num_frames=2, min_pixels=3136, max_pixels=3136)
+    adapter = tmp_path / "adapter"
+    lm.save_adapter(lm.build_model(spec), adapter, spec, prompt)
+    data = tiny_dataset(tmp_path_factory)
+    settings = {"max_new_tokens": 2, "device": "cpu", "baseline": False}
+    two = evaluate_adapter(adapter, data, num=2, **settings)
+    assert (len(two.records), two.left_out, two.split_size) == (2, 0, 3)
+    every = evaluate_adapter(adapter, data, num=100, **settings)
+    assert [r["index"] for r in every.records] == [r["index"] for r in two.records] + [every.records[2]["index"]]
+    assert (len(every.records), every.left_out, every.split_size) == (3, 0, 3)
+    for name in ("a", "b"):
+        (tmp_path / "videos" / name).mkdir(parents=True)
+        np.save(tmp_path / "videos" / name / "segmentation.npy", np.full((30, 16, 16), -1, np.int16))
+    _clip_folder(tmp_path / "videos" / "a" / "frames")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        one = evaluate_videos(adapter, tmp_path / "videos", num=1, max_new_tokens=2, device="cpu")
+    assert [r["index"] for r in one.records] == ["a"] and (one.left_out, one.split_size) == (0, 2)
+    assert not [w for w in seen if "left out" in str(w.message)]
 
 
 def _trainer(step, epoch, *, max_steps=-1, max_epochs=None, last_batch=False, sanity=False):
@@ -510,8 +651,10 @@ def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):
         (["--data", str(data), "--refine", "-1"], "evaluate: --refine = -1: must be >= 0"),
         (["--data", str(data), "--refine-seconds", "nan"], "--refine-seconds = nan"),
         (["--data", str(data), "--refine-seconds", "-3"], "--refine-seconds = -3.0"),
+        (["--data", str(data), "--refine-seconds", "inf"], "--refine-seconds = inf: must be a finite number"),
         (["--adapter", str(tmp_path / "none"), "--data", str(data)], "is not a folder"),
         (["--videos", str(tmp_path), "--split", "test"], "evaluate: --split is for --data (a data set)"),
+        (["--videos", str(tmp_path), "--no-baseline"], "evaluate: --no-baseline is for --data (a data set)"),
         (["--videos", str(tmp_path / "v.txt")], "'" + str(tmp_path / "v.txt") + "' is a file, not a video folder"),
     ]
     for extra, message in cases:

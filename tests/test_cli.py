@@ -195,3 +195,80 @@ def test_render_refuses_a_video_folder_of_the_users(tmp_path, capsys):
     earlier = tmp_path / "earlier"
     assert cli.main(["render", ASSET, "--out", str(earlier), *size]) == 0
     assert cli.main(["render", ASSET, "--out", str(earlier), *size, "--seed", "1"]) == 0
+
+
+def test_render_of_an_invalid_rollout_exits_1_and_the_smallest_size_is_taken(tmp_path, capsys):
+    """Two boxes at one place rendered at 16×16 (the smallest size render takes): the files are written, the
+    reason is named on stderr and the exit status is 1, as `simulate` gives."""
+    from aynamics.render import gl_available
+
+    if not gl_available()[0]:
+        pytest.skip("render needs headless OpenGL")
+    box = "- type: box\n  size: [0.2, 0.2, 0.2]\n  state: {position: [0, 0, 0.1]}\n"
+    path = tmp_path / "overlap.yaml"
+    path.write_text(box + box + "- type: camera\n  position: [0, -3, 3]\n")
+    assert cli.main(["render", str(path), "--out", str(tmp_path / "r"), "--width", "16", "--height", "16"]) == 1
+    assert "render: the rollout is invalid: overlapping start" in capsys.readouterr().err
+    assert (tmp_path / "r" / "segmentation.npy").is_file()
+
+
+def test_score_prints_first_frame_then_full_and_why_a_prediction_is_invalid(tmp_path, capsys):
+    """Text output, one line a prediction: "PATH: iou FIRST/FULL epe FIRST/FULL", then " INVALID: reason" for one
+    that is no scene. The true scene scores 1.0/1.0 and 0.0/0.0; its cylinder 1.2 m/s faster keeps frame 0 (IoU
+    first 1.0) but not the rest (full < 1); a box size of -1 scores 0.0 IoU and is named."""
+    import json
+
+    from aynamics.scene import dump, from_items, load, to_items
+
+    items = to_items(load(ASSET))
+    items[1]["state"]["linear_velocity"][0] += 1.2
+    faster, bad = tmp_path / "faster.yaml", tmp_path / "bad.yaml"
+    faster.write_text(dump(from_items(items)))
+    bad.write_text("- type: box\n  size: [1, -1, 1]\n")
+    paths = [ASSET, str(faster), str(bad)]
+    assert cli.main(["score", *paths, "--observed", ASSET]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert cli.main(["score", *paths, "--observed", ASSET, "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got[1]["iou_first"] == 1.0 and got[1]["iou_full"] < 1.0
+    for line, path, g in zip(lines, paths, got, strict=True):
+        assert line.startswith(f"{path}: iou {g['iou_first']}/{g['iou_full']} epe {g['epe_first']}/{g['epe_full']}")
+    assert lines[0] == f"{ASSET}: iou 1.0/1.0 epe 0.0/0.0"
+    assert lines[2].startswith(f"{bad}: iou 0.0/0.0 epe ") and " INVALID: " in lines[2] and "size" in lines[2]
+
+
+def test_main_gives_refusals_to_write_and_interrupts_their_exit_statuses(monkeypatch, capsys):
+    """A command stopped by the machine's refusal to write (full disk ENOSPC or quota EDQUOT, read-only EROFS, not
+    allowed EACCES / EPERM): one line "aynamics: REASON: FILE", exit 1; Ctrl-C: "aynamics: interrupted", exit 130;
+    a closed pipe (`| head`): exit 0; any other OSError (EIO) keeps its traceback."""
+    import errno
+    import io
+    import os
+
+    raised = []
+
+    def run(args):
+        raise raised[-1]
+
+    monkeypatch.setattr(cli, "_run_ranges", run)
+    for code in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM):
+        raised.append(OSError(code, os.strerror(code), "/x/f"))
+        assert cli.main(["ranges"]) == 1
+        assert capsys.readouterr().err == f"aynamics: {os.strerror(code)}: /x/f\n"
+    raised.append(KeyboardInterrupt())
+    assert cli.main(["ranges"]) == 130 and capsys.readouterr().err == "aynamics: interrupted\n"
+    raised.append(OSError(errno.EIO, os.strerror(errno.EIO)))
+    with pytest.raises(OSError):
+        cli.main(["ranges"])
+    raised.append(BrokenPipeError())
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # closed by main
+    assert cli.main(["ranges"]) == 0
+
+
+def test_warnings_as_lines_writes_the_projects_own_warnings_as_one_line(capsys):
+    """Within the block a warning starting with the prefix is written at once as "COMMAND: text" without it."""
+    import warnings
+
+    with cli.warnings_as_lines("evaluate", "scene evaluation: "):
+        warnings.warn("scene evaluation: video folder 'v' is left out: no frames", stacklevel=1)
+    assert capsys.readouterr().err == "evaluate: video folder 'v' is left out: no frames\n"

@@ -255,9 +255,8 @@ def test_check_output_refuses_bad_answers(scene):
         check_output(scene, "double the mass of box_0", one)
 
 
-def test_llm_editor_real_loading_path(tmp_path, scene):
-    """A random-weight Qwen2 built from a config with the project's tiny tokenizer: loads through
-    AutoModelForCausalLM/AutoTokenizer, applies the chat template, generates, and its (garbage) answer is refused."""
+def _tiny_chat_model(folder: Path) -> Path:
+    """`folder` holding a random-weight Qwen2 (seed 0) built from a config, with the project's tiny tokenizer."""
     torch = pytest.importorskip("torch")
     from transformers import AutoTokenizer, Qwen2Config, Qwen2ForCausalLM
 
@@ -274,9 +273,15 @@ def test_llm_editor_real_loading_path(tmp_path, scene):
         pad_token_id=tok.pad_token_id,
     )
     torch.manual_seed(0)
-    Qwen2ForCausalLM(cfg).save_pretrained(tmp_path)
-    tok.save_pretrained(tmp_path)
-    editor = LLMEditor(str(tmp_path), max_new_tokens=12)
+    Qwen2ForCausalLM(cfg).save_pretrained(folder)
+    tok.save_pretrained(folder)
+    return folder
+
+
+def test_llm_editor_real_loading_path(tmp_path, scene):
+    """A random-weight Qwen2 built from a config with the project's tiny tokenizer: loads through
+    AutoModelForCausalLM/AutoTokenizer, applies the chat template, generates, and its (garbage) answer is refused."""
+    editor = LLMEditor(str(_tiny_chat_model(tmp_path)), max_new_tokens=12)
     prompt = editor.tokenizer.apply_chat_template(
         build_messages(scene, "stop box_0"), tokenize=False, add_generation_prompt=True
     )
@@ -284,6 +289,29 @@ def test_llm_editor_real_loading_path(tmp_path, scene):
     assert isinstance(editor.generate(scene, "stop box_0"), str)
     with pytest.raises(EditError, match="LLM edit refused"):
         editor.edit(scene, "stop box_0")
+
+
+def test_the_chat_editor_asks_with_the_scene_and_answers_greedily_with_its_own_tokens(tmp_path, scene):
+    """The chat: the rules (system) first, then the scene's canonical YAML and the instruction (user). The answer
+    is the greedy continuation alone: the same twice, none of the prompt (no "Instruction:"), at most
+    max_new_tokens = 12 tokens (24 after decoding and encoding again, to spare the tokenizer's round trip). A
+    tokenizer without a chat template is refused naming the model, before any generation."""
+    from aynamics.edit_llm import SYSTEM_PROMPT
+
+    folder = _tiny_chat_model(tmp_path / "chat")
+    messages = build_messages(scene, "stop box_0")
+    assert [m["role"] for m in messages] == ["system", "user"] and messages[0]["content"] == SYSTEM_PROMPT
+    assert messages[1]["content"] == f"Scene:\n```yaml\n{dump(scene)}```\nInstruction: stop box_0"
+    editor = LLMEditor(str(folder), max_new_tokens=12)
+    answer = editor.generate(scene, "stop box_0")
+    assert answer == editor.generate(scene, "stop box_0") and "Instruction:" not in answer
+    assert len(editor.tokenizer(answer)["input_ids"]) <= 24
+    editor.tokenizer.chat_template = None
+    editor.tokenizer.save_pretrained(tmp_path / "plain")
+    editor.model.save_pretrained(tmp_path / "plain")
+    (tmp_path / "plain" / "chat_template.jinja").unlink(missing_ok=True)
+    with pytest.raises(EditError, match="the tokenizer has no chat template"):
+        LLMEditor(str(tmp_path / "plain"))
 
 
 def test_llm_editor_missing_model(tmp_path):

@@ -149,3 +149,48 @@ def test_an_evaluation_folder_never_pairs_two_evaluations(tmp_path, monkeypatch)
     monkeypatch.undo()
     ev.write_evaluation(out, result(2), {"split": "validation"})
     assert json.loads((out / "metrics.json").read_text())["settings"]["split"] == "validation"
+
+
+def test_an_evaluation_stopped_after_its_predictions_or_inside_its_metrics_leaves_no_metrics_json(
+    tmp_path, monkeypatch
+):
+    """Stopped right after the new predictions.jsonl is in place, the earlier evaluation's metrics.json is already
+    gone (deleted first: it would stand beside the new predictions); stopped half-way through writing metrics.json,
+    no half-written metrics.json is left (it is written beside and renamed whole)."""
+    import os
+    from pathlib import Path
+
+    from aynamics import evaluate as ev
+
+    def result(index: int) -> ev.Evaluation:
+        per = {"yaml_valid": [1.0], "reason": [None]}
+        return ev.Evaluation({"model": {"yaml_valid": 1.0}}, [{"index": index, "scene_yaml": "x"}], ["t"], per)
+
+    out = tmp_path / "eval"
+    ev.write_evaluation(out, result(1), {"split": "test"})
+    real = os.replace
+
+    def dying_after_predictions(src, dst):
+        real(src, dst)
+        if Path(dst).name == "predictions.jsonl":
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(ev.os, "replace", dying_after_predictions)
+    with pytest.raises(KeyboardInterrupt):
+        ev.write_evaluation(out, result(2), {"split": "validation"})
+    monkeypatch.undo()
+    assert json.loads((out / "predictions.jsonl").read_text())["index"] == 2
+    assert not (out / "metrics.json").exists()
+
+    ev.write_evaluation(out, result(3), {"split": "train"})
+
+    def half(self, text, *args, **kwargs):  # a kill half-way through the write
+        with open(self, "w") as f:
+            f.write(text[: len(text) // 2])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Path, "write_text", half)
+    with pytest.raises(KeyboardInterrupt):
+        ev.write_evaluation(out, result(4), {"split": "validation"})
+    monkeypatch.undo()
+    assert not (out / "metrics.json").exists()

@@ -179,9 +179,37 @@ def test_build_preferences_pairs_each_videos_own_candidates(dataset_dir, monkeyp
     assert [r["completions"] for r in rows] == [[texts[1][1], texts[1][2]], [texts[1][3], texts[1][0]]]
     assert [r["rewards"] for r in rows] == [pytest.approx([0.9, 0.0]), pytest.approx([0.5, 0.2])]
     assert rows[0]["completion_ids"] == [response_ids(module.processor, texts[1][k]) for k in (1, 2)]
+    assert [r["case_rewards"] for r in rows] == [pytest.approx([0.2, 0.9, 0.0, 0.5])] * 2  # all 4 of video 1
     assert (summary["pairs"], summary["videos_without_pairs"]) == (2, 1)
     with pytest.raises(ValueError, match="temperature = nan.*a finite temperature > 0"):  # was transformers' error
         build_preferences(module, [videos[0]], num_samples=4, temperature=float("nan"))
+
+
+def test_preference_arguments_and_stored_sets_are_checked(tmp_path, dataset_dir, capsys):
+    """Sampling needs 2 candidates a video (1 gives no pair) and 1 video a batch, refused before any sampling (no
+    module needed); a stored set without the preference columns, or whose summary.json has half a clock, is named
+    or read as clockless; `aynamics preferences --limit 0` is refused, and `--split test` samples the 3 test videos
+    of the tiny data set (12 scenes split 6 / 3 / 3), not the 6 training ones."""
+    import datasets
+
+    from aynamics.preference_data import build_preferences, stored_clock
+
+    for kwargs, named in (({"num_samples": 1}, "num_samples = 1"), ({"batch_size": 0}, "batch_size = 0")):
+        with pytest.raises(ValueError, match=named):
+            build_preferences(None, [], **kwargs)
+    datasets.Dataset.from_dict({"key": ["a"], "rewards": [[1.0, 0.0]]}).save_to_disk(str(tmp_path / "other"))
+    with pytest.raises(ValueError, match=r"columns \['frames', 'completions', 'completion_ids', 'reasons', 'case_re"):
+        load_preferences(tmp_path / "other")
+    (tmp_path / "other" / "summary.json").write_text(json.dumps({"clock": {"fps": 15.0}}))
+    assert stored_clock(tmp_path / "other") is None
+    (tmp_path / "other" / "summary.json").write_text(json.dumps({"clock": {"fps": 15, "clip_frames": [0, 3]}}))
+    assert stored_clock(tmp_path / "other") == {"fps": 15.0, "clip_frames": (0, 3)}
+    args = ["preferences", "--data", str(dataset_dir), "--num-samples", "2", "--max-new-tokens", "3"]
+    assert cli_main([*args, "--out", str(tmp_path / "p"), "--limit", "0"]) == 2
+    assert "preferences: --limit 0: must be >= 1" in capsys.readouterr().err and not (tmp_path / "p").exists()
+    assert cli_main([*args, "--out", str(tmp_path / "p"), "--split", "test", "--device", "cpu"]) == 0
+    assert json.loads(capsys.readouterr().out)["videos"] == 3
+    assert len(GeneratedVideos(dataset_dir, "test", use_flow=False, limit=100)) == 3  # all there are
 
 
 def test_online_pro_scores_logs_and_prefers_fixed_candidates(tmp_path, dataset_dir, monkeypatch):

@@ -338,6 +338,44 @@ def test_cli_refine_bad_out_is_refused_before_the_search(tmp_path, capsys, truth
     assert "is a folder" in capsys.readouterr().err
 
 
+def test_colour_segmentation_by_hand():
+    """Background (-1) is dark grey (30, 30, 30); object k takes palette colour k mod 7: 0 red (230, 25, 75),
+    1 green (60, 180, 75), 6 pink (240, 50, 230), 7 red again."""
+    from aynamics.refine_cli import colour_segmentation
+
+    got = colour_segmentation(np.array([[[-1, 0, 1, 6, 7]]]))
+    assert got.dtype == np.uint8
+    assert got.tolist() == [[[[30, 30, 30], [230, 25, 75], [60, 180, 75], [240, 50, 230], [230, 25, 75]]]]
+
+
+def test_cli_refine_prints_or_writes_and_takes_its_search_settings(tmp_path, capsys, truth):
+    """Without --json the refined YAML is printed, or with --out written there and nothing printed; groups may be
+    written "a, b". A start 0.2 m and 0.3 m/s off: seeds 0 and 1 draw other searches (other refined scenes), seed 0
+    twice the same. The true scene as start scores the objective 1 at once: --stop-at 0.5 stops it well before its
+    --budget of 200; --seconds 0.3 stops a budget of 100,000 within a few seconds."""
+    truth_path, pred_path, out = tmp_path / "truth.yaml", tmp_path / "pred.yaml", tmp_path / "refined.yaml"
+    truth_path.write_text(dump(truth))
+    pred_path.write_text(dump(_shift(truth, (0.2, 0.0, 0.0), (0.3, 0.0, 0.0))))
+    args = ["refine", str(pred_path), "--observed", str(truth_path), "--budget", "20"]
+    args += ["--params", "position, linear_velocity"]
+    assert cli.main([*args, "--out", str(out)]) == 0
+    assert capsys.readouterr().out == "" and load(str(out)).objects[0].type == "sphere"
+    assert cli.main(args) == 0
+    assert load_text(capsys.readouterr().out) == load(str(out))  # seed 0 both times: the same search
+    found = []
+    for seed in ("0", "1"):
+        assert cli.main([*args, "--json", "--seed", seed]) == 0
+        found.append(json.loads(capsys.readouterr().out)["refined_yaml"])
+    assert load_text(found[0]) == load(str(out)) and found[1] != found[0]
+    exact = ["refine", str(truth_path), "--observed", str(truth_path), "--json"]
+    assert cli.main([*exact, "--budget", "200", "--stop-at", "0.5"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["iou_full_before"] == 1.0 and record["simulations"] < 100
+    assert cli.main([*exact, "--budget", "100000", "--seconds", "0.3"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["simulations"] < 100_000 and record["seconds"] < 5
+
+
 def test_cli_refine_missing_observed(tmp_path, capsys, truth):
     path = tmp_path / "s.yaml"
     path.write_text(dump(truth))

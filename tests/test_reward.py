@@ -95,6 +95,62 @@ def test_observation_from_record_reads_masks_not_labels(records):
         observation_from_record({k: v for k, v in rec.items() if k != "segmentation"})
 
 
+def test_a_hand_made_records_flow_is_scaled_to_the_scoring_width():
+    """A 24×16 record of one sampled frame whose flow image is a uniform (4, 0) px on its scale of 4 (flow_max):
+    at its own 24×16 the flow decodes to (4, 0) px (within the colour wheel's 1 % of the scale); at 12×8, half the
+    pixels across, to (2, 0) px. Masks hold object index + 1: the box of 1s is object 0, the rest background -1
+    (pixel (2, 3) of 12×8 is full-size (5, 7), inside rows 4..7, columns 6..11). 2 masks for 1 frame are refused;
+    without use_flow the flow is not read."""
+    from PIL import Image
+
+    flow = np.zeros((16, 24, 2))
+    flow[..., 0] = 4.0
+    mask = np.zeros((16, 24), np.uint8)
+    mask[4:8, 6:12] = 1
+    colour = Image.fromarray(flow_to_color(flow, max_norm=4.0))
+    rec = {"index": 7, "segmentation": [Image.fromarray(mask)], "frame_indices": [0], "flow": [colour], "flow_max": 4}
+    own = observation_from_record(rec)
+    assert (own.width, own.height) == (24, 16)
+    np.testing.assert_allclose(own.flow[0], flow, atol=0.04)
+    half = observation_from_record(rec, width=12, height=8)
+    np.testing.assert_allclose(half.flow[0], flow[::2, ::2] / 2, atol=0.02)
+    assert half.segmentation[0, 2, 3] == 0 and half.segmentation[0, 0, 0] == -1
+    assert observation_from_record(rec, use_flow=False).flow is None  # not decoded when not wanted
+    with pytest.raises(ValueError, match=r"record 7: 2 segmentation masks for frame_indices \[0\]"):
+        observation_from_record(dict(rec, segmentation=[Image.fromarray(mask)] * 2))
+
+
+def test_a_folders_clip_needs_its_last_image_and_a_limit_reads_only_the_first_folders(tmp_path):
+    """The default clip shows the images at 0, 0.1, ..., 0.9 s of a 30 fps video: image 27 is the last it needs. A
+    folder of 28 images (masks for 28 frames) gives 10 images, 0 to 27; one of 27 is refused naming image 27 (one
+    more than it holds); a folder of exactly the 10 sampled images gives them all. Of a collection whose second
+    folder has no frames, limit 1 reads the first alone."""
+    from PIL import Image
+
+    from aynamics.lm import PromptSpec
+
+    def folder(root, n, masks=None):
+        (root / "frames").mkdir(parents=True)
+        for k in range(n):  # each image's number in its red channel
+            Image.fromarray(np.full((16, 16, 3), (k, 0, 0), np.uint8)).save(root / "frames" / f"{k}.png")
+        np.save(root / "segmentation.npy", np.full((masks or n, 16, 16), -1, np.int16))
+
+    times = PromptSpec().frame_times
+    folder(tmp_path / "videos" / "a", 28)
+    (tmp_path / "videos" / "b").mkdir()
+    np.save(tmp_path / "videos" / "b" / "segmentation.npy", np.full((28, 16, 16), -1, np.int16))
+    (video,) = open_videos(tmp_path / "videos", limit=1, clip_times=times)
+    assert video.key == "a" and [f.getpixel((0, 0))[0] for f in video.frames] == list(range(0, 28, 3))
+    with pytest.raises(FileNotFoundError, match=r"b' has no frames"):
+        open_videos(tmp_path / "videos", clip_times=times)
+    folder(tmp_path / "short", 27)
+    with pytest.raises(ValueError, match=r"27 images at 30 fps .* needs the image at 0.9 s \(image 27\)"):
+        open_videos(tmp_path / "short", clip_times=times)
+    folder(tmp_path / "sampled", 10, masks=30)  # exactly the 10 sampled images of a 30-frame video: all of them
+    sampled = open_videos(tmp_path / "sampled", clip_times=times)[0].frames
+    assert [f.getpixel((0, 0))[0] for f in sampled] == list(range(10))
+
+
 def test_scoring_size_keeps_the_videos_aspect():
     """480×320 -> 120×80; 112×80 stays; 96×64 (fewer rows than 80) stays; a height alone sets the width; a size
     off the aspect is refused, naming both and the width that fits."""
