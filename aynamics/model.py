@@ -248,6 +248,7 @@ def enable_gradient_checkpointing(model: torch.nn.Module) -> None:
     else:
         model.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
     model.config.use_cache = False
+    model.config.get_text_config().use_cache = False  # what the language model reads (a composite config)
 
 
 def apply_lora(

@@ -10,6 +10,7 @@ import json
 import math
 import sys
 import tempfile
+import types
 from pathlib import Path
 
 import numpy as np
@@ -556,3 +557,169 @@ def test_bounce_matching_bisects_towards_the_measured_bounce(monkeypatch):
     assert got["held_errors"] == pytest.approx([math.sqrt(3) * abs(got["restitution"] - 0.5)])
     assert ar.bounce_matched(None, tracks[:4], tracks[:1], {"mu": 0.3}, []) is None
     assert ar.bounce_matched(None, tracks, tracks[:1], {"mu": 0.3}, ["restitution"]) is None
+
+
+# ------------------------------------------------------------------------------------------------
+# residual analysis (aynamics.residuals)
+# ------------------------------------------------------------------------------------------------
+BALL = (
+    "- type: sphere\n  name: ball\n  radius: 0.1\n  state:\n    position: [0, 0, 1]\n"
+    "- type: camera\n  position: [0, -3, 2]\n"
+)
+
+
+def _sims(positions: list[np.ndarray]):
+    """A stand-in for `simulate_tracks` returning these (T, 1, 3) model positions."""
+    return lambda *a, **k: types.SimpleNamespace(position=positions)
+
+
+def test_derivatives_of_a_parabola_at_irregular_times():
+    """x(t) = (1 + 2t + 3t², -t², 0.5t): every 7-frame quadratic fit is exact, so the velocity is (2 + 6t, -2t, 0.5)
+    at each frame's own t and the acceleration (6, -2, 0); the first and last 3 frames have no full window (NaN).
+    At t = 0.3: (3.8, -0.6, 0.5); 0.45: (4.7, -0.9, 0.5); 0.5: (5, -1, 0.5); 0.6: (5.6, -1.2, 0.5)."""
+    from aynamics.residuals import derivatives
+
+    t = np.array([0.0, 0.1, 0.25, 0.3, 0.45, 0.5, 0.6, 0.8, 0.85, 1.0])
+    x = np.stack([1 + 2 * t + 3 * t * t, -t * t, 0.5 * t], 1)
+    vel, acc = derivatives(t, x)
+    assert np.isnan(vel[[0, 1, 2, 7, 8, 9]]).all() and np.isnan(acc[[0, 1, 2, 7, 8, 9]]).all()
+    expected = [[3.8, -0.6, 0.5], [4.7, -0.9, 0.5], [5.0, -1.0, 0.5], [5.6, -1.2, 0.5]]
+    np.testing.assert_allclose(vel[3:7], expected, atol=1e-9)
+    np.testing.assert_allclose(acc[3:7], [[6.0, -2.0, 0.0]] * 4, atol=1e-9)
+
+
+def test_sparse_terms_finds_a_constant_push_and_a_spin_term_in_world_frame(monkeypatch):
+    """Three flights (30 fps, 1 s, z >= 2 m) measured as exact parabolas p = p0 + v0 t + g t²/2 (+ 0.1 mm noise),
+    while the model's (monkeypatched) simulation lacks a residual acceleration r = 0.8 x̂ + 0.02 (w × v): the sim
+    is p - D with D'' = r, D = (0.8 x̂ + 0.02 w × v0) t²/2 + 0.02 (w × g) t³/6 (windows are symmetric, so the
+    quadratic fit's acceleration of the cubic is exact). The ball is turned 90° about x (q = (√½, √½, 0, 0)), so
+    its body spin (0, 0, 10) rad/s is w = R (0, 0, 10) = (0, -10, 0) in the world: w × v = (-10 vz, 0, 10 vx).
+    (In the body frame w × v would be (-10 vy, 10 vx, 0), another column.) The regression keeps exactly
+    const_x = 0.8 and w×v = +0.02 per unit mass."""
+    from aynamics import residuals
+    from aynamics.measured import Track
+
+    t = np.arange(31) / 30
+    g, w = np.array([0.0, 0.0, -9.81]), np.array([0.0, -10.0, 0.0])
+    q = np.array([math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0])
+    spin = np.zeros((31, 1, 6))
+    spin[:, 0, 3:] = (0.0, 0.0, 10.0)  # body frame
+    noise = np.random.default_rng(0)
+    tracks, sims = [], []
+    for j, vx in enumerate([1.0, -2.0, 3.0]):
+        p0, v0 = np.array([0.0, j, 3.0]), np.array([vx, 0.5 * j, 4.0])
+        p = p0 + v0 * t[:, None] + 0.5 * g * t[:, None] ** 2
+        d = 0.5 * (np.array([0.8, 0, 0]) + 0.02 * np.cross(w, v0)) * t[:, None] ** 2
+        d += 0.02 * np.cross(w, g) * t[:, None] ** 3 / 6
+        sims.append((p - d)[:, None])
+        measured = p + noise.normal(0, 1e-4, p.shape)
+        tracks.append(Track(str(j), t, measured[:, None], np.tile(q, (31, 1, 1)), spin))
+    monkeypatch.setattr(residuals, "simulate_tracks", _sims(sims))
+    terms = {d["term"]: d for d in residuals.sparse_terms(scenelib.parse(BALL), tracks, {}, [])}
+    assert set(terms) == {"const_x", "w×v"}, terms
+    assert terms["const_x"]["coefficient"] == pytest.approx(0.8, rel=0.02)
+    assert terms["w×v"]["coefficient"] == pytest.approx(0.02, rel=0.02)
+    assert min(abs(d["t"]) for d in terms.values()) >= 6.0
+    # the model explaining the motion leaves nothing
+    monkeypatch.setattr(residuals, "simulate_tracks", _sims([tr.position for tr in tracks]))
+    assert residuals.sparse_terms(scenelib.parse(BALL), tracks, {}, []) == []
+
+
+def test_sparse_terms_finds_quadratic_drag_and_a_height_term(monkeypatch):
+    """Three straight flights in zero gravity (p = p0 + v0 t, 0.1 mm noise) against a model lacking
+    r = -0.05 |v| v + 0.5 z ẑ. |v| v is constant per flight: v0 = (2, 1, -2), |v0| = 3 gives (6, 3, -6), not the
+    element-wise v² = (4, 1, 4); z = z0 + vz t makes D_z = 0.5 (z0 t²/2 + vz t³/6) (exact for symmetric windows).
+    The flights start at different heights z0 = 3, 2, 2.5, so the term is z itself (a height measured from each
+    flight's start would need a different constant per flight)."""
+    from aynamics import residuals
+    from aynamics.measured import Track
+
+    t = np.arange(31) / 30
+    noise = np.random.default_rng(0)
+    tracks, sims = [], []
+    for j, (v0, z0) in enumerate([((2.0, 1.0, -2.0), 3.0), ((-1.0, 2.0, 2.0), 2.0), ((0.5, -3.0, 1.0), 2.5)]):
+        v0 = np.array(v0)
+        p = np.array([0.0, 0.0, z0]) + v0 * t[:, None]
+        d = 0.5 * (-0.05 * np.linalg.norm(v0) * v0 + np.array([0.0, 0.0, 0.5 * z0])) * t[:, None] ** 2
+        d[:, 2] += 0.5 * v0[2] * t**3 / 6
+        sims.append((p - d)[:, None])
+        tracks.append(Track(str(j), t, (p + noise.normal(0, 1e-4, p.shape))[:, None], None, None))
+    monkeypatch.setattr(residuals, "simulate_tracks", _sims(sims))
+    terms = {d["term"]: d["coefficient"] for d in residuals.sparse_terms(scenelib.parse(BALL), tracks, {}, [])}
+    assert set(terms) == {"|v|v", "z"}, terms
+    assert terms["|v|v"] == pytest.approx(-0.05, rel=0.02) and terms["z"] == pytest.approx(0.5, rel=0.02)
+
+
+def test_sparse_terms_leaves_out_windows_that_reach_a_contact(monkeypatch):
+    """A ball rests on the floor (z = r: no flight) for frames 0-15, then flies (z = 0.1 + 5τ - 4.905τ², τ from
+    frame 15); the model is exact in flight but 5 cm low while resting. Only frames whose whole 7-frame window is in
+    flight (19 onwards) count: what is left is 0.1 mm noise, no term. Frames 16-18 see the 5 cm step inside their
+    window as a spurious acceleration of metres per second squared."""
+    from aynamics import residuals
+    from aynamics.measured import Track
+
+    t = np.arange(45) / 30
+    tau = np.clip(t - 15 / 30, 0, None)
+    noise = np.random.default_rng(0)
+    tracks, sims = [], []
+    for j, vx in enumerate([1.0, -1.0, 2.0]):
+        p = np.stack([vx * tau, 0 * t + j, 0.1 + 5 * tau - 4.905 * tau**2], 1)
+        model = p.copy()
+        model[:16, 2] -= 0.05
+        sims.append(model[:, None])
+        tracks.append(Track(str(j), t, (p + noise.normal(0, 1e-4, p.shape))[:, None], None, None))
+    monkeypatch.setattr(residuals, "simulate_tracks", _sims(sims))
+    assert residuals.sparse_terms(scenelib.parse(BALL), tracks, {}, []) == []
+
+
+def test_sparse_terms_t_statistic_and_its_threshold_by_hand(monkeypatch):
+    """Three balls hover still (z0 = 1, 2, 3 m; 30 frames at 30 fps): v = 0 leaves the library const_x, const_y,
+    const_z and z. The model lacks D_x = t²/2 - (7/600) e sin(πk/2). A 7-frame quadratic fit turns sin(πk/2) into
+    an acceleration of -85.71 sin(πk/2): the τ² weights (m² - 4) / (84 dt²), m = -3..3, meet cos(πm/2) only at
+    m = 0 (m = ±2 has m² - 4 = 0), so 2 · (-4) / 84 · 900 = -600/7. The residual is (1 + e sin(πk/2), 0, 0).
+    Frames 3-26 have full windows, every other one is used: k = 3, 5, ..., 25, sin = -1, +1, ... (6 each): n = 36
+    rows of 3 equations. y and z are exactly 0 (their terms go first), leaving const_x = mean = 1, rss = 36 e²,
+    dof = 108 - 1, variance = (1/36) · 36 e² / 107 · 2 (×2 for overlapping windows): t = sqrt(107/2) / e.
+    e = 1: t = 7.314 >= T_MIN = 6, kept; e = 1.5: t = 4.876, nothing is reported."""
+    from aynamics import residuals
+    from aynamics.measured import Track
+
+    assert residuals.T_MIN == 6.0
+    k = np.arange(30)
+    t = k / 30
+
+    def terms(e: float) -> list[dict]:
+        tracks, sims = [], []
+        for j in range(3):
+            p = np.tile([0.0, j, 1.0 + j], (30, 1))
+            d = np.zeros_like(p)
+            d[:, 0] = t**2 / 2 - e * 7 / 600 * np.sin(np.pi * k / 2)
+            sims.append((p - d)[:, None])
+            tracks.append(Track(str(j), t, p[:, None], None, None))
+        monkeypatch.setattr(residuals, "simulate_tracks", _sims(sims))
+        return residuals.sparse_terms(scenelib.parse(BALL), tracks, {}, [])
+
+    kept = terms(1.0)
+    assert [d["term"] for d in kept] == ["const_x"], kept
+    assert kept[0]["coefficient"] == pytest.approx(1.0, rel=1e-9)
+    assert kept[0]["t"] == pytest.approx(math.sqrt(107 / 2), rel=1e-9)
+    assert terms(1.5) == []
+
+
+def test_phase_errors_are_rms_distances_per_phase():
+    """Ball (r 0.1) flying at z = 2 (flight) with frame 4 missing: the model is (3, 4, 0) cm off, a distance of 5 cm
+    in every measured frame (NaN frames skipped): RMS 0.05. Ball resting at z = r (support 0 < 6 mm, speed 0: rest)
+    with the model 1 cm high in frames 0-4 and 7 cm in 5-9: RMS sqrt((5·1² + 5·7²) / 10) = 5 cm (the mean
+    distance would be 4 cm). No frame is impact, sliding or rolling: NaN."""
+    from aynamics.measured import Track
+    from aynamics.residuals import phase_errors
+
+    t = np.arange(10) / 30
+    flying = np.stack([t, 0 * t, 2 + 0 * t], 1)[:, None]
+    flying[4] = np.nan
+    resting = np.tile([0.0, 0.0, 0.1], (10, 1))[:, None]
+    tracks = [Track("a", t, flying, None, None), Track("b", t, resting, None, None)]
+    model_rest = resting + np.repeat([0.01, 0.07], 5)[:, None, None] * (0.0, 0.0, 1.0)
+    got = phase_errors(scenelib.parse(BALL), tracks, [flying + (0.03, 0.04, 0.0), model_rest])
+    assert got["flight"] == pytest.approx(0.05) and got["rest"] == pytest.approx(0.05)
+    assert all(math.isnan(got[k]) for k in ("impact", "sliding", "rolling"))

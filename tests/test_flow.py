@@ -10,6 +10,7 @@ from aynamics import camera as camlib
 from aynamics import flow as flowlib
 from aynamics import raycast, scorer
 from aynamics import scene as scenelib
+from aynamics import simulate as sim
 
 DT = 1 / 30
 
@@ -245,3 +246,79 @@ def test_flow_to_color_vertical_directions_follow_middlebury():
     img = flowlib.flow_to_color(np.array([[[0.0, 5.0], [0.0, -5.0]]]))
     assert img[0, 0].tolist() == [255, 229, 0]
     assert img[0, 1].tolist() == [88, 0, 255]
+
+
+def test_object_pixels_cube_behind_the_camera_plane_marks_the_whole_image():
+    """Camera at the origin looking along z with K = I (a point (x, y, z) lands at (x / z, y / z)); grid points
+    u = 0.5, 2.5 on row v = 0.5. A sphere of radius 1 at (0, 0, 0.5) has cube corners at z = -0.5 (behind the
+    camera) and 1.5: no box of projected corners bounds it (the ray through (2.5, 0.5) meets it at depth 0.3, at
+    (0.75, 0.15, 0.3), 0.79 from its centre), so the whole image is marked. A sphere of radius 0.5 at (1, 0.5, 2)
+    lies in front: corners x 0.5..1.5, y 0..1, z 1.5..2.5 give u in [0.5 / 2.5, 1.5 / 1.5] = [0.2, 1] and v in
+    [0, 1 / 1.5]: (0.5, 0.5) inside, (2.5, 0.5) not."""
+    cam = camlib.CameraMatrices(K=np.eye(3), R=np.eye(3), t=np.zeros(3), width=4, height=1)
+    grid = raycast.SampleGrid(np.array([0.5, 2.5]), np.array([0.5]), 4, 1)
+    centres = np.array([[[0.0, 0.0, 0.5]], [[1.0, 0.5, 2.0]]])  # (n scenes, N objects, 3)
+    roi = raycast._object_pixels([cam, cam], centres, np.array([[1.0], [0.5]]), grid)
+    assert roi.tolist() == [[True, True], [True, False]]
+
+
+def test_cast_marks_floor_covered_next_frame_and_leaves_depth_inf_off_objects():
+    """A box sliding at 1.5 m/s along x: a floor or sky pixel at frame k that shows the box at k + 1 has no
+    trackable flow (occluded); one still floor at k + 1 does not. Depth is the hit distance on object pixels and
+    inf elsewhere (floor and sky are not cast)."""
+    scene = _floating_box((1.5, 0.0, 0.0))
+    frames = np.array([0, 9])
+    cast = raycast.cast_group([scene], scene.structure, frames, 48, 32, sim.SimConfig(), 1, with_next=True)
+    seg1 = raycast.cast_group([scene], scene.structure, frames + 1, 48, 32, sim.SimConfig(), 1).seg[0]
+    floor = cast.seg[0] < 0
+    covered = floor & (seg1 >= 0)
+    assert covered.sum() >= 5  # the box's leading edge
+    np.testing.assert_array_equal(cast.occluded[0][floor], covered[floor])
+    assert np.isinf(cast.depth[0][floor]).all() and np.isfinite(cast.depth[0][~floor]).all()
+
+
+def test_still_scene_on_a_grid_of_another_aspect_is_nowhere_occluded():
+    """A 48 × 24 view sampled from a 96 × 96 image (columns scaled by 1/2, rows by 1/4): a still box has zero flow,
+    and every object pixel lands on itself at the next frame, so none is occluded (a landing row scaled like the
+    columns, by 1/2, would put it twice as far down the image)."""
+    scene = _floating_box()
+    grid = raycast.SampleGrid.nearest(96, 96, 48, 24)
+    cast = raycast.cast_group(
+        [scene], scene.structure, np.array([0, 9]), 48, 24, sim.SimConfig(), 1, with_next=True, grid=grid
+    )
+    assert (cast.seg >= 0).sum() > 100
+    assert np.abs(cast.dense_flow).max() < 1e-9 and not cast.occluded.any()
+
+
+def _still_box(position: list[float], size: float, fovy: float) -> scenelib.Scene:
+    return scenelib.parse(
+        f"""
+- type: box
+  name: block
+  size: [{size}, {size}, {size}]
+  state: {{position: {position}}}
+  physics: {{mass: 1.0, damping: -6}}
+- type: camera
+  fovy: {fovy}
+  position: [0, -2, 3.5]
+- type: gravity
+  gravity: [0, 0, 0]
+"""
+    )
+
+
+def test_a_scene_cast_in_a_batch_gets_the_hits_it_gets_alone():
+    """Scene A's box shows in the top-left pixel but covers few pixels; scene B's, seen through a wider lens, fills
+    the whole 24 × 16 view, so B sets the batch's ray count and A's rays are padded (with pixel 0, which A's box
+    covers: the padding must not count as a second hit). A's and B's hits, depth and flow in the batch are exactly
+    those each gets cast alone, each through its own lens."""
+    a, b = _still_box([-1.5, 2.0, 2.5], 0.8, 45.0), _still_box([0.0, 0.0, 2.0], 1.5, 60.0)
+    frames = np.array([0, 3])
+    both = raycast.cast_group([a, b], a.structure, frames, 24, 16, sim.SimConfig(), 1)
+    assert both.seg[0, 0, 0, 0] == 0 and (both.seg[1] >= 0).all() and 0 < (both.seg[0] >= 0).sum() < 24 * 16
+    for k, scene in enumerate((a, b)):
+        alone = raycast.cast_group([scene], scene.structure, frames, 24, 16, sim.SimConfig(), 1)
+        mine = both.hits.c == k
+        for name in ("f", "pix", "obj", "depth"):
+            np.testing.assert_array_equal(getattr(both.hits, name)[mine], getattr(alone.hits, name), err_msg=name)
+        np.testing.assert_array_equal(both.flow[mine], alone.flow)

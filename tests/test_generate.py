@@ -371,6 +371,36 @@ def test_png_bytes_errors():
         png_bytes(np.zeros((0, 4), np.uint8))
     with pytest.raises(ValueError, match="level = 10"):
         png_bytes(np.zeros((4, 4), np.uint8), level=10)
+    with pytest.raises(ValueError, match="level = -1"):
+        png_bytes(np.zeros((4, 4), np.uint8), level=-1)  # zlib would take -1 as its default level
+    with pytest.raises(ValueError, match="dtype int8"):
+        png_bytes(np.zeros((4, 4), np.int8))  # one byte per sample, but -1 would be written as 255
+
+
+def test_png_bytes_chunks_by_hand():
+    """A 2×3 grey image [[1, 2, 3], [5, 5, 0]]: signature, IHDR (width 3, height 2, 8 bits, colour type 0, default
+    compression, filter and interlace), IDAT holding the deflated rows, each led by filter byte 2 (up): [2, 1, 2, 3]
+    (the row above the first is zeros) and [2, 4, 3, 253] (0 - 3 wraps to 253), then IEND, whose 12 bytes are fixed:
+    length 0, the tag, CRC-32 of "IEND" = 0xAE426082. Each chunk is big-endian length, tag, payload, CRC of tag and
+    payload."""
+    import struct
+    import zlib
+
+    from aynamics.png_encode import png_bytes
+
+    data = png_bytes(np.array([[1, 2, 3], [5, 5, 0]], np.uint8))
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    chunks, at = [], 8
+    while at < len(data):
+        (n,) = struct.unpack(">I", data[at : at + 4])
+        tag, payload = data[at + 4 : at + 8], data[at + 8 : at + 8 + n]
+        assert data[at + 8 + n : at + 12 + n] == struct.pack(">I", zlib.crc32(tag + payload))
+        chunks.append((tag, payload))
+        at += 12 + n
+    assert [tag for tag, _ in chunks] == [b"IHDR", b"IDAT", b"IEND"]
+    assert chunks[0][1] == bytes([0, 0, 0, 3, 0, 0, 0, 2, 8, 0, 0, 0, 0])
+    assert list(zlib.decompress(chunks[1][1])) == [2, 1, 2, 3, 2, 4, 3, 253]
+    assert data[-12:] == b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 
 @needs_gl

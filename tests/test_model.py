@@ -383,3 +383,79 @@ def test_a_trained_tower_of_a_bfloat16_base_is_kept_in_float32(tmp_path, batches
     lm.save_adapter(model, tmp_path / "adapter", spec, lm.PromptSpec())
     policy, _ = build_policy(spec, str(tmp_path / "adapter"))
     assert {p.dtype for p in policy.parameters() if p.requires_grad} == {torch.float32}
+
+
+def test_tiny_config_by_hand():
+    """The asset's tokenizer holds 752 tokens, specials first in Qwen's order: <|endoftext|> 0, <|im_end|> 2,
+    <|vision_start|> 9, <|vision_end|> 10, <|image_pad|> 12, <|video_pad|> 13. The embedding is 752 rounded up to a
+    multiple of 64: 12 · 64 = 768; with 16 tokens added the tokenizer is 768 long, already a multiple (not 832).
+    M-RoPE: head_dim 64 / 4 = 16, half 8 split (t, h, w) = (8 - 2·3, 3, 3) = (2, 3, 3) with 3 = 3·8 // 8; at
+    Qwen's head_dim 128 (half 64): (64 - 2·24, 24, 24) = (16, 24, 24), Qwen's own. The last vision block (index
+    depth - 1 = 1) attends globally; tokens_per_second 2 as in Qwen2.5-VL-3B/7B."""
+    from transformers import AutoTokenizer
+
+    from aynamics.model import tiny_config
+
+    tok = AutoTokenizer.from_pretrained(str(TINY_ASSET_DIR))
+    cfg = tiny_config(tok)
+    text = cfg.text_config
+    assert len(tok) == 752 and text.vocab_size == 768
+    assert (text.bos_token_id, text.eos_token_id, text.pad_token_id) == (0, 2, 0)
+    assert (cfg.vision_start_token_id, cfg.vision_end_token_id, cfg.image_token_id, cfg.video_token_id) == (
+        9,
+        10,
+        12,
+        13,
+    )
+    assert text.rope_parameters["mrope_section"] == [2, 3, 3]
+    assert tiny_config(tok, hidden_size=512).text_config.rope_parameters["mrope_section"] == [16, 24, 24]
+    assert cfg.vision_config.fullatt_block_indexes == [1] and cfg.vision_config.tokens_per_second == 2
+    tok.add_tokens([f"<extra_{i}>" for i in range(16)])
+    assert len(tok) == 768 and tiny_config(tok).text_config.vocab_size == 768
+
+
+def test_tiny_config_and_lora_refuse_bad_sizes():
+    """hidden 36 / 4 heads = head_dim 9 (M-RoPE rotates pairs: odd); 4 heads over 3 key-value heads; vision 30 wide
+    over 4 heads; LoRA rank 0 (no adapter) and dropout 1 (drops every input)."""
+    from transformers import AutoTokenizer
+
+    from aynamics.model import tiny_config
+
+    tok = AutoTokenizer.from_pretrained(str(TINY_ASSET_DIR))
+    with pytest.raises(ValueError, match="head_dim must be an even integer"):
+        tiny_config(tok, hidden_size=36)
+    with pytest.raises(ValueError, match="num_heads = 4 is not a multiple of num_kv_heads = 3"):
+        tiny_config(tok, num_kv_heads=3)
+    with pytest.raises(ValueError, match="vision_hidden_size = 30 is not a multiple of vision_heads = 4"):
+        tiny_config(tok, vision_hidden_size=30, vision_heads=4)
+    with pytest.raises(ValueError, match="lora rank = 0"):
+        apply_lora(build_tiny_model(), rank=0)
+    with pytest.raises(ValueError, match="lora dropout = 1.0"):
+        apply_lora(build_tiny_model(), dropout=1.0)
+
+
+def test_tiny_model_generation_ids_seed_and_global_rng():
+    """Generation stops on <|im_end|> (2) or <|endoftext|> (0) and pads with <|endoftext|>, as Qwen's Instruct
+    generation config. The seed sets the weights, and building leaves the global torch RNG where it was."""
+    model = build_tiny_model()
+    gen = model.generation_config
+    assert (gen.eos_token_id, gen.pad_token_id, gen.bos_token_id) == ([2, 0], 0, 0)
+    assert not torch.equal(build_tiny_model(seed=1).lm_head.weight, model.lm_head.weight)
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    build_tiny_model(seed=7)
+    assert torch.equal(torch.rand(3), expected)
+
+
+def test_gradient_checkpointing_turns_the_kv_cache_off():
+    """After `enable_gradient_checkpointing` a forward pass keeps no KV cache, in eval mode too (transformers only
+    turns it off by itself while training); before, the text model's default (use_cache True) keeps one."""
+    from aynamics.model import enable_gradient_checkpointing
+
+    model = build_tiny_model()
+    ids = torch.tensor([[1, 5, 7]])
+    with torch.no_grad():
+        assert model(input_ids=ids).past_key_values is not None
+        enable_gradient_checkpointing(model)
+        assert model.eval()(input_ids=ids).past_key_values is None

@@ -68,6 +68,21 @@ def test_tokenizer_build_is_reproducible():
     assert build_tokenizer().get_vocab(with_added_tokens=False) == saved
 
 
+def test_tokenizer_build_cli_rewrites_every_asset_file_unchanged(tmp_path, capsys):
+    """`python -m aynamics.tokenizer_build --out DIR` writes the four files of the committed asset byte for byte:
+    the whole tokenizer (normaliser, pre-tokeniser, added tags that are not special), its config (eos <|im_end|>,
+    pad <|endoftext|>, 32768 tokens), the chat template and the image processor's pixel bounds (56², 112²)."""
+    from aynamics import tokenizer_build
+
+    tokenizer_build.main(["--out", str(tmp_path / "tok")])
+    names = sorted(p.name for p in TINY_ASSET_DIR.iterdir())
+    assert names == ["chat_template.jinja", "preprocessor_config.json", "tokenizer.json", "tokenizer_config.json"]
+    assert sorted(p.name for p in (tmp_path / "tok").iterdir()) == names
+    for name in names:
+        assert (tmp_path / "tok" / name).read_bytes() == (TINY_ASSET_DIR / name).read_bytes(), name
+    assert f"wrote {tmp_path / 'tok'}:" in capsys.readouterr().out
+
+
 def test_chat_template(proc):
     messages = build_messages(2, examples=["- type: box"], **PROMPTS)
     text = proc.apply_chat_template(messages, tokenize=False, add_generation_prompt=True)

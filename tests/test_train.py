@@ -1259,17 +1259,19 @@ def test_rng_states_are_restored_per_rank():
     from aynamics import rng
 
     def draws() -> tuple:
-        return torch.rand(2).tolist(), np.random.rand(), random.random()
+        return torch.rand(2).tolist(), np.random.rand(), np.random.standard_normal(), random.random()
 
-    saved = []
+    saved, expected = [], []
     for seed in (1, 2):
         torch.manual_seed(seed), np.random.seed(seed), random.seed(seed)
-        saved.append(rng.local_state())
-    expected = []
-    for state in saved:
-        rng.restore({"per_rank": [state]}, 0)
-        expected.append(draws())
+        np.random.standard_normal()  # NumPy makes normals in pairs: the second is cached (has_gauss = 1) ...
+        assert np.random.get_state()[3] == 1
+        saved.append(rng.local_state())  # ... and the state holds it: the next normal drawn after a restore
+        expected.append(draws())  # what the generators draw after the save
     assert expected[0] != expected[1]
+    for state, want in zip(saved, expected, strict=True):
+        rng.restore({"per_rank": [state]}, 0)
+        assert draws() == want
     both = {"per_rank": saved}
     for rank, want in ((0, 0), (1, 1), (2, 0), (3, 1)):
         rng.restore(both, rank)
