@@ -118,6 +118,11 @@ def diagnostics(result: AuditResult, measured: Measured, scene: Scene) -> dict:
     }
 
 
+def worst_trajectories(errors: np.ndarray, n: int = 3) -> list[int]:
+    """The indices of the `n` largest per-trajectory errors, largest first: the trajectories worst.png shows."""
+    return [int(k) for k in np.argsort(errors)[::-1][:n]]
+
+
 def _plots(d: dict, result: AuditResult, out: Path) -> list[str]:
     names = []
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
@@ -150,7 +155,7 @@ def _plots(d: dict, result: AuditResult, out: Path) -> list[str]:
     plt.close(fig)
     names.append("phases.png")
 
-    worst = np.argsort(result.held_before)[::-1][:3]
+    worst = worst_trajectories(result.held_before)
     fig, ax = plt.subplots(len(worst), 3, figsize=(13, 3 * len(worst)), squeeze=False)
     for row, k in enumerate(worst):
         tr = d["held"][k]

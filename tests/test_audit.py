@@ -409,11 +409,14 @@ def test_cube_tosses_report_end_to_end(tmp_path, capsys):
     assert got["held_out_error_after"] <= got["held_out_error_before"] * 1.02
 
 
-def test_reported_mu_error_is_that_of_mu_at_rest():
+def test_reported_mu_error_is_that_of_mu_at_rest(monkeypatch):
     """With speed-dependent friction the fit's μ is at V_REF = 1 m/s and the report gives μ(0) = μ − κ·V_REF: its
-    error is sqrt(σμ² + σκ² − 2 cov) = sqrt(4 + 9 − 2·5)·1e-4 = 1.73e-4, not μ's 2e-4 (helper-41)."""
+    error is sqrt(σμ² + σκ² − 2 cov) = sqrt(4 + 9 − 2·5)·1e-4 = 1.73e-4, not μ's 2e-4 (helper-41). Were V_REF
+    2 m/s, κ's variance would count V_REF² = 4 times: sqrt(4 + 4·9 − 2·2·5)·1e-4 = sqrt(20)·1e-4 (V_REF rather than
+    its square, which V_REF = 1 hides, would give sqrt(2)·1e-4)."""
     import types
 
+    from aynamics import audit_report
     from aynamics.audit_report import parameter_sigma
     from aynamics.effects import V_REF
     from aynamics.fit import FitResult
@@ -426,6 +429,8 @@ def test_reported_mu_error_is_that_of_mu_at_rest():
     assert parameter_sigma(result, "mu") == pytest.approx(math.sqrt(3) * 1e-4)
     assert parameter_sigma(result, "friction_slope") == pytest.approx(3e-4)
     assert parameter_sigma(result, "mu", by_track=True) == pytest.approx(math.sqrt(3) * 1e-3)
+    monkeypatch.setattr(audit_report, "V_REF", 2.0)
+    assert parameter_sigma(result, "mu") == pytest.approx(math.sqrt(20) * 1e-4)
 
 
 def test_clustered_errors_count_trajectories_not_samples():
@@ -557,6 +562,68 @@ def test_bounce_matching_bisects_towards_the_measured_bounce(monkeypatch):
     assert got["held_errors"] == pytest.approx([math.sqrt(3) * abs(got["restitution"] - 0.5)])
     assert ar.bounce_matched(None, tracks[:4], tracks[:1], {"mu": 0.3}, []) is None
     assert ar.bounce_matched(None, tracks, tracks[:1], {"mu": 0.3}, ["restitution"]) is None
+
+
+def test_the_worst_plot_shows_the_largest_held_out_errors_largest_first():
+    """Per-trajectory errors [0.2, 0.5, 0.1, 0.4] m: the three worst are trajectories 1 (0.5), 3 (0.4) and 0 (0.2),
+    in that order (not the best three, 2, 0, 3); with two trajectories both are shown, 0 (0.3) before 1 (0.1)."""
+    from aynamics.audit_report import worst_trajectories
+
+    assert worst_trajectories(np.array([0.2, 0.5, 0.1, 0.4])) == [1, 3, 0]
+    assert worst_trajectories(np.array([0.3, 0.1])) == [0, 1]
+
+
+def test_the_report_gives_errors_in_the_smallest_half_width_and_counts_each_split(monkeypatch, tmp_path):
+    """A box of half-extents (0.05, 0.2, 0.1) m (on a cube the largest half-extent would give the same): errors are
+    in units of its smallest, 0.05 m: held-out RMS 0.1 m is 0.1 / 0.05 = 2.000 half-widths (not 0.1 / 0.2 = 0.500)
+    and 0.02 m is 0.400 (not 0.100). Splits of 4 fit, 2 validation and 1 held-out trajectories are each counted by
+    their own length. The fitted models' diagnostics and plots are stand-ins: only the report's text is read."""
+    from aynamics import audit_report as ar
+    from aynamics.measured import PHASES
+
+    box = "- type: box\n  size: [0.05, 0.2, 0.1]\n  state: {position: [0, 0, 0.1]}\n"
+    box += "- type: camera\n  position: [0, -3, 2]\n"
+    scene = scenelib.parse(box)
+    diagnostics = {
+        "phase_before": dict.fromkeys(PHASES, 0.1),
+        "phase_after": dict.fromkeys(PHASES, 0.02),
+        "bias": np.zeros(3),
+        "bias_se": np.ones(3),
+        "lag1_before": 0.5,
+        "lag1_after": 0.1,
+        "drift": {},
+        "bounce_measured": [],
+        "bounce_before": [],
+        "bounce_after": [],
+        "bounce_matched": None,
+    }
+    monkeypatch.setattr(ar, "diagnostics", lambda *a: diagnostics)
+    monkeypatch.setattr(ar, "_plots", lambda *a: [])
+    fit_result = types.SimpleNamespace(values={"mu": 0.3}, sigma={"mu": 0.01})
+    result = types.SimpleNamespace(
+        verdict="found",
+        causes=["floor_offset"],
+        parameters={},
+        held_out_error_before=0.1,
+        held_out_error_after=0.02,
+        gain_interval=(0.05, 0.1),
+        ratio_interval=(0.1, 0.3),
+        extended_scene=box,
+        baseline=fit_result,
+        final=fit_result,
+        rows=[],
+        splits={"fit": ["a", "b", "c", "d"], "validation": ["e", "f"], "held_out": ["g"]},
+        unexplained=[],
+        ambiguous_with=[],
+        notes=[],
+        seconds=1.0,
+        step_hz=240,
+    )
+    report = ar.write_report(result, None, scene, str(tmp_path)).read_text()
+    assert "| model | RMS (m) | RMS (0.05 m half-widths) |" in report
+    assert "| baseline (refitted μ) | 0.1000 | 2.000 |" in report and "| extended | 0.0200 | 0.400 |" in report
+    assert "Trajectories: 4 fit, 2 validation, 1 held-out (split by whole trajectory)." in report
+    assert (tmp_path / "extended_scene.yaml").read_text() == box
 
 
 # ------------------------------------------------------------------------------------------------

@@ -174,6 +174,53 @@ def test_score_refuses_a_zero_scoring_size(capsys, flag):
     assert "must be in [8, 1920] × [8, 1280]" in capsys.readouterr().err
 
 
+def test_score_against_a_scene_takes_the_scoring_size_given(monkeypatch, capsys):
+    """A scene has no image size of its own: it is observed at the scorer's 120×80 (3:2) unless a size is given.
+    --height 40 alone is 60×40 (40·120/80), --width 60 alone 60×40 (60·80/120), neither 120×80; --width 100
+    --height 80 is off 3:2 by 20 pixels (100 against 80·120/80 = 120) and refused, naming width 120."""
+    from aynamics import scorer
+
+    seen, observe = [], scorer.Observation.from_scene
+
+    def spy(scene, *, width, height):
+        seen.append((width, height))
+        return observe(scene, width=width, height=height)
+
+    monkeypatch.setattr(scorer.Observation, "from_scene", spy)
+    for size in (["--height", "40"], ["--width", "60"], []):
+        assert cli.main(["score", ASSET, "--observed", ASSET, *size]) == 0
+        assert capsys.readouterr().out == f"{ASSET}: iou 1.0/1.0 epe 0.0/0.0\n"
+    assert seen == [(60, 40), (60, 40), (120, 80)]
+    assert cli.main(["score", ASSET, "--observed", ASSET, "--width", "100", "--height", "80"]) == 2
+    err = capsys.readouterr().err
+    assert "scoring size 100×80 is off the video's aspect ratio (120×80)" in err and "(width 120)" in err
+
+
+def test_hidden_files_in_an_earlier_renders_images_are_not_the_users(tmp_path):
+    """An earlier render whose frames/ and flow/ hold hidden files (a .DS_Store the file browser left, a copy's
+    ._flow_0000.png) besides frame_0000.png and flow_0000.png is written over, as hidden files beside its other
+    outputs are; a visible image of another name (IMG_0.png) still shows a video folder of the user's."""
+    from aynamics.observe_cli import check_earlier_render
+
+    out = tmp_path / "earlier"
+    (out / "frames").mkdir(parents=True)
+    (out / "flow").mkdir()
+    for name in ("frames/.DS_Store", "frames/frame_0000.png", "flow/._flow_0000.png", "flow/flow_0000.png"):
+        (out / name).write_bytes(b"")
+    check_earlier_render(out)
+    (out / "frames" / "IMG_0.png").write_bytes(b"")
+    with pytest.raises(cli.UsageError, match="frames/IMG_0.png is not a file render writes"):
+        check_earlier_render(out)
+
+
+def test_an_unknown_option_before_the_command_is_the_one_named(tmp_path, capsys):
+    """`aynamics --verbose render SCENE --out DIR`: the command is the first word that is no option, so render's
+    own arguments are known and only --verbose is named (not "--verbose SCENE --out DIR"); nothing is written."""
+    assert cli.main(["--verbose", "render", ASSET, "--out", str(tmp_path / "r")]) == 2
+    assert capsys.readouterr().err == "aynamics: unrecognized arguments: --verbose. Run `aynamics --help` for usage.\n"
+    assert not (tmp_path / "r").exists()
+
+
 def test_render_refuses_a_video_folder_of_the_users(tmp_path, capsys):
     """A video folder in the observed layout (frames/ of its own names, segmentation.npy: what `evaluate --videos`
     and PRO read) has only names render writes: its masks were overwritten by the render's and 30 frame_NNNN.png

@@ -145,6 +145,8 @@ def test_cli_render_then_score(tmp_path, capsys):
         assert (out / name).is_file(), name
     assert len(list((out / "frames").glob("*.png"))) == 30 and len(list((out / "flow").glob("*.png"))) == 29
     assert json.loads((out / "camera.json").read_text())["K"][0][2] == 48.0
+    meta = json.loads((out / "meta.json").read_text())  # 1 s at 30 FPS: 31 states, frames show states 0..29
+    assert meta["states"] == list(range(30)) and meta["fps"] == 30 and (meta["width"], meta["height"]) == (96, 64)
     (out / "video.gif").write_bytes(b"an earlier render's preview")  # of another scene: not left beside these
     assert _main(["render", PAPER, "--out", str(out), "--width", "96", "--height", "64", "--no-gif"]) == 0
     assert not (out / "video.gif").exists()
