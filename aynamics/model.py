@@ -205,9 +205,10 @@ def _empty_pretrained(
 
 
 def _default_pad_id(model: Qwen2_5_VLForConditionalGeneration) -> None:
-    gen = model.generation_config
+    """Generation pads with the generation config's pad id, else the text config's (0 is an id), else bos."""
+    gen, text = model.generation_config, model.config.text_config
     if gen.pad_token_id is None:
-        gen.pad_token_id = model.config.text_config.pad_token_id or model.config.text_config.bos_token_id
+        gen.pad_token_id = text.pad_token_id if text.pad_token_id is not None else text.bos_token_id
 
 
 def _set_generation_ids(model: Qwen2_5_VLForConditionalGeneration, tokenizer: PreTrainedTokenizerBase) -> None:

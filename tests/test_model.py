@@ -459,3 +459,24 @@ def test_gradient_checkpointing_turns_the_kv_cache_off():
         assert model(input_ids=ids).past_key_values is not None
         enable_gradient_checkpointing(model)
         assert model.eval()(input_ids=ids).past_key_values is None
+
+
+def test_generation_pads_with_the_text_configs_pad_id_even_when_it_is_0():
+    """A pad id of 0 is an id, not a missing one (it fell through to bos, 5 here); none at all gives bos; a
+    generation config's own pad id is kept."""
+    from types import SimpleNamespace
+
+    from aynamics.model import _default_pad_id
+
+    def model(gen_pad, text_pad):
+        text = SimpleNamespace(pad_token_id=text_pad, bos_token_id=5)
+        return SimpleNamespace(
+            generation_config=SimpleNamespace(pad_token_id=gen_pad), config=SimpleNamespace(text_config=text)
+        )
+
+    got = []
+    for gen_pad, text_pad in ((None, 0), (None, None), (7, 0)):
+        m = model(gen_pad, text_pad)
+        _default_pad_id(m)
+        got.append(m.generation_config.pad_token_id)
+    assert got == [0, 5, 7]
