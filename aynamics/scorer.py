@@ -21,7 +21,8 @@ Observed folder layout (what `aynamics render --out DIR` writes; all frames are 
                         object v - 1 (8/16-bit grey, or a palette PNG's index, as DAVIS-style annotations), or
                         colour masks where each distinct non-black colour is one object (numbered in increasing
                         0xRRGGBB order; with names in meta.json, give "colours" too)
-    flow.npy            optional (T-1, H, W, 2) float pixels at H×W (dx right, dy down), flow k: frame k -> k+1
+    flow.npy            optional (T-1, H, W, 2) float pixels at H×W (dx right, dy down), flow k: frame k -> k+1;
+                        NaN, infinite or longer than MAX_FLOW_SIZES image sizes only where occlusion.npy marks it
     occlusion.npy       optional (T-1, H, W) bool, True where the observed flow is occluded
     meta.json           optional {"names": [...], "fps": 30}: object names for matching by name; with colour
                         masks also "colours": [[r, g, b], ...], the colour of each named object
