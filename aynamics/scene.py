@@ -744,10 +744,11 @@ def _strip_wrappers(text: str) -> str:
     return fence.group(1) if fence else body
 
 
-def _cut_prose(body: str) -> str | None:
-    """The part of `body` from the first `- type:` line to the last line of that list, or None. A first item
-    after other text on its line ("Scene: - type: box", a stray control character), followed by its indented
-    keys, starts the list there: cut with its line, it was an object dropped without a word."""
+def _cut_prose(body: str) -> tuple[int, str] | None:
+    """Where in `body` the list starts, and the part of `body` from the first `- type:` line to the last line of
+    that list; or None. A first item after other text on its line ("Scene: - type: box", a stray control
+    character), followed by its indented keys, starts the list there: cut with its line, it was an object dropped
+    without a word."""
     m = _FIRST_ITEM.search(body)
     start = None if m is None else m.start()
     before = body if start is None else body[:start]
@@ -769,7 +770,12 @@ def _cut_prose(body: str) -> str | None:
         if stripped and (len(line) - len(line.lstrip())) <= indent and not stripped.startswith("-"):
             break
         keep.append(line)
-    return "\n".join(keep)
+    return start, "\n".join(keep)
+
+
+def _line_breaks(text: str) -> int:
+    """The line breaks in `text`, as `str.splitlines` (and YAML, for \\n, \\r\\n and \\r) counts them."""
+    return len((text + "x").splitlines()) - 1
 
 
 def extract_yaml(text: str) -> str:
@@ -779,11 +785,13 @@ def extract_yaml(text: str) -> str:
     then the inside of a ```yaml fence if any. When that is not a YAML list by itself, stray prose before the
     first `- type:` line and after the list is cut away.
     """
-    return _extract(text)[0]
+    return _extract(text)[0].strip()
 
 
 def _extract(text: str) -> tuple[str, Any]:
-    """`extract_yaml`'s text and, when it already parsed as a YAML list there, the list (else None)."""
+    """`extract_yaml`'s text and, when it already parsed as a YAML list there, the list (else None). Without the
+    list, the text comes after blank lines in place of the prose cut before it, so that a YAML error's line is the
+    line of the YAML body (a scene file's own, after a comment: before, it was counted from the first item)."""
     body = _strip_wrappers(text)
     try:
         data = load_yaml(body)
@@ -791,8 +799,9 @@ def _extract(text: str) -> tuple[str, Any]:
             return body.strip(), data
     except SceneError:
         pass
-    cut = _cut_prose(body)
-    return (cut if cut is not None else body).strip(), None
+    start, part = _cut_prose(body) or (0, body)
+    lead = len(part) - len(part.lstrip())
+    return "\n" * _line_breaks(body[:start] + part[:lead]) + part.strip(), None
 
 
 def parse(text: str | bytes) -> Scene:

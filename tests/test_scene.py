@@ -658,3 +658,23 @@ def test_a_first_item_after_other_text_on_its_line_is_kept():
     assert S.parse("\x00" + OK_BOX + CAMERA) == whole
     assert S.parse("Here is the scene: " + OK_BOX + CAMERA + "That's all.") == whole
     assert S.parse("Each entry starts with - type: and a shape.\n\nThe scene:\n" + OK_BOX + CAMERA) == whole
+
+
+def test_yaml_errors_after_a_leading_comment_name_the_lines_of_the_file(tmp_path):
+    """A scene file that opens with a comment (or blank lines) is parsed from its first item: its YAML errors still
+    name the file's lines, not lines counted from that item (a control character on line 4 was 'line 2')."""
+    cases = [  # body, its error's line and column without and with two lines before it
+        ("- type: box\n  name: a\x01b\n", "line 2, column 10", "line 4, column 10"),  # the reader's offset
+        ("- type: box\n  name: x\n   bad: 1\n", "line 3, column 7", "line 5, column 7"),  # the loader's mark
+        ("- type: box\r\n  name: x\r\n   bad: 1\r\n", "line 3, column 7", "line 5, column 7"),
+    ]
+    path = tmp_path / "scene.yaml"
+    for body, alone, after in cases:
+        with pytest.raises(S.SceneError, match=f"yaml: .*\\({alone}\\)"):
+            S.parse(body)
+        for head in ("# my scene\n\n", "\n\n"):
+            path.write_bytes((head + body).encode())
+            for parsed in (lambda: S.parse(head + body), lambda: S.load(str(path))):
+                with pytest.raises(S.SceneError, match=f"yaml: .*\\({after}\\)"):
+                    parsed()
+    assert S.extract_yaml("# my scene\n\n- type: box\n  name: x\n   bad: 1\n") == "- type: box\n  name: x\n   bad: 1"
