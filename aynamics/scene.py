@@ -770,6 +770,8 @@ def _cut_prose(body: str) -> tuple[int, str] | None:
         if stripped and (len(line) - len(line.lstrip())) <= indent and not stripped.startswith("-"):
             break
         keep.append(line)
+    if indent:  # a list indented under prose ("Here is the scene:\n  - type: box"): as if written at the margin
+        keep = [line[indent:] if len(line) - len(line.lstrip()) >= indent else line.lstrip() for line in keep]
     return start, "\n".join(keep)
 
 

@@ -678,3 +678,13 @@ def test_yaml_errors_after_a_leading_comment_name_the_lines_of_the_file(tmp_path
                 with pytest.raises(S.SceneError, match=f"yaml: .*\\({after}\\)"):
                     parsed()
     assert S.extract_yaml("# my scene\n\n- type: box\n  name: x\n   bad: 1\n") == "- type: box\n  name: x\n   bad: 1"
+
+
+def test_a_list_indented_under_prose_is_read_as_written_at_the_margin():
+    """A response that indents its YAML under a line of prose (each line 2 or 4 spaces in) gave "mapping values
+    are not allowed": only the first line lost its indentation."""
+    import textwrap
+
+    whole = S.parse(OK_BOX + CAMERA)
+    for pad in ("  ", "    ", "\t"):
+        assert S.parse("Here is the scene:\n" + textwrap.indent(OK_BOX + CAMERA, pad) + "\nThat's all.") == whole
