@@ -54,6 +54,11 @@ def train(cfg: DictConfig) -> dict[str, float]:
     every = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("every_n_train_steps")
     if every is not None and not (isinstance(every, int) and every >= 1):
         raise ValueError(f"callbacks.checkpoint.every_n_train_steps = {every}: must be a whole number >= 1")
+    if cfg.trainer.get("use_distributed_sampler"):  # Lightning would shard each process's share again
+        raise ValueError(
+            "trainer.use_distributed_sampler = true: the data modules give each process its own share themselves "
+            "(resumable, evaluation padding marked); set it to false"
+        )
     if cfg.stage.target not in TARGETS:
         raise ValueError(f"stage.target = {cfg.stage.target!r}: must be one of {TARGETS}")
     if cfg.data.get("target", cfg.stage.target) != cfg.stage.target:  # the data take the stage's: one key

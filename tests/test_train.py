@@ -1078,6 +1078,8 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["trainer.val_check_interval=0.5"], r"val_check_interval = 0.5: must be a whole number"),  # Lightning's
         # traceback; helper-43's: no adapter written, a traceback, a key ignored, a target named as data's
         (["trainer.max_steps=0"], r"trainer.max_steps = 0: must be >= 1"),
+        # each process's share would be split again by Lightning (a ddp run trained on 1 / world of its data)
+        (["trainer.use_distributed_sampler=true"], r"trainer.use_distributed_sampler = true: the data modules"),
         (["callbacks.checkpoint.every_n_train_steps=-5"], r"every_n_train_steps = -5: must be a whole number >= 1"),
         (["data.target=think_answer"], r"data.target = 'think_answer': set the target as stage.target=think"),
         (["stage.target=foo"], r"stage.target = 'foo': must be one of \('answer', 'think_answer'\)"),
