@@ -122,17 +122,21 @@ def test_an_adapter_folder_is_replaced_whole(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["adapter"]
 
 
+def _evaluation(index: int):
+    """A one-record evaluation of record `index` (`evaluate.write_evaluation`'s input)."""
+    from aynamics import evaluate as ev
+
+    per = {"yaml_valid": [1.0], "reason": [None]}
+    return ev.Evaluation({"model": {"yaml_valid": 1.0}}, [{"index": index, "scene_yaml": "x"}], ["t"], per)
+
+
 def test_an_evaluation_folder_never_pairs_two_evaluations(tmp_path, monkeypatch):
     """`evaluate --out` into an earlier evaluation's folder replaced predictions.jsonl, then metrics.json: stopped
     between them, the new predictions sat beside the old metrics.json (its split, adapter and numbers)."""
     from aynamics import evaluate as ev
 
-    def result(index: int) -> ev.Evaluation:
-        per = {"yaml_valid": [1.0], "reason": [None]}
-        return ev.Evaluation({"model": {"yaml_valid": 1.0}}, [{"index": index, "scene_yaml": "x"}], ["t"], per)
-
     out = tmp_path / "eval"
-    ev.write_evaluation(out, result(1), {"split": "test"})
+    ev.write_evaluation(out, _evaluation(1), {"split": "test"})
     real = ev.write_predictions
 
     def dying(path, *args):
@@ -141,13 +145,13 @@ def test_an_evaluation_folder_never_pairs_two_evaluations(tmp_path, monkeypatch)
 
     monkeypatch.setattr(ev, "write_predictions", dying)
     with pytest.raises(KeyboardInterrupt):
-        ev.write_evaluation(out, result(2), {"split": "validation"})
+        ev.write_evaluation(out, _evaluation(2), {"split": "validation"})
     if (out / "metrics.json").exists():  # then both files are one evaluation's
         rows = [json.loads(line) for line in (out / "predictions.jsonl").read_text().splitlines()]
         split = json.loads((out / "metrics.json").read_text())["settings"]["split"]
         assert (split, rows[0]["index"]) in {("test", 1), ("validation", 2)}
     monkeypatch.undo()
-    ev.write_evaluation(out, result(2), {"split": "validation"})
+    ev.write_evaluation(out, _evaluation(2), {"split": "validation"})
     assert json.loads((out / "metrics.json").read_text())["settings"]["split"] == "validation"
 
 
@@ -162,12 +166,8 @@ def test_an_evaluation_stopped_after_its_predictions_or_inside_its_metrics_leave
 
     from aynamics import evaluate as ev
 
-    def result(index: int) -> ev.Evaluation:
-        per = {"yaml_valid": [1.0], "reason": [None]}
-        return ev.Evaluation({"model": {"yaml_valid": 1.0}}, [{"index": index, "scene_yaml": "x"}], ["t"], per)
-
     out = tmp_path / "eval"
-    ev.write_evaluation(out, result(1), {"split": "test"})
+    ev.write_evaluation(out, _evaluation(1), {"split": "test"})
     real = os.replace
 
     def dying_after_predictions(src, dst):
@@ -177,12 +177,12 @@ def test_an_evaluation_stopped_after_its_predictions_or_inside_its_metrics_leave
 
     monkeypatch.setattr(ev.os, "replace", dying_after_predictions)
     with pytest.raises(KeyboardInterrupt):
-        ev.write_evaluation(out, result(2), {"split": "validation"})
+        ev.write_evaluation(out, _evaluation(2), {"split": "validation"})
     monkeypatch.undo()
     assert json.loads((out / "predictions.jsonl").read_text())["index"] == 2
     assert not (out / "metrics.json").exists()
 
-    ev.write_evaluation(out, result(3), {"split": "train"})
+    ev.write_evaluation(out, _evaluation(3), {"split": "train"})
 
     def half(self, text, *args, **kwargs):  # a kill half-way through the write
         with open(self, "w") as f:
@@ -191,6 +191,6 @@ def test_an_evaluation_stopped_after_its_predictions_or_inside_its_metrics_leave
 
     monkeypatch.setattr(Path, "write_text", half)
     with pytest.raises(KeyboardInterrupt):
-        ev.write_evaluation(out, result(4), {"split": "validation"})
+        ev.write_evaluation(out, _evaluation(4), {"split": "validation"})
     monkeypatch.undo()
     assert not (out / "metrics.json").exists()
