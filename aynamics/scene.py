@@ -658,10 +658,19 @@ def _loader_for(text: str) -> type:
 
 
 _SURROGATE = re.compile("[\ud800-\udfff]")
+# a line break as YAML (PyYAML and libyaml alike) counts them: not str.splitlines, which also breaks at \x0b, \x0c
+# and \x1c-\x1e, characters YAML refuses in a scene
+_BREAK = re.compile("\r\n|[\n\r\x85\u2028\u2029]")
+
+
+def _line_breaks(text: str) -> int:
+    return len(_BREAK.findall(text))
 
 
 def _line_column(text: str, offset: int) -> str:
-    return f"line {text.count(chr(10), 0, offset) + 1}, column {offset - text.rfind(chr(10), 0, offset)}"
+    """`offset` in `text` as YAML names a place: "line L, column C", both from 1."""
+    last = max((m.end() for m in _BREAK.finditer(text, 0, offset)), default=0)
+    return f"line {_line_breaks(text[:offset]) + 1}, column {offset - last + 1}"
 
 
 def _checked_text(text: str | bytes) -> str:
@@ -737,11 +746,15 @@ _INLINE_ITEM = re.compile(r"-[ \t]+type[ \t]*:")  # an item after other text on 
 
 
 def _strip_wrappers(text: str) -> str:
-    """The last `<answer>` block (an unclosed one runs to the end), else the text without `<think>`; then a fence."""
-    answers = _ANSWER.findall(text)
-    body = answers[-1] if answers else _THINK.sub("", text)
+    """The last `<answer>` block (an unclosed one runs to the end), else the text without `<think>`; then a fence.
+    What is left out before it is left as its line breaks, so that a YAML error names the line of the response."""
+    answers = list(_ANSWER.finditer(text))
+    if answers:
+        body = "\n" * _line_breaks(text[: answers[-1].start(1)]) + answers[-1].group(1)
+    else:
+        body = _THINK.sub(lambda m: "\n" * _line_breaks(m.group()), text)
     fence = _FENCE.search(body)
-    return fence.group(1) if fence else body
+    return "\n" * _line_breaks(body[: fence.start(1)]) + fence.group(1) if fence else body
 
 
 def _cut_prose(body: str) -> tuple[int, str] | None:
@@ -756,12 +769,12 @@ def _cut_prose(body: str) -> tuple[int, str] | None:
     for inline in _INLINE_ITEM.finditer(before):  # the last one before the first line-start item
         pass
     if inline is not None:  # its own keys follow it, indented, up to the next item
-        keys = [line for line in body[inline.start() : start].splitlines()[1:] if line.strip()]
+        keys = [line for line in _BREAK.split(body[inline.start() : start])[1:] if line.strip()]
         if keys and keys[0][:1] in " \t" and (start is None or all(line[:1] in " \t" for line in keys)):
             start = inline.start()
     if start is None:
         return None
-    lines = body[start:].splitlines()
+    lines = _BREAK.split(body[start:])
     indent = len(lines[0]) - len(lines[0].lstrip())
     keep = []
     for line in lines:
@@ -773,11 +786,6 @@ def _cut_prose(body: str) -> tuple[int, str] | None:
     if indent:  # a list indented under prose ("Here is the scene:\n  - type: box"): as if written at the margin
         keep = [line[indent:] if len(line) - len(line.lstrip()) >= indent else line.lstrip() for line in keep]
     return start, "\n".join(keep)
-
-
-def _line_breaks(text: str) -> int:
-    """The line breaks in `text`, as `str.splitlines` (and YAML, for \\n, \\r\\n and \\r) counts them."""
-    return len((text + "x").splitlines()) - 1
 
 
 def extract_yaml(text: str) -> str:

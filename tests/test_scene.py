@@ -680,6 +680,28 @@ def test_yaml_errors_after_a_leading_comment_name_the_lines_of_the_file(tmp_path
     assert S.extract_yaml("# my scene\n\n- type: box\n  name: x\n   bad: 1\n") == "- type: box\n  name: x\n   bad: 1"
 
 
+def test_yaml_errors_in_a_model_response_name_the_lines_of_the_response():
+    """The YAML inside `<answer>`, a fence, or after `<think>` was parsed from the block's start, so its errors
+    named lines counted from there (line 3 for the response's line 7). Lines break where YAML breaks them (also at
+    a lone \\r); a form feed is refused as YAML refuses it, not read as a line break (it was: a scene with one
+    went through)."""
+    bad = "- type: box\n  name: x\n   bad: 1\n"  # the error is on the body's line 3, column 7
+    cases = [
+        (bad, 3),
+        ("<think>I see\none box\n</think>\n<answer>\n" + bad + "</answer>", 7),
+        ("<answer>old</answer>\n\n<answer>\n" + bad + "</answer>", 6),  # the last answer block
+        ("Thinking...\n\n```yaml\n" + bad + "```\nDone.", 6),
+        ("<think>a\nb</think>" + bad, 4),  # line 2 holds `</think>- type: box`
+        ("a\rb\r" + bad.replace("\n", "\r"), 5),
+        ("a\r\n\u2028" + bad, 5),  # YAML breaks at U+2028 too
+    ]
+    for text, line in cases:
+        with pytest.raises(S.SceneError, match=f"yaml: mapping values .*\\(line {line}, column 7\\)"):
+            S.parse(text)
+    with pytest.raises(S.SceneError, match=r"unacceptable character #x000c: .*\(line 2, column 12\)"):
+        S.parse("prose\n- type: box\x0c  name: b\n  size: [1, 1, 1]\n")
+
+
 def test_a_list_indented_under_prose_is_read_as_written_at_the_margin():
     """A response that indents its YAML under a line of prose (each line 2 or 4 spaces in) gave "mapping values
     are not allowed": only the first line lost its indentation."""
