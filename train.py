@@ -44,6 +44,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     from aynamics.lm import TARGETS
     from aynamics.sharding import model_init_context
 
+    check_whole_numbers(cfg)
     interval = cfg.trainer.get("val_check_interval")
     if interval is not None and not (isinstance(interval, int) and not isinstance(interval, bool) and interval > 0):
         # Lightning divided by 0 after the first step, and refused a share of an epoch with a traceback
@@ -54,6 +55,11 @@ def train(cfg: DictConfig) -> dict[str, float]:
     every = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("every_n_train_steps")
     if every is not None and not (isinstance(every, int) and every >= 1):
         raise ValueError(f"callbacks.checkpoint.every_n_train_steps = {every}: must be a whole number >= 1")
+    clip = cfg.trainer.get("gradient_clip_val")
+    if clip is not None and not (isinstance(clip, int | float) and math.isfinite(clip) and clip >= 0):
+        # a negative value turned clipping off without a word; NaN failed in the first step, once the model had
+        # loaded, with Lightning's "set gradient_clip_val ... use only one of them"
+        raise ValueError(f"trainer.gradient_clip_val = {clip}: must be a finite number >= 0, or null (no clipping)")
     if cfg.trainer.get("use_distributed_sampler"):  # Lightning would shard each process's share again
         raise ValueError(
             "trainer.use_distributed_sampler = true: the data modules give each process its own share themselves "
@@ -66,7 +72,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if cfg.get("ckpt_path"):
         from aynamics.lm import check_resume_checkpoint
 
-        check_resume_checkpoint(cfg.ckpt_path)  # before the model loads
+        check_resume_checkpoint(cfg.ckpt_path, cfg.stage.get("name"))  # before the model loads
     L.seed_everything(cfg.seed, workers=True)
     out = Path(cfg.output_dir)
     checkpoints = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("dirpath")
@@ -77,6 +83,15 @@ def train(cfg: DictConfig) -> dict[str, float]:
             f"hydra.run.dir = {str(out)!r} holds an earlier run ({found}): resume it with ckpt_path=CHECKPOINT, or "
             "give a new hydra.run.dir (a fresh run there would overwrite its adapter and results)"
         )
+    folder = Path(checkpoints) if checkpoints else out / "checkpoints"
+    if cfg.get("ckpt_path") and Path(cfg.ckpt_path).resolve().parent != folder.resolve():
+        if found := earlier_run(out, checkpoints):
+            # another run's checkpoint resumed there mixed two runs: last-v1.ckpt beside the other's last.ckpt, and
+            # the other's adapter and metrics.json overwritten
+            raise ValueError(
+                f"ckpt_path = {cfg.ckpt_path!r} is not a checkpoint of the run in hydra.run.dir = {str(out)!r} "
+                f"({found}): resume in the checkpoint's own run folder, or give a new hydra.run.dir"
+            )
     out.mkdir(parents=True, exist_ok=True)
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
@@ -149,6 +164,32 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 command += ["--batch-size", evaluation.batch_size, "--max-new-tokens", evaluation.max_new_tokens]
                 print(f"The test split's table: {shlex.join(str(c) for c in command)}")
     return metrics
+
+
+# keys holding a count: (the least value, whether null is allowed); a fraction, a NaN or a string failed deep in
+# the data loaders or Lightning with a traceback (accumulate_grad_batches=0: a ZeroDivisionError once the model had
+# loaded), and PRO took data.limit_val=0 as "no validation split" and validated on training videos
+WHOLE_NUMBERS = {
+    "trainer.accumulate_grad_batches": (1, False),
+    "data.num_frames": (1, False),
+    "data.batch_size": (1, False),
+    "data.eval_batch_size": (1, True),
+    "data.num_workers": (0, True),
+    "data.num_examples": (0, False),
+    "data.limit_train": (1, True),
+    "data.limit_val": (1, True),
+}
+
+
+def check_whole_numbers(cfg: DictConfig) -> None:
+    """Refuse a count key of `WHOLE_NUMBERS` that is not a whole number in its range, naming the key and value."""
+    absent = object()
+    for key, (least, nullable) in WHOLE_NUMBERS.items():
+        value = OmegaConf.select(cfg, key, default=absent)
+        if value is absent or (value is None and nullable):
+            continue
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"{key} = {value!r}: must be >= {least} (a whole number{', or null' * nullable})")
 
 
 def earlier_run(out: Path, checkpoints: str | None) -> str | None:

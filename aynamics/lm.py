@@ -204,6 +204,12 @@ class ModelSpec:
             raise ValueError(f"model kind = {self.kind!r}: must be one of {KINDS}")
         if self.kind == "pretrained" and not self.path:
             raise ValueError("model kind = 'pretrained' needs model.path (a local directory or a hub id)")
+        # before the base loads (apply_lora checks rank and dropout again); alpha 0 froze the LoRA update (its
+        # gradients are scaled by alpha / r), a negative one flipped it, NaN diverged at the first step
+        if isinstance(self.lora_rank, bool) or not isinstance(self.lora_rank, int) or self.lora_rank < 1:
+            raise ValueError(f"model.lora_rank = {self.lora_rank!r}: must be a whole number >= 1")
+        if not (isinstance(self.lora_alpha, int | float) and math.isfinite(self.lora_alpha) and self.lora_alpha > 0):
+            raise ValueError(f"model.lora_alpha = {self.lora_alpha!r}: must be a finite number > 0")
         if self.dtype not in ("float32", "bfloat16"):
             raise ValueError(f"model dtype = {self.dtype!r}: must be 'float32' or 'bfloat16'")
         kernels = ("sdpa", "eager", "flash_attention_2") if self.kind == "pretrained" else ("sdpa", "eager")
@@ -542,8 +548,9 @@ def check_trainable_weights(checkpoint: dict, module: torch.nn.Module) -> None:
 
 
 def check_same_base(stored: dict | None, spec: ModelSpec) -> None:
-    """Refuse to resume a checkpoint (its `stored` model spec) on another base or adapter scaling: its kind, the
-    tiny model's sizes or seed (its random weights), or `lora_alpha`; the trained weights mean nothing there. Another
+    """Refuse to resume a checkpoint (its `stored` model spec) on another base or adapter: its kind, the tiny model's
+    sizes or seed (its random weights), `lora_alpha`, or the adapter's rank, targets and trained modules; the trained
+    weights mean nothing there or do not fit. Another
     `path` is only logged: the same weights may have moved.
 
     Raises:
@@ -557,8 +564,15 @@ def check_same_base(stored: dict | None, spec: ModelSpec) -> None:
             f"the checkpoint was trained on model.path = {stored['path']!r}, this run loads {current['path']!r}: "
             "resuming, which is right only if both hold the same weights"
         )
-    keys = ["kind", "tiny", "lora_alpha"] + (["seed"] if spec.kind == "tiny" else [])
-    diff = [k for k in keys if k in stored and stored[k] != current[k]]
+    # the adapter's shape too: another lora_rank failed inside Lightning with a size-mismatch traceback, and fewer
+    # targets or trained modules dropped the checkpoint's other weights without a word
+    keys = ["kind", "tiny", "lora_alpha", "lora_rank", "lora_targets", "modules_to_save", "train_vision"]
+    keys += ["seed"] if spec.kind == "tiny" else []
+
+    def plain(value):
+        return list(value) if isinstance(value, list | tuple) else value
+
+    diff = [k for k in keys if k in stored and plain(stored[k]) != plain(current[k])]
     if diff:
         raise ValueError(
             "the checkpoint was trained on model "
@@ -569,19 +583,33 @@ def check_same_base(stored: dict | None, spec: ModelSpec) -> None:
         )
 
 
-def check_resume_checkpoint(path: str | Path) -> None:
+def checkpoint_stage(checkpoint: dict) -> str | None:
+    """The stage ("sft" or "pro") whose module wrote a Lightning checkpoint dict, by its hyperparameters."""
+    hp = checkpoint.get("hyper_parameters") or {}
+    return "pro" if "num_samples" in hp else "sft" if "warmup_steps" in hp else None
+
+
+def check_resume_checkpoint(path: str | Path, stage: str | None = None) -> None:
     """Refuse, before a model is built, a `ckpt_path` that Lightning could not resume from: a missing path, a file
-    torch cannot read (as Lightning reads it: `weights_only`) or a dict without Lightning's version key (Lightning
-    then failed with `KeyError: 'pytorch-lightning_version'`). A folder (DeepSpeed's sharded checkpoints) is left
-    to Lightning.
+    torch cannot read (as Lightning reads it: `weights_only`), a dict without Lightning's version key (Lightning
+    then failed with `KeyError: 'pytorch-lightning_version'`), a folder that is not DeepSpeed's sharded checkpoint
+    (IsADirectoryError inside Lightning) or, given `stage`, a checkpoint of the other stage (an SFT checkpoint
+    went on as PRO, a PRO one as SFT, without a word). A DeepSpeed folder is left to Lightning.
 
     Raises:
         FileNotFoundError: nothing at `path`.
-        ValueError: not a Lightning checkpoint (the path and the reason named).
+        ValueError: not a Lightning checkpoint, or another stage's (the path and the reason named).
     """
     path = Path(path)
     if path.is_dir():
-        return
+        if (path / "latest").is_file():  # DeepSpeed's folder: its tag file, then the tag's shards
+            return
+        found = sorted(p.name for p in path.glob("*.ckpt"))
+        pick = "last.ckpt" if "last.ckpt" in found else found[-1] if found else None
+        raise ValueError(
+            f"ckpt_path = {str(path)!r}: a folder, not a checkpoint (nor DeepSpeed's checkpoint folder): give a .ckpt"
+            + (f", e.g. ckpt_path={path / pick}" if pick else " file (OUT/checkpoints/last.ckpt)")
+        )
     if not path.is_file():
         raise FileNotFoundError(2, f"ckpt_path = {str(path)!r}: no such checkpoint", str(path))
     try:
@@ -592,6 +620,13 @@ def check_resume_checkpoint(path: str | Path) -> None:
         raise ValueError(
             f"ckpt_path = {str(path)!r}: not a Lightning training checkpoint (resume from OUT/checkpoints/last.ckpt "
             "or a stepNNNNNN.ckpt of a train.py run)"
+        )
+    stored = checkpoint_stage(ckpt)
+    if stage is not None and stored is not None and stored != stage:
+        hint = " (PRO starts from an SFT run's adapter: stage.init_adapter=OUT/adapter)" if stage == "pro" else ""
+        raise ValueError(
+            f"ckpt_path = {str(path)!r}: a checkpoint of stage={stored}, but the run is stage={stage}: resume it with "
+            f"stage={stored}{hint}"
         )
 
 

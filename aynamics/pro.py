@@ -162,6 +162,19 @@ class ProModule(lm.ExactResume, L.LightningModule):
             raise ValueError(
                 f"tau = {tau}, sft_weight = {sft_weight}, lr = {lr}: need finite tau >= 0, sft_weight >= 0, lr > 0"
             )
+        # before the model loads: sampling refused these only at the first step (NaN with transformers' traceback)
+        if not (math.isfinite(temperature) and temperature > 0):
+            raise ValueError(
+                f"stage.temperature = {temperature}: must be a finite number > 0 (stage.num_samples = {num_samples} "
+                "responses are sampled per video; greedy gives one)"
+            )
+        if not 0 < top_p <= 1:
+            raise ValueError(f"stage.module.top_p = {top_p}: must be in (0, 1]")
+        if max_new_tokens < 1 or score_workers < 1:
+            raise ValueError(
+                f"stage.module.max_new_tokens = {max_new_tokens}, stage.module.score_workers = {score_workers}: "
+                "both must be >= 1"
+            )
         self.reward_config = rw.RewardConfig(reward_metric, reward_span, mix_weight, epe_scale)
         spec = spec if isinstance(spec, lm.ModelSpec) else lm.ModelSpec(**spec)
         self.model, self.spec = build_policy(spec, init_adapter)

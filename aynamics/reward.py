@@ -317,7 +317,7 @@ def sample_completions(
     """
     if num_samples < 1:
         raise ValueError(f"num_samples = {num_samples}: must be >= 1")
-    if temperature < 0 or not 0 < top_p <= 1:
+    if not temperature >= 0 or not 0 < top_p <= 1:  # NaN too: it decoded greedily
         raise ValueError(f"temperature = {temperature}, top_p = {top_p}: need temperature >= 0, 0 < top_p <= 1")
     if temperature == 0 and num_samples != 1:
         raise ValueError(f"temperature = 0 (greedy) with num_samples = {num_samples}: greedy gives one response")

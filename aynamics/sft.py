@@ -145,6 +145,9 @@ class SFTModule(lm.ExactResume, L.LightningModule):
             )
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule = {schedule!r}: must be one of {SCHEDULES}")
+        if len(betas) != 2 or not all(isinstance(b, int | float) and 0 <= b < 1 for b in betas):
+            # torch refused them only when the optimizer was made, inside fit: a traceback once the model had loaded
+            raise ValueError(f"stage.module.betas = {list(betas)}: need two numbers in [0, 1)")
         if not (vision_aux_weight >= 0 and math.isfinite(vision_aux_weight)):
             raise ValueError(f"vision_aux_weight = {vision_aux_weight}: must be a finite number >= 0")
         if not (vision_share_weight >= 0 and math.isfinite(vision_share_weight)):

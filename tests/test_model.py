@@ -480,3 +480,21 @@ def test_generation_pads_with_the_text_configs_pad_id_even_when_it_is_0():
         _default_pad_id(m)
         got.append(m.generation_config.pad_token_id)
     assert got == [0, 5, 7]
+
+
+def test_lora_scaling_and_trained_modules_that_cannot_work_are_named():
+    """model.lora_alpha 0 (a LoRA that never moves: its gradients are scaled by alpha / r), negative or NaN (diverged
+    at the first step), and a model.modules_to_save name no module has (peft trained nothing for it) were taken
+    without a word; the spec refuses the first before the base loads."""
+    from aynamics import lm
+
+    for alpha in (0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=rf"model.lora_alpha = {alpha}: must be a finite number > 0"):
+            lm.ModelSpec(kind="tiny", lora_alpha=alpha)
+    with pytest.raises(ValueError, match=r"model.lora_rank = 2.5: must be a whole number >= 1"):
+        lm.ModelSpec(kind="tiny", lora_rank=2.5)
+    with pytest.raises(
+        ValueError, match=r"modules_to_save = \['lm_head', 'lm_heads'\]: no module named \['lm_heads'\]"
+    ):
+        apply_lora(build_tiny_model(), modules_to_save=["lm_head", "lm_heads"])
+    apply_lora(build_tiny_model(), modules_to_save=["embed_tokens", "lm_head"])  # the tiny config's: fine

@@ -258,6 +258,28 @@ def test_module_arguments_are_checked():
         ProModule(SPEC, init_adapter="/nonexistent/adapter")
 
 
+def test_sampling_settings_that_cannot_sample_are_refused_before_the_model_loads(monkeypatch):
+    """stage.temperature 0 or NaN, top_p 0, max_new_tokens 0 and score_workers 0 failed only at the first training
+    step, once the model had loaded (NaN with transformers' traceback on greedy decoding)."""
+    import aynamics.pro
+
+    def no_model(*args, **kwargs):
+        raise AssertionError("the model was built")
+
+    monkeypatch.setattr(aynamics.pro, "build_policy", no_model)
+    for kw, match in [
+        ({"temperature": 0.0}, r"stage.temperature = 0.0: must be a finite number > 0"),
+        ({"temperature": float("nan")}, r"stage.temperature = nan: must be a finite number > 0"),
+        ({"top_p": 0.0}, r"stage.module.top_p = 0.0: must be in \(0, 1\]"),
+        ({"max_new_tokens": 0}, r"stage.module.max_new_tokens = 0, .*: both must be >= 1"),
+        ({"score_workers": 0}, r"stage.module.score_workers = 0: both must be >= 1"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            ProModule(SPEC, num_samples=2, **kw)
+    with pytest.raises(ValueError, match="temperature = nan"):
+        rw.sample_completions(None, None, [], num_samples=1, temperature=float("nan"))
+
+
 def _no_device_guess(monkeypatch) -> None:
     """peft reads an adapter onto `infer_device()` (the first GPU of a GPU machine: a CUDA context there from every
     process, and for --device cpu) unless told where: make a guess fail loudly."""

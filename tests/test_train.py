@@ -1112,6 +1112,46 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         train(_cfg(tmp_path / "x", f"data.dir={broken}"))
 
 
+def test_a_checkpoint_folder_or_another_stages_checkpoint_is_refused_before_the_model(tmp_path, dataset_dir):
+    """ckpt_path = a run's checkpoints/ folder failed inside Lightning (IsADirectoryError, a traceback); an SFT
+    checkpoint resumed under stage=pro (or a PRO one under stage=sft) went on without a word, with the other
+    stage's optimizer state and schedule."""
+    folder = tmp_path / "run" / "checkpoints"
+    folder.mkdir(parents=True)
+    stages = {"sft": {"warmup_steps": 10, "lr": 1e-3}, "pro": {"num_samples": 4, "lr": 1e-4}}
+    for name, hp in stages.items():
+        torch.save({"pytorch-lightning_version": "2.5.0", "hyper_parameters": hp}, folder / f"{name}.ckpt")
+    with pytest.raises(ValueError, match=rf"ckpt_path = '{folder}': a folder, not a checkpoint .* ckpt_path={folder}/"):
+        train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", f"ckpt_path={folder}"))
+    deepspeed = tmp_path / "deepspeed.ckpt"  # DeepSpeed's folder is still Lightning's to read
+    deepspeed.mkdir()
+    (deepspeed / "latest").write_text("checkpoint")
+    lm.check_resume_checkpoint(deepspeed, "sft")
+    for stage, other in (("sft", "pro"), ("pro", "sft")):
+        with pytest.raises(ValueError, match=rf"a checkpoint of stage={other}, but the run is stage={stage}"):
+            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", f"stage={stage}", f"ckpt_path={folder / other}.ckpt"))
+        lm.check_resume_checkpoint(folder / f"{stage}.ckpt", stage)
+    assert not (tmp_path / "x").exists()
+
+
+def test_resuming_another_runs_checkpoint_into_a_run_folder_is_refused(tmp_path, dataset_dir):
+    """ckpt_path=A/checkpoints/last.ckpt with hydra.run.dir=B, where B holds another run, wrote last-v1.ckpt beside
+    B's last.ckpt and overwrote B's adapter and metrics.json; into a new folder, or its own, it still resumes."""
+    a, b = tmp_path / "a" / "checkpoints", tmp_path / "b"
+    a.mkdir(parents=True)
+    torch.save({"pytorch-lightning_version": "2.5.0", "hyper_parameters": {"warmup_steps": 10}}, a / "last.ckpt")
+    (b / "checkpoints").mkdir(parents=True)
+    (b / "checkpoints" / "last.ckpt").write_bytes(b"b's")
+    before = sorted(p.name for p in b.rglob("*"))
+    with pytest.raises(ValueError, match=rf"ckpt_path = '{a}/last.ckpt' is not a checkpoint of the run in .*'{b}'"):
+        train(_cfg(b, f"data.dir={dataset_dir}", f"ckpt_path={a / 'last.ckpt'}"))
+    assert sorted(p.name for p in b.rglob("*")) == before
+    (b / "checkpoints" / "last.ckpt").unlink()
+    (b / "metrics.json").write_text("{}")  # a finished run without its checkpoints
+    with pytest.raises(ValueError, match="is not a checkpoint of the run in"):
+        train(_cfg(b, f"data.dir={dataset_dir}", f"ckpt_path={a / 'last.ckpt'}"))
+
+
 def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_path, dataset_dir):
     """`python train.py` with a wrong data.dir or an out-of-range value exits 2 with one line on stderr naming the
     key and the value, the traceback in OUT/train.log only (Hydra printed the traceback around the message);
@@ -1357,6 +1397,29 @@ def test_resume_refuses_another_base_scaling_data_order_or_examples(tmp_path, da
             train(_cfg(tmp_path / "b", *common, "trainer.max_steps=2", override, ckpt))
 
 
+def test_resume_refuses_another_adapter_shape_before_loading_its_weights():
+    """A checkpoint of another model.lora_rank failed inside Lightning with a size-mismatch traceback; one with more
+    LoRA targets or trained modules than the run dropped the rest of its weights without a word."""
+    import dataclasses
+
+    spec = lm.ModelSpec(kind="tiny", lora_rank=32, lora_alpha=64.0, modules_to_save=["embed_tokens", "lm_head"])
+    stored = dataclasses.asdict(spec)
+    lm.check_same_base(stored, spec)  # the same settings, tuples or lists alike
+    lm.check_same_base({**stored, "lora_targets": list(spec.lora_targets)}, spec)
+    for key, value, message in (
+        ("lora_rank", 8, "lora_rank=32, but the run builds lora_rank=8"),
+        ("lora_targets", ("q_proj",), r"lora_targets=\(.*'down_proj'\), but the run builds lora_targets=\('q_proj',\)"),
+        (
+            "modules_to_save",
+            (),
+            r"modules_to_save=\('embed_tokens', 'lm_head'\), but the run builds modules_to_save=\(\)",
+        ),
+        ("train_vision", True, "train_vision=False, but the run builds train_vision=True"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            lm.check_same_base(stored, dataclasses.replace(spec, **{key: value}))
+
+
 def test_validation_that_cannot_keep_to_its_steps_under_accumulation_is_named(tmp_path, dataset_dir, caplog):
     """5 training records at batch 1 with 2 batches per step: each epoch's last step takes 1 batch, so validation
     'every 3 steps' (every 6 batches) fell at steps 3 and 7 of an 8-step run, not 3 and 6 (the checkpoints' steps):
@@ -1468,3 +1531,43 @@ def test_a_second_resume_after_one_stopped_before_the_join_keeps_the_csv_rows_in
         ("0", "0.0"), ("1", "1.0"), ("2", "2.0"), ("3", "3.0"), ("4", "4.0"), ("", "9.9"),
         ("5", "5.5"), ("6", "6.5"), ("7", "7.5"),
     ]  # fmt: skip
+
+
+def test_counts_that_are_not_whole_numbers_are_named(tmp_path, dataset_dir):
+    """A fraction, a NaN, a string or a count below its range in a count key stops the run before anything is built
+    (was: a TypeError or ValueError traceback from the loaders or Lightning, accumulate_grad_batches=0 a
+    ZeroDivisionError after the model had loaded, and PRO's data.limit_val=0 validated on training videos)."""
+    cases = [
+        (["data.num_frames=1.5"], r"data.num_frames = 1.5: must be >= 1 \(a whole number\)$"),
+        (["data.num_frames=abc"], r"data.num_frames = 'abc': must be >= 1 \(a whole number\)$"),
+        (["data.batch_size=nan"], r"data.batch_size = nan: must be >= 1 \(a whole number\)$"),
+        (["data.num_workers=1.5"], r"data.num_workers = 1.5: must be >= 0 \(a whole number, or null\)"),
+        (
+            ["trainer.accumulate_grad_batches=0"],
+            r"trainer.accumulate_grad_batches = 0: must be >= 1 \(a whole number\)",
+        ),
+        (["trainer.accumulate_grad_batches=1.5"], r"accumulate_grad_batches = 1.5: must be >= 1 \(a whole number\)"),
+        (["stage=pro", "data.limit_val=0"], r"data.limit_val = 0: must be >= 1 \(a whole number, or null\)"),
+        (["stage=pro", "data.limit_train=-1"], r"data.limit_train = -1: must be >= 1 \(a whole number, or null\)"),
+    ]
+    for overrides, message in cases:
+        with pytest.raises(ValueError, match=message):
+            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", *overrides))
+        assert not (tmp_path / "x").exists()  # before the run folder is made
+
+
+def test_optimizer_and_clipping_values_that_cannot_work_are_named(tmp_path, dataset_dir):
+    """AdamW betas outside [0, 1) failed in torch once the model had loaded (a traceback), a NaN
+    trainer.gradient_clip_val with Lightning's misleading "use only one of them", and a negative one turned
+    clipping off without a word."""
+    from hydra.errors import InstantiationException
+
+    cases = [
+        (["stage.module.betas=[2,0]"], r"stage.module.betas = \[2, 0\]: need two numbers in \[0, 1\)"),
+        (["stage.module.betas=[0.9]"], r"stage.module.betas = \[0.9\]: need two numbers"),
+        (["trainer.gradient_clip_val=nan"], r"trainer.gradient_clip_val = nan: must be a finite number >= 0"),
+        (["trainer.gradient_clip_val=-1"], r"trainer.gradient_clip_val = -1: must be a finite number >= 0"),
+    ]
+    for overrides, message in cases:
+        with pytest.raises((ValueError, InstantiationException), match=message):
+            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", *overrides))
