@@ -394,7 +394,7 @@ def run_audit(args) -> int:
     import sys
 
     from aynamics.audit_report import write_report
-    from aynamics.cli import UsageError, check_out_folder
+    from aynamics.cli import UsageError, check_out_folder, load_scene
     from aynamics.measured import Measured, check_units, every_nth, read_csv
 
     if not 30 <= args.step_hz <= 10_000:
@@ -406,7 +406,7 @@ def run_audit(args) -> int:
     if args.held_out_every < 0 or args.held_out_every == 1:
         raise UsageError(f"audit: --held-out-every {args.held_out_every}: must be 0 (a random split) or >= 2")
     check_out_folder("audit", args.out)  # before the audit's minutes
-    scene = scenelib.load(args.scene)
+    scene = load_scene("audit", args.scene, "--scene")
     try:
         measured = read_csv(args.measured)
         check_units(measured, args.measured)

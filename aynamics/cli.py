@@ -60,6 +60,21 @@ def check_out_folder(
             )
 
 
+def load_scene(command: str, path: str, flag: str | None = None):
+    """`scene.load` for a scene file given on the command line: its problems are named with the command and the
+    file (and option) they came from, as `simulate: 'a.yaml': invalid scene (1 problem): ...`. Without it a
+    command reading two scenes (score's, refine's, audit's) said what was wrong but not in which file."""
+    from aynamics.scene import load
+
+    try:
+        return load(path)
+    except SceneError as e:
+        where = f"{command}: {f'{flag} ' if flag else ''}{str(path)!r}"
+        if [p.path for p in e.problems] == ["file"]:  # cannot be read (missing, a folder, too large): said once
+            raise UsageError(f"{where}: {e.problems[0].message}") from None
+        raise UsageError(f"{where}: {e}") from None
+
+
 @contextlib.contextmanager
 def warnings_as_lines(command: str, prefix: str):
     """Within the block, a warning whose text starts with `prefix` (this project's own, about the user's input)
@@ -111,10 +126,9 @@ def _add_simulate(sub) -> None:
 
 
 def _run_simulate(args) -> int:
-    from aynamics import scene as scenelib
     from aynamics import simulate as sim
 
-    scene = scenelib.load(args.scene)
+    scene = load_scene("simulate", args.scene)
     try:
         config = sim.SimConfig(duration=args.duration, fps=args.fps, substeps=args.substeps)
     except ValueError as e:

@@ -74,12 +74,15 @@ class LLMEditor:
             device: torch device to run on ("auto": a GPU when there is one, else the CPU).
 
         Raises:
-            EditError: the model or tokenizer can't be loaded, or the tokenizer has no chat template.
+            EditError: max_new_tokens < 1, the model or tokenizer can't be loaded, or the tokenizer has no chat
+                template.
         """
         from transformers import AutoModelForCausalLM, AutoTokenizer
 
         from aynamics.lm import inference_device
 
+        if max_new_tokens < 1:  # before loading: generate() refuses it only after
+            raise EditError(f"--max-new-tokens {max_new_tokens}: must be >= 1")
         try:
             device = str(inference_device(device))
         except ValueError as e:

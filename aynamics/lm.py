@@ -13,6 +13,7 @@ import dataclasses
 import json
 import logging
 import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -93,8 +94,24 @@ class PromptSpec:
             value = getattr(self, key)
             if value is not None and value < 28 * 28:
                 raise ValueError(f"{key} = {value}: must be >= {28 * 28} (one 2x2 block of 14-pixel patches) or null")
+        # types too: a hand-edited aynamics.json's system_prompt 5 or examples [{...}] failed with a traceback
+        # in the prompt builder, and clip_frames [0.5, 1] was cut to [0, 1] without a word
+        if not isinstance(self.system_prompt, str):
+            raise ValueError(f"system_prompt = {self.system_prompt!r}: must be a string")
+        if isinstance(self.examples, str) or not isinstance(self.examples, Sequence):
+            raise ValueError(f"examples = {self.examples!r}: must be a list of example texts")
+        bad = next((e for e in self.examples if not isinstance(e, str)), None)
+        if bad is not None:
+            raise ValueError(f"examples: {bad!r}: each must be a text (a scene in YAML)")
         object.__setattr__(self, "examples", tuple(self.examples))
-        object.__setattr__(self, "clip_frames", tuple(int(k) for k in self.clip_frames))
+        try:
+            if isinstance(self.clip_frames, str) or any(isinstance(k, bool) for k in self.clip_frames):
+                raise TypeError
+            object.__setattr__(self, "clip_frames", tuple(operator.index(k) for k in self.clip_frames))
+        except TypeError:  # None, a number, or a frame that is not a whole number (0.5, "3")
+            raise ValueError(
+                f"clip_frames = {self.clip_frames!r}: must be increasing whole frame indices >= 0, at least one"
+            ) from None
         if not (math.isfinite(self.fps) and self.fps > 0):
             raise ValueError(f"fps = {self.fps}: must be a finite number > 0")
         frames = self.clip_frames
@@ -436,9 +453,8 @@ def specs_of_meta(meta: dict, where: str = "adapter meta") -> tuple[ModelSpec, P
         if not isinstance(meta, dict) or not all(isinstance(meta.get(k), dict) for k in ("model", "prompt")):
             got = sorted(meta) if isinstance(meta, dict) else type(meta).__name__
             raise ValueError(f"must be an object with 'model' and 'prompt' objects, got {got}")
-        prompt = dict(meta["prompt"])
-        prompt["examples"] = tuple(prompt.get("examples", ()))
-        return ModelSpec(**meta["model"]), PromptSpec(**prompt)
+        # examples as written: PromptSpec makes the list a tuple (a string would have become its characters)
+        return ModelSpec(**meta["model"]), PromptSpec(**meta["prompt"])
     except (TypeError, ValueError) as e:  # TypeError: an unknown or missing field of a spec
         raise ValueError(f"{where}: not the model and prompt specs training writes: {e}") from None
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aynamics.cli import UsageError, check_out_folder
+from aynamics.cli import UsageError, check_out_folder, load_scene
 
 # What `render --out DIR` writes (see the module docstring): a folder holding anything else is refused.
 RENDER_FILES = frozenset(
@@ -85,10 +85,9 @@ def _add_render(sub) -> None:
 def _run_render(args) -> int:
     from aynamics import flow as flowlib
     from aynamics import render as renderlib
-    from aynamics import scene as scenelib
     from aynamics import simulate as sim
 
-    scene = scenelib.load(args.scene)
+    scene = load_scene("render", args.scene)
     if not (16 <= args.width <= 4096 and 16 <= args.height <= 4096):
         raise UsageError(f"render: --width {args.width} --height {args.height}: each must be in [16, 4096]")
     if args.seed < 0:
@@ -187,9 +186,7 @@ def _run_score(args) -> int:
         else:  # a scene has no image size of its own: the scorer's 120×80 unless given (its aspect: 3:2)
             width, height = scorer.scoring_size(scorer.WIDTH, scorer.HEIGHT, args.width, args.height)
             obs = scorer.Observation.from_scene(scenelib.load(args.observed), width=width, height=height)
-    except ValueError as e:  # SceneError is a ValueError too; keep its message
-        if isinstance(e, scenelib.SceneError):
-            raise
+    except ValueError as e:  # SceneError is a ValueError too: named with --observed, as the folder's problems
         raise UsageError(f"score: --observed {args.observed!r}: {e}") from None
     # read as `simulate` reads a scene (scene.load: its size cap, UTF-8); a file that cannot be read or parsed
     # scores 0 with the reason, as an invalid prediction does

@@ -292,13 +292,15 @@ def refine(
         fix_grounded: keep the height and vertical velocity of objects that start on the floor (`grounded_dims`).
 
     Raises:
-        ValueError: no initial scene, initial scenes of different structures, or bad `params`.
+        ValueError: no initial scene, initial scenes of different structures, bad `params`, or a seed < 0.
     """
     from aynamics.scorer import score
 
     start_t = time.perf_counter()
     if isinstance(params, str):  # "position" or "position, mass": one string, not its characters
         params = params.replace(",", " ").split()
+    if seed < 0:  # NumPy's generators refuse it, some stages only (the track stage's seed + 1 passed at -1)
+        raise ValueError(f"refine: seed = {seed}: must be >= 0")
     scenes = [initial] if isinstance(initial, Scene) else list(initial)
     if not scenes:
         raise ValueError("refine: no initial scene given")

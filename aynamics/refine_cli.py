@@ -98,7 +98,7 @@ def run_refine_command(args) -> int:
     """`aynamics refine`: refine, then print/write; usage errors exit 2 with a one-paragraph message."""
     from pathlib import Path
 
-    from aynamics.cli import UsageError
+    from aynamics.cli import UsageError, load_scene
     from aynamics.refine import refine
     from aynamics.scene import load
     from aynamics.scorer import Observation
@@ -107,6 +107,8 @@ def run_refine_command(args) -> int:
         raise UsageError(f"refine: --budget {args.budget} and --seconds {args.seconds:g} must be > 0")
     if not 0 < args.sigma_scale < math.inf:
         raise UsageError(f"refine: --sigma-scale {args.sigma_scale:g} must be a finite number > 0")
+    if args.seed < 0:  # NumPy refused it deep in the search ('expected non-negative integer'), or the track stage
+        raise UsageError(f"refine: --seed {args.seed}: must be >= 0")  # took seed + 1 and ran: -1 was sometimes fine
     if args.stop_at is not None and math.isnan(args.stop_at):
         raise UsageError("refine: --stop-at nan: must be a number (an objective value such as 0.95)")
     if args.animation:  # before the search, not after its whole budget (helper-38)
@@ -126,7 +128,7 @@ def run_refine_command(args) -> int:
             raise UsageError(f"refine: --out {args.out!r} is a folder: give the scene file to write (REFINED.yaml)")
         if not out.parent.is_dir():
             raise UsageError(f"refine: cannot write --out {args.out!r}: folder {str(out.parent)!r} does not exist")
-    preds = [load(p) for p in args.pred]
+    preds = [load_scene("refine", p) for p in args.pred]
     obs_path = Path(args.observed)
     try:
         if obs_path.is_dir():

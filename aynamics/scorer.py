@@ -245,7 +245,7 @@ class Observation:
                     seg = _colour_ids(root / "meta.json", meta.get("colours"), names, colours, seg)
             if not (isinstance(fps, int) and not isinstance(fps, bool) and 1 <= fps <= 1000):
                 raise ValueError(
-                    f"{root / 'meta.json'}: fps = {fps!r}: must be a whole number of frames per second >= 1"
+                    f"{root / 'meta.json'}: fps = {fps!r}: must be a whole number of frames per second in [1, 1000]"
                 )
         return cls(seg[sub].astype(np.int16), frames, width, height, flow, occluded, names, fps, seg.shape, grid)
 

@@ -201,12 +201,17 @@ def run_edit_command(args) -> int:
     edit that moves an object into the floor; the edited YAML is still written to `--out` and the files to
     `--render DIR`. An invalid original is reported on stderr too, without failing an edit that repairs it.
     """
-    from aynamics.cli import UsageError, check_out_folder
+    from aynamics.cli import UsageError, check_out_folder, load_scene
     from aynamics.edit import EditError, apply_instruction
-    from aynamics.scene import load
 
-    scene = load(args.scene)
-    if args.render:
+    scene = load_scene("edit", args.scene)
+    if args.llm and args.max_new_tokens < 1:  # before the model is loaded; transformers raised it in generate
+        raise UsageError(f"edit: --max-new-tokens {args.max_new_tokens}: must be >= 1")
+    if args.render:  # before --out is written: the renderer refused these after it, NumPy's seed naming no option
+        if not (1 <= args.width <= 4096 and 1 <= args.height <= 4096):
+            raise UsageError(f"edit: --width {args.width} --height {args.height}: each must be in [1, 4096]")
+        if args.seed < 0:
+            raise UsageError(f"edit: --seed {args.seed}: must be >= 0")
         check_out_folder("edit", args.render, writes=WHAT_IF_FILES, flag="--render")
     try:
         if args.llm:

@@ -106,6 +106,38 @@ def test_simulate_names_why_a_rollout_is_invalid(tmp_path, capsys):
     assert "simulate: the rollout is invalid: overlapping start" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("command", "named"),
+    [
+        (["simulate", "BAD", "--json"], "simulate: 'BAD'"),
+        (["render", "BAD", "--out", "OUT"], "render: 'BAD'"),
+        (["edit", "BAD", "stop box_0"], "edit: 'BAD'"),
+        (["refine", "GOOD", "BAD", "--observed", "GOOD"], "refine: 'BAD'"),
+        (["score", "GOOD", "--observed", "BAD"], "score: --observed 'BAD'"),
+        (["audit", "--measured", "M.csv", "--scene", "BAD", "--out", "OUT"], "audit: --scene 'BAD'"),
+    ],
+)
+def test_a_bad_scene_file_is_named_with_its_problem(tmp_path, capsys, command, named):
+    """An invalid scene file given on the command line: the problem came without the file ("invalid scene (1
+    problem): objects[0].physics.mass = -1.0: must be > 0"), so a command reading two scenes (refine's
+    predictions, score's --observed beside its predictions, audit's --scene beside its CSV) did not say which.
+    Now the command and the file (with its option) come first; a file that cannot be read is named once."""
+    good = Path(ASSET).read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(good.replace("mass: 1.0", "mass: -1.0", 1))
+    assert good.count("mass: 1.0") >= 1
+    paths = {"BAD": str(bad), "GOOD": ASSET, "OUT": str(tmp_path / "out")}
+    assert cli.main([paths.get(a, a) for a in command]) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        err
+        == named.replace("BAD", str(bad)) + ": invalid scene (1 problem): objects[0].physics.mass = -1.0: must be > 0"
+    )
+    assert not (tmp_path / "out").exists()
+    assert cli.main(["simulate", str(tmp_path / "none.yaml"), "--json"]) == 2  # unreadable: the file named once
+    assert capsys.readouterr().err.strip() == f"simulate: {str(tmp_path / 'none.yaml')!r}: No such file or directory"
+
+
 def test_render_checks_its_arguments_before_making_folders(tmp_path, capsys):
     """--seed -1 is named (the message blamed "--textures None"); a bad --textures is named; neither leaves
     --out/frames or --out/flow behind."""

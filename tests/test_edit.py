@@ -195,6 +195,33 @@ def test_cli_edit_missing_file(capsys):
     assert "no/such.yaml" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--llm", "MODEL", "--max-new-tokens", "0"], "edit: --max-new-tokens 0: must be >= 1"),
+        (["--llm", "MODEL", "--max-new-tokens", "-1"], "edit: --max-new-tokens -1: must be >= 1"),
+        (["--render", "RENDER", "--seed", "-1"], "edit: --seed -1: must be >= 0"),
+        (["--render", "RENDER", "--width", "0"], "edit: --width 0 --height 160: each must be in [1, 4096]"),
+        (["--render", "RENDER", "--height", "5000"], "edit: --width 240 --height 5000: each must be in [1, 4096]"),
+    ],
+)
+def test_cli_edit_bad_numbers_are_named_before_anything_is_loaded_or_written(tmp_path, capsys, options, message):
+    """--max-new-tokens 0 with --llm gave transformers' traceback after loading the model; --seed -1 with --render
+    was refused by NumPy ('expected non-negative integer', naming no option) after --out was written and the
+    --render folder made. Each is named first: exit 2, no --out, no --render folder (MODEL does not exist: the
+    number is refused before the model is looked for)."""
+    out, render = tmp_path / "edited.yaml", tmp_path / "what_if"
+    options = [{"MODEL": str(tmp_path / "no_model"), "RENDER": str(render)}.get(o, o) for o in options]
+    assert cli.main(["edit", str(ASSET), "stop box_0", "--out", str(out), *options]) == 2
+    assert capsys.readouterr().err.strip() == message
+    assert not out.exists() and not render.exists()
+
+
+def test_llm_editor_refuses_max_new_tokens_below_one_before_loading(tmp_path):
+    with pytest.raises(EditError, match=r"--max-new-tokens 0: must be >= 1"):
+        LLMEditor(str(tmp_path / "nothing"), max_new_tokens=0)
+
+
 # --------------------------------------------------------------------------------------------
 # LLM editor: the validation every answer passes through, and the real loading path on a tiny model
 # --------------------------------------------------------------------------------------------

@@ -498,3 +498,31 @@ def test_lora_scaling_and_trained_modules_that_cannot_work_are_named():
     ):
         apply_lora(build_tiny_model(), modules_to_save=["lm_head", "lm_heads"])
     apply_lora(build_tiny_model(), modules_to_save=["embed_tokens", "lm_head"])  # the tiny config's: fine
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("system_prompt", 5, "system_prompt = 5: must be a string"),  # TypeError in the prompt builder
+        ("examples", [{"a": 1}], "examples: {'a': 1}: each must be a text"),  # AttributeError: no .strip
+        ("examples", "- type: box", "examples = '- type: box': must be a list of example texts"),  # its characters
+        ("clip_frames", [0.5, 1], "clip_frames = [0.5, 1]: must be increasing whole frame indices"),  # read [0, 1]
+        ("clip_frames", None, "clip_frames = None: must be increasing whole frame indices"),  # 'not iterable'
+        ("clip_frames", [True, 2], "clip_frames = [True, 2]: must be increasing whole frame indices"),
+    ],
+)
+def test_an_adapters_prompt_spec_of_the_wrong_type_is_named(key, value, message):
+    """A hand-edited aynamics.json whose prompt fields have the wrong type: named as its bad values are (predict
+    printed a traceback for the first two and read the others as something else); training's own file loads back."""
+    import json
+    import re
+
+    from aynamics import lm
+
+    written = json.loads(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec(examples=("- type: box",)))))
+    assert lm.specs_of_meta(written) == (lm.ModelSpec(), lm.PromptSpec(examples=("- type: box",)))
+    written["prompt"][key] = value
+    with pytest.raises(
+        ValueError, match=re.escape(f"'a/aynamics.json': not the model and prompt specs training writes: {message}")
+    ):
+        lm.specs_of_meta(written, where="'a/aynamics.json'")

@@ -315,6 +315,8 @@ def test_cli_sigma_scale_for_a_close_start(tmp_path, capsys):
         (["--sigma-scale", "inf"], "--sigma-scale inf must be a finite number > 0"),  # was cmaes' AssertionError
         (["--seconds", "nan"], "--seconds nan"),  # was accepted
         (["--stop-at", "nan"], "--stop-at nan: must be a number"),
+        (["--seed", "-1"], "refine: --seed -1: must be >= 0"),  # was accepted (the track stage used seed + 1)
+        (["--seed", "-5", "--params", "mass"], "refine: --seed -5: must be >= 0"),  # 'expected non-negative integer'
     ],
 )
 def test_cli_refine_errors(tmp_path, capsys, truth, args, message):

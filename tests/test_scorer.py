@@ -416,3 +416,17 @@ def test_scoring_size_keeps_the_videos_aspect_from_either_side():
     assert scoring_size(100, 50) == (100, 50)
     with pytest.raises(ValueError, match="off the video's aspect ratio"):
         scoring_size(480, 320, 120, 90)
+
+
+@pytest.mark.parametrize("fps", [0, 1001, 100000, 30.5])
+def test_a_meta_json_frame_rate_out_of_range_is_refused_with_the_range(tmp_path, fps):
+    """meta.json's fps must be a whole number in [1, 1000] (a rollout's limit); 100000 was refused with 'must be
+    a whole number of frames per second >= 1', which it is. 1000 itself is taken."""
+    np.save(tmp_path / "segmentation.npy", np.full((3, 4, 4), -1, np.int16))
+    (tmp_path / "meta.json").write_text(json.dumps({"fps": fps}))
+    with pytest.raises(
+        ValueError, match=re.escape(f"fps = {fps!r}: must be a whole number of frames per second in [1, 1000]")
+    ):
+        scorer.Observation.from_dir(tmp_path)
+    (tmp_path / "meta.json").write_text(json.dumps({"fps": 1000}))
+    assert scorer.Observation.from_dir(tmp_path).fps == 1000
