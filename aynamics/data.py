@@ -43,11 +43,17 @@ def load_splits(path: str | Path, what: str = "data.dir", require_train: bool = 
 
     path = Path(path)
     if not (path / "dataset_dict.json").is_file():
-        raise FileNotFoundError(
-            f"{what} = {str(path)!r} holds no data set (no dataset_dict.json); make one with "
-            f"`aynamics generate --num 12 --out {path} width=64 height=48`, or point {what} at one "
-            "(`make train` writes data/generated/make_train_plain)"
-        )
+        if (path.parent / "dataset_dict.json").is_file():  # one split's folder: the hint below would be refused
+            why = f"is the {path.name!r} split of the data set {str(path.parent)!r}: give that folder"
+        elif path.is_file() or (path.is_dir() and any(path.iterdir())):  # generate refuses to write there
+            kind = "a file" if path.is_file() else "a folder holding no data set (no dataset_dict.json)"
+            why = f"is {kind}: point {what} at a data set folder (`aynamics generate --out` writes one)"
+        else:
+            why = (
+                f"holds no data set (no dataset_dict.json); make one with `aynamics generate --num 12 --out {path} "
+                f"width=64 height=48`, or point {what} at one (`make train` writes data/generated/make_train_plain)"
+            )
+        raise FileNotFoundError(f"{what} = {str(path)!r} {why}")
     try:
         dd = load_from_disk(str(path))
     except (OSError, ValueError, IndexError) as e:  # truncated or foreign .arrow files, a broken dataset_info.json,

@@ -175,7 +175,8 @@ def _run_score(args) -> int:
         8 <= (8 if args.width is None else args.width) <= 1920
         and 8 <= (8 if args.height is None else args.height) <= 1280
     ):
-        raise UsageError(f"score: --width {args.width} --height {args.height}: must be in [8, 1920] × [8, 1280]")
+        given = " ".join(f"--{k} {v}" for k, v in (("width", args.width), ("height", args.height)) if v is not None)
+        raise UsageError(f"score: {given}: must be in [8, 1920] × [8, 1280] (width × height)")
     missing = [p for p in args.predictions if not Path(p).exists()]
     if missing:  # a mistyped path, not a prediction to score 0 (a file that exists but cannot be read still is)
         raise UsageError(f"score: prediction file(s) not found: {', '.join(map(repr, missing))}")

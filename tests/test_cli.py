@@ -201,9 +201,10 @@ def test_score_reads_predictions_with_the_scene_loaders_limit(tmp_path, capsys):
 
 @pytest.mark.parametrize("flag", ["--width", "--height"])
 def test_score_refuses_a_zero_scoring_size(capsys, flag):
-    """0 is refused with the other sizes out of range (it passed the check as "not given" before)."""
+    """0 is refused with the other sizes out of range (it passed the check as "not given" before); only the size
+    given is named (the other read "None")."""
     assert cli.main(["score", ASSET, "--observed", ASSET, flag, "0"]) == 2
-    assert "must be in [8, 1920] × [8, 1280]" in capsys.readouterr().err
+    assert f"score: {flag} 0: must be in [8, 1920] × [8, 1280] (width × height)" in capsys.readouterr().err
 
 
 def test_score_against_a_scene_takes_the_scoring_size_given(monkeypatch, capsys):

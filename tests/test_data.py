@@ -333,6 +333,26 @@ def test_bad_input_is_named(tmp_path):
         SceneDataModule(str(tmp_path), str(TINY_ASSET_DIR), target="yaml")
 
 
+def test_a_data_dir_that_is_not_a_data_set_says_what_it_is(dataset_dir, tmp_path):
+    """A split's folder, a file or a folder of other files was told to run `aynamics generate --out` on that same
+    path, which generate refuses: each is now named for what it is; only a missing or empty folder gets that hint."""
+    split = dataset_dir / "validation"
+    with pytest.raises(FileNotFoundError, match=f"is the 'validation' split of the data set '{dataset_dir}': give"):
+        load_splits(split, what="--data")
+    (tmp_path / "s.yaml").write_text("- type: box\n")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("x")
+    (tmp_path / "empty").mkdir()
+    for path, message in [
+        (tmp_path / "s.yaml", "is a file: point --data at a data set folder"),
+        (tmp_path / "other", "is a folder holding no data set"),
+        (tmp_path / "empty", "holds no data set .*aynamics generate --num 12 --out"),
+        (tmp_path / "missing", "holds no data set .*aynamics generate --num 12 --out"),
+    ]:
+        with pytest.raises(FileNotFoundError, match=f"--data = '{path}' {message}"):
+            load_splits(path, what="--data")
+
+
 def test_frame_windows_by_hand():
     pairs = frame_windows(10, 2)  # every window of >= 5 frame steps, the model's (0, 9) left out
     assert len(pairs) == 14 and (0, 9) not in pairs
