@@ -43,7 +43,8 @@ def load_splits(path: str | Path, what: str = "data.dir", require_train: bool = 
 
     path = Path(path)
     if not (path / "dataset_dict.json").is_file():
-        if (path.parent / "dataset_dict.json").is_file():  # one split's folder: the hint below would be refused
+        if path.is_dir() and (path.parent / "dataset_dict.json").is_file():  # one split's folder: the hint below
+            # would be refused (a file beside dataset_dict.json, that file itself, or a missing name is no split)
             why = f"is the {path.name!r} split of the data set {str(path.parent)!r}: give that folder"
         elif path.is_file() or (path.is_dir() and any(path.iterdir())):  # generate refuses to write there
             kind = "a file" if path.is_file() else "a folder holding no data set (no dataset_dict.json)"

@@ -585,10 +585,12 @@ def check_same_base(stored: dict | None, spec: ModelSpec) -> None:
     keys = ["kind", "tiny", "lora_alpha", "lora_rank", "lora_targets", "modules_to_save", "train_vision"]
     keys += ["seed"] if spec.kind == "tiny" else []
 
-    def plain(value):
+    def plain(key, value):
+        if key in ("lora_targets", "modules_to_save") and isinstance(value, list | tuple):
+            return sorted(set(value))  # which modules, not in which order: the same weights, in the model's order
         return list(value) if isinstance(value, list | tuple) else value
 
-    diff = [k for k in keys if k in stored and plain(stored[k]) != plain(current[k])]
+    diff = [k for k in keys if k in stored and plain(k, stored[k]) != plain(k, current[k])]
     if diff:
         raise ValueError(
             "the checkpoint was trained on model "

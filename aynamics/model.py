@@ -281,8 +281,8 @@ def apply_lora(
         raise ValueError(f"lora rank = {rank}: must be > 0")
     if not 0.0 <= dropout < 1.0:
         raise ValueError(f"lora dropout = {dropout}: must be in [0, 1)")
-    names = [name for name, _ in model.named_modules()]
-    unknown = [m for m in modules_to_save if not any(n == m or n.endswith(f".{m}") for n in names)]
+    names = [name for name, _ in model.named_modules(remove_duplicate=False)]
+    unknown = [m for m in modules_to_save if not any(n.endswith(m) for n in names)]  # peft's own test of a name
     if unknown:  # peft trained nothing for such a name, without a word
         raise ValueError(f"model.modules_to_save = {list(modules_to_save)}: no module named {unknown} in the model")
     if gradient_checkpointing:

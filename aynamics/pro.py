@@ -155,7 +155,7 @@ class ProModule(lm.ExactResume, L.LightningModule):
         if mode not in MODES:
             raise ValueError(f"stage.mode = {mode!r}: must be one of {MODES}")
         if loss not in LOSSES:
-            raise ValueError(f"stage.loss = {loss!r}: must be one of {LOSSES}")
+            raise ValueError(f"stage.module.loss = {loss!r}: must be one of {LOSSES}")
         if num_samples < 2:
             raise ValueError(f"stage.num_samples = {num_samples}: a preference needs at least 2 candidates")
         if not all(math.isfinite(x) for x in (tau, sft_weight, lr)) or tau < 0 or sft_weight < 0 or lr <= 0:

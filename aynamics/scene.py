@@ -770,7 +770,9 @@ def _cut_prose(body: str) -> tuple[int, str] | None:
         pass
     if inline is not None:  # its own keys follow it, indented, up to the next item
         keys = [line for line in _BREAK.split(body[inline.start() : start])[1:] if line.strip()]
-        if keys and keys[0][:1] in " \t" and (start is None or all(line[:1] in " \t" for line in keys)):
+        # indented as the list's lines below are measured (str.lstrip): a form feed or another control character
+        # before a key leaves the item in, for YAML to refuse, rather than dropping the object without a word
+        if keys and keys[0][:1].isspace() and (start is None or all(line[:1].isspace() for line in keys)):
             start = inline.start()
     if start is None:
         return None

@@ -353,6 +353,17 @@ def test_a_data_dir_that_is_not_a_data_set_says_what_it_is(dataset_dir, tmp_path
             load_splits(path, what="--data")
 
 
+def test_a_file_or_a_missing_name_inside_a_data_set_is_not_called_a_split(dataset_dir):
+    """data.dir = DS/dataset_dict.json was "the 'dataset_dict.json' split of the data set DS", and a mistyped
+    DS/trian "the 'trian' split": only a folder there is a split."""
+    for path, message in [
+        (dataset_dir / "dataset_dict.json", "is a file: point --data at a data set folder"),
+        (dataset_dir / "trian", "holds no data set .*aynamics generate --num 12 --out"),
+    ]:
+        with pytest.raises(FileNotFoundError, match=f"--data = '{path}' {message}"):
+            load_splits(path, what="--data")
+
+
 def test_frame_windows_by_hand():
     pairs = frame_windows(10, 2)  # every window of >= 5 frame steps, the model's (0, 9) left out
     assert len(pairs) == 14 and (0, 9) not in pairs

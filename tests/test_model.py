@@ -500,6 +500,14 @@ def test_lora_scaling_and_trained_modules_that_cannot_work_are_named():
     apply_lora(build_tiny_model(), modules_to_save=["embed_tokens", "lm_head"])  # the tiny config's: fine
 
 
+def test_modules_to_save_names_that_peft_matches_are_taken():
+    """peft trains every module whose name ends with a modules_to_save entry ("head": lm_head); such a name was
+    refused as naming no module, though it trained lm_head before the check came."""
+    model = apply_lora(build_tiny_model(), rank=4, modules_to_save=["head"])
+    trained = {n for n, p in model.named_parameters() if p.requires_grad and "lora_" not in n}
+    assert trained and all("lm_head" in n for n in trained)
+
+
 @pytest.mark.parametrize(
     ("key", "value", "message"),
     [

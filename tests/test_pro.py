@@ -246,7 +246,7 @@ def test_online_pro_scores_logs_and_prefers_fixed_candidates(tmp_path, dataset_d
 def test_module_arguments_are_checked():
     for kw, match in [
         ({"mode": "both"}, "stage.mode = 'both'"),
-        ({"loss": "dpo"}, "stage.loss = 'dpo'"),
+        ({"loss": "dpo"}, "stage.module.loss = 'dpo'"),
         ({"num_samples": 1}, "num_samples = 1"),
         ({"reward_metric": "ssim"}, "'ssim'"),
         ({"lr": float("nan")}, "lr = nan"),

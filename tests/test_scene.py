@@ -660,6 +660,16 @@ def test_a_first_item_after_other_text_on_its_line_is_kept():
     assert S.parse("Each entry starts with - type: and a shape.\n\nThe scene:\n" + OK_BOX + CAMERA) == whole
 
 
+def test_a_control_character_before_an_inline_items_keys_is_refused_not_the_item_dropped():
+    """'Scene: - type: box' whose next line opens with a form feed (or another character YAML refuses) before its
+    indented keys: the item was cut as prose and the rest parsed, one object fewer without a word (before the
+    lines broke only where YAML breaks them, the form feed was read as a line break and both objects kept)."""
+    for char in ("\x0c", "\x0b", "\x1c"):
+        text = "Scene: " + OK_BOX.replace("\n", "\n" + char, 1) + OK_BOX.replace("name: b", "name: c") + CAMERA
+        with pytest.raises(S.SceneError, match=rf"unacceptable character #x{ord(char):04x}: .*\(line 2, column 1\)"):
+            S.parse(text)
+
+
 def test_yaml_errors_after_a_leading_comment_name_the_lines_of_the_file(tmp_path):
     """A scene file that opens with a comment (or blank lines) is parsed from its first item: its YAML errors still
     name the file's lines, not lines counted from that item (a control character on line 4 was 'line 2')."""

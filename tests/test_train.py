@@ -1420,6 +1420,19 @@ def test_resume_refuses_another_adapter_shape_before_loading_its_weights():
             lm.check_same_base(stored, dataclasses.replace(spec, **{key: value}))
 
 
+def test_resume_takes_the_same_adapter_modules_listed_in_another_order():
+    """model.modules_to_save=[lm_head,embed_tokens] (or the LoRA targets reordered) on resuming a run of the default
+    [embed_tokens, lm_head] builds the same trainable weights in the same order: it was refused as another model."""
+    import dataclasses
+
+    spec = lm.ModelSpec(kind="tiny", modules_to_save=["embed_tokens", "lm_head"])
+    stored = dataclasses.asdict(spec)
+    lm.check_same_base(stored, dataclasses.replace(spec, modules_to_save=("lm_head", "embed_tokens")))
+    lm.check_same_base(stored, dataclasses.replace(spec, lora_targets=tuple(reversed(spec.lora_targets))))
+    with pytest.raises(ValueError, match=r"modules_to_save=\('embed_tokens', 'lm_head'\), but the run builds"):
+        lm.check_same_base(stored, dataclasses.replace(spec, modules_to_save=("lm_head",)))
+
+
 def test_validation_that_cannot_keep_to_its_steps_under_accumulation_is_named(tmp_path, dataset_dir, caplog):
     """5 training records at batch 1 with 2 batches per step: each epoch's last step takes 1 batch, so validation
     'every 3 steps' (every 6 batches) fell at steps 3 and 7 of an 8-step run, not 3 and 6 (the checkpoints' steps):
