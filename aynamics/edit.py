@@ -433,7 +433,11 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
         EditError: the instruction is not understood (the message lists what is), or the edit makes the
             scene invalid (the message carries the validation problems).
     """
-    if not isinstance(instruction, str) or not instruction.strip():
+    if not isinstance(scene, Scene):  # YAML text failed on "'str' object has no attribute 'objects'"
+        raise TypeError(f"apply_instruction: scene is a {type(scene).__name__}, not a Scene (scene.parse reads YAML)")
+    if not isinstance(instruction, str):  # bytes were called an "empty instruction"
+        raise TypeError(f"apply_instruction: instruction is a {type(instruction).__name__}, not a str")
+    if not instruction.strip():
         raise EditError(f"empty instruction. {UNDERSTOOD}")
     clauses = _normalise(instruction)
     items = copy.deepcopy(to_items(scene))

@@ -178,11 +178,39 @@ def motion_flow(
     Returns:
         flow (T-1, H, W, 2) float32 pixels (dx right, dy down) and occluded (T-1, H, W) bool: 29 maps for 30 frames.
     """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"motion_flow: scene is a {type(scene).__name__}, not a Scene")
+    if not isinstance(cam, CameraMatrices):
+        raise TypeError(f"motion_flow: cam is a {type(cam).__name__}, not CameraMatrices (render(...).camera)")
     depth = np.asarray(depth)
     segmentation = np.asarray(segmentation)
+    if depth.ndim != 3 or not np.issubdtype(depth.dtype, np.number):
+        raise ValueError(f"depth: shape {depth.shape}, dtype {depth.dtype}: must be (T, H, W) numbers")
     n_frames = depth.shape[0]
     if segmentation.shape != depth.shape:
         raise ValueError(f"segmentation shape {segmentation.shape} != depth shape {depth.shape}")
+    n_obj = len(scene.objects)
+    seg_ok = np.issubdtype(segmentation.dtype, np.number) and segmentation.dtype != bool
+    if seg_ok and segmentation.size:
+        with np.errstate(invalid="ignore"):
+            bad = ~((segmentation == np.round(segmentation)) & (segmentation >= -1) & (segmentation < n_obj))
+        if bad.any():  # an id past the scene's objects was an IndexError inside; 0.5 was truncated to object 0
+            f, v, u = (int(k) for k in np.argwhere(bad)[0])
+            raise ValueError(
+                f"segmentation: value {segmentation[f, v, u]} at frame {f}, row {v}, column {u}: must be -1 "
+                f"(background) or an object index 0..{n_obj - 1} of the scene"
+            )
+    elif not seg_ok:
+        raise ValueError(f"segmentation: dtype {segmentation.dtype}: must hold object indices (-1 background)")
+    on_object = segmentation >= 0
+    with np.errstate(invalid="ignore"):
+        bad = on_object & ~(np.isfinite(depth) & (depth > 0))
+    if bad.any():  # NaN depth dropped the pixel (flow 0, not occluded); a negative depth gave a wrong flow
+        f, v, u = (int(k) for k in np.argwhere(bad)[0])
+        raise ValueError(
+            f"depth: {depth[f, v, u]} m at frame {f}, row {v}, column {u}, an object pixel: object depths must be "
+            "finite and > 0 (np.inf only where the segmentation is -1)"
+        )
     if depth.shape[1:] != (cam.height, cam.width):
         raise ValueError(f"depth maps are {depth.shape[1:]} (H, W) but the camera is {cam.height}×{cam.width}")
     if n_frames > len(rollout.t):

@@ -36,6 +36,7 @@ from scipy.optimize import linear_sum_assignment
 
 from aynamics.scene import Scene, SceneError, is_default_name, parse
 
+MAX_HISTOGRAM = 2**24  # cells of the joint id histogram (F × (Np + 1) × (No + 1)): 128 MB of counts
 POSITION_MAE_INVALID = 10.0  # m: state MAE given to a prediction that cannot be parsed (half the position range)
 VELOCITY_MAE_INVALID = 20.0  # m/s: likewise (the velocity range's bound)
 
@@ -82,6 +83,28 @@ def match_objects(
 # --------------------------------------------------------------------------------------------
 # Segmentation IoU
 # --------------------------------------------------------------------------------------------
+def _segmentation(name: str, seg) -> np.ndarray:
+    """`seg` as an int64 (F, H, W) array of ids -1 (background) or >= 0, F >= 1, else a ValueError naming it.
+
+    A (H, W) mask was read as H frames of one row each, float ids were truncated (0.7 counted as object 0) and
+    NaN failed inside NumPy; ids below -1 were silently background."""
+    a = np.asarray(seg)
+    if a.ndim != 3 or a.shape[0] < 1:
+        raise ValueError(f"{name}: shape {a.shape}: must be (frames, height, width) with at least one frame")
+    if a.dtype == bool or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
+        raise ValueError(f"{name}: dtype {a.dtype}: must hold integer object ids (-1 background)")
+    if np.issubdtype(a.dtype, np.floating):
+        bad = ~(np.isfinite(a) & (a == np.round(a)))
+        if bad.any():
+            f, v, u = (int(k) for k in np.argwhere(bad)[0])
+            raise ValueError(f"{name}: value {a[f, v, u]} at frame {f}, row {v}, column {u}: ids must be whole numbers")
+    a = a.astype(np.int64)
+    if a.size and a.min() < -1:
+        f, v, u = (int(k) for k in np.argwhere(a < -1)[0])
+        raise ValueError(f"{name}: id {a[f, v, u]} at frame {f}, row {v}, column {u}: must be -1 (background) or >= 0")
+    return a
+
+
 def overlap_counts(pred_seg: np.ndarray, obs_seg: np.ndarray, n_pred: int, n_obs: int) -> np.ndarray:
     """Joint histogram (F, Np + 1, No + 1) of predicted and observed ids per frame; index 0 is background (-1)."""
     pred_seg, obs_seg = np.asarray(pred_seg), np.asarray(obs_seg)
@@ -135,13 +158,18 @@ def segmentation_iou(
 
     Worked case: one object each, predicted mask 4 pixels, observed 4 pixels, 2 shared: IoU = 2 / 6 = 1/3.
     """
-    pred_seg, obs_seg = np.asarray(pred_seg), np.asarray(obs_seg)
+    pred_seg, obs_seg = _segmentation("pred_seg", pred_seg), _segmentation("obs_seg", obs_seg)
     n_pred = int(pred_seg.max(initial=-1)) + 1
     n_obs = int(obs_seg.max(initial=-1)) + 1
     if pred_names is not None:
         n_pred = max(n_pred, len(pred_names))
     if obs_names is not None:
         n_obs = max(n_obs, len(obs_names))
+    if pred_seg.shape[0] * (n_pred + 1) * (n_obs + 1) > MAX_HISTOGRAM:  # one id of 10**9 asked for 16 GB
+        raise ValueError(
+            f"object ids up to {n_pred - 1} (predicted) and {n_obs - 1} (observed) over {pred_seg.shape[0]} frames: "
+            f"the id histogram would have more than {MAX_HISTOGRAM} cells; number the objects 0, 1, 2, ..."
+        )
     per_frame = iou_from_counts(overlap_counts(pred_seg, obs_seg, n_pred, n_obs), pred_names, obs_names)
     return float(per_frame[0]), float(per_frame.mean())
 
@@ -152,9 +180,16 @@ def segmentation_iou(
 def epe_mask(pred_seg: np.ndarray, obs_seg: np.ndarray, obs_occluded: np.ndarray | None = None) -> np.ndarray:
     """(F, H, W) the pixels EPE averages over: per frame, the observed object pixels whose flow is not occluded;
     in a frame without any, the predicted object pixels (not occluded)."""
-    pred, obs = np.asarray(pred_seg) >= 0, np.asarray(obs_seg) >= 0
+    pred, obs = _segmentation("pred_seg", pred_seg) >= 0, _segmentation("obs_seg", obs_seg) >= 0
+    if pred.shape != obs.shape:  # a (1, H, W) prediction was broadcast over every frame
+        raise ValueError(f"segmentation shapes differ: predicted {pred.shape}, observed {obs.shape}")
     if obs_occluded is not None:
-        valid = ~np.asarray(obs_occluded, bool)
+        occ = np.asarray(obs_occluded)
+        if occ.shape != obs.shape:  # an (H, W) or (F, H, 1) mask was broadcast
+            raise ValueError(f"obs_occluded: shape {occ.shape}, expected the segmentations' {obs.shape}")
+        if occ.dtype != bool and not np.isin(occ, (0, 1)).all():  # 0.5 read as True: every pixel occluded
+            raise ValueError(f"obs_occluded: dtype {occ.dtype} with values other than 0 and 1: must be a bool mask")
+        valid = ~occ.astype(bool)
         pred, obs = pred & valid, obs & valid
     shows = obs.reshape(obs.shape[0], -1).any(1)[:, None, None]
     return np.where(shows, obs, pred)
@@ -171,12 +206,21 @@ def flow_epe_frames(
     mean error over `epe_mask`; nan for frames where it is empty."""
     pred_flow, obs_flow = np.asarray(pred_flow), np.asarray(obs_flow)
     mask = epe_mask(pred_seg, obs_seg, obs_occluded)
-    if pred_flow.shape != obs_flow.shape or pred_flow.shape[:-1] != mask.shape:
+    if pred_flow.shape != obs_flow.shape or pred_flow.shape != (*mask.shape, 2):
         raise ValueError(
-            f"flow shapes differ: predicted {pred_flow.shape}, observed {obs_flow.shape}, masks {mask.shape}"
+            f"flow shapes differ: predicted {pred_flow.shape}, observed {obs_flow.shape}, masks {mask.shape} "
+            "(flows are (frames, height, width, 2))"
         )
     f, *_ = np.nonzero(mask)
     d = pred_flow[mask].astype(np.float64) - obs_flow[mask]  # only the masked pixels: (M, 2)
+    for name, flow in (("pred_flow", pred_flow), ("obs_flow", obs_flow)):  # NaN dropped its frame: EPE 0
+        bad = mask & ~np.isfinite(flow).all(-1)
+        if bad.any():
+            k, v, u = (int(x) for x in np.argwhere(bad)[0])
+            raise ValueError(
+                f"{name}: {int(bad.sum())} NaN or infinite vectors on the pixels EPE averages over (the first "
+                f"{flow[k, v, u].tolist()} at frame {k}, row {v}, column {u})"
+            )
     err = np.bincount(f, weights=np.hypot(d[:, 0], d[:, 1]), minlength=mask.shape[0])
     n = np.bincount(f, minlength=mask.shape[0])
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -29,6 +29,7 @@ The search is coarse to fine (see `refine`):
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -251,6 +252,39 @@ def _space(scene: Scene, groups: Sequence[str], frozen: set[str]) -> ParamSpace:
         return param_space(scene, groups)
 
 
+def _check_arguments(**values) -> None:
+    """refine's numbers, as `aynamics refine` checks its options: a negative budget, seconds or sigma_scale, a NaN
+    flow_weight or a share of 5 ran a search that could not move (its result the start) or failed inside CMA-ES."""
+
+    def number(name: str) -> float:
+        v = values[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or math.isnan(v):
+            raise ValueError(f"refine: {name} = {v!r}: must be a number")
+        return float(v)
+
+    for name in ("budget", "seed"):
+        v = values[name]
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            raise ValueError(f"refine: {name} = {v!r}: must be a whole number")
+    if values["budget"] < 1:
+        raise ValueError(f"refine: budget = {values['budget']}: must be >= 1 simulation")
+    if values["seed"] < 0:  # NumPy's generators refuse it, some stages only (the track stage's seed + 1 passed at -1)
+        raise ValueError(f"refine: seed = {values['seed']}: must be >= 0")
+    if not number("seconds") > 0:  # inf: the budget alone
+        raise ValueError(f"refine: seconds = {values['seconds']}: must be > 0")
+    for name in ("track_share", "kinematic_share"):
+        if not 0 <= number(name) <= 1:
+            raise ValueError(f"refine: {name} = {values[name]}: must be in [0, 1]")
+    for name in ("track_sigma", "sigma_scale"):
+        if not 0 < number(name) < math.inf:
+            raise ValueError(f"refine: {name} = {values[name]}: must be a finite number > 0")
+    if not 0 <= number("flow_weight") < math.inf:
+        raise ValueError(f"refine: flow_weight = {values['flow_weight']}: must be a finite number >= 0")
+    number("track_below")
+    if values["stop_at"] is not None:
+        number("stop_at")
+
+
 def refine(
     initial: Scene | Sequence[Scene],
     observed,
@@ -292,16 +326,34 @@ def refine(
         fix_grounded: keep the height and vertical velocity of objects that start on the floor (`grounded_dims`).
 
     Raises:
-        ValueError: no initial scene, initial scenes of different structures, bad `params`, or a seed < 0.
+        ValueError: no initial scene, initial scenes of different structures, bad `params`, or a number out of
+            its range (a budget < 1, seconds <= 0, a seed < 0, a share outside [0, 1], a NaN, ...), naming it.
+        TypeError: `initial` holds something other than Scenes, or `observed` is not an Observation.
     """
-    from aynamics.scorer import score
+    from aynamics.scorer import Observation, score
 
     start_t = time.perf_counter()
     if isinstance(params, str):  # "position" or "position, mass": one string, not its characters
         params = params.replace(",", " ").split()
-    if seed < 0:  # NumPy's generators refuse it, some stages only (the track stage's seed + 1 passed at -1)
-        raise ValueError(f"refine: seed = {seed}: must be >= 0")
-    scenes = [initial] if isinstance(initial, Scene) else list(initial)
+    _check_arguments(
+        budget=budget,
+        seconds=seconds,
+        seed=seed,
+        track_below=track_below,
+        track_share=track_share,
+        kinematic_share=kinematic_share,
+        track_sigma=track_sigma,
+        sigma_scale=sigma_scale,
+        flow_weight=flow_weight,
+        stop_at=stop_at,
+    )
+    scenes = [initial] if isinstance(initial, Scene) else None if isinstance(initial, (str, bytes)) else list(initial)
+    for k, s in enumerate(scenes or [initial]):  # a YAML text failed on "'str' object has no attribute 'structure'"
+        if not isinstance(s, Scene):
+            where = "initial" if scenes is None else f"initial[{k}]"
+            raise TypeError(f"refine: {where} is a {type(s).__name__}, not a Scene (parse YAML with scene.parse)")
+    if not isinstance(observed, Observation):
+        raise TypeError(f"refine: observed is a {type(observed).__name__}, not an aynamics.scorer.Observation")
     if not scenes:
         raise ValueError("refine: no initial scene given")
     if len({s.structure for s in scenes}) > 1:

@@ -368,8 +368,10 @@ class Renderer:
     """
 
     def __init__(self, width: int = camlib.WIDTH, height: int = camlib.HEIGHT):
-        if not (1 <= width <= 4096 and 1 <= height <= 4096):
-            raise ValueError(f"image size {width}×{height}: width and height must be in [1, 4096]")
+        whole = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (width, height))
+        if not (whole and 1 <= width <= 4096 and 1 <= height <= 4096):  # 20.5 failed in MjrRect, True in MuJoCo
+            raise ValueError(f"image size {width!r}×{height!r}: width and height must be whole numbers in [1, 4096]")
+        width, height = int(width), int(height)
         self.width, self.height = width, height
         self._ctx = _gl_context(max(width, 64), max(height, 64))
         self._rect = mujoco.MjrRect(0, 0, width, height)
@@ -402,6 +404,19 @@ class Renderer:
         """Render the rollout's states (default `video_states`) from the scene's camera."""
         if self._ctx is None:
             raise RenderError("Renderer.render called after close()")
+        if not isinstance(scene, Scene):
+            raise TypeError(f"render: scene is a {type(scene).__name__}, not a Scene")
+        positions = getattr(rollout, "position", None)
+        shaped = isinstance(positions, np.ndarray) and positions.ndim == 3
+        if not shaped or positions.shape[1] != len(scene.objects):
+            # another scene's rollout: an IndexError with fewer objects, its first objects' poses with more
+            got = f"of {positions.shape[1]} object(s)" if shaped else f"a {type(rollout).__name__}"
+            raise ValueError(
+                f"render: rollout ({got}) is not a rollout of this scene (of {len(scene.objects)} object(s)): "
+                "pass simulate(scene)"
+            )
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"render: seed = {seed!r}: must be a whole number >= 0")
         if appearance is None:
             appearance = sample_appearance(seed, textures_dir, n_objects=max(1, len(scene.objects)), backdrop=backdrop)
         states = video_states(len(rollout.t)) if states is None else np.asarray(states, int)

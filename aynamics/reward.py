@@ -109,6 +109,14 @@ def _score_one(texts: Sequence[str], observation: Observation, nthread: int | No
     return out  # type: ignore[return-value]
 
 
+def _check_observations(observations: Sequence[Observation]) -> None:
+    if isinstance(observations, Observation) or not hasattr(observations, "__len__"):
+        raise TypeError(f"observations is a {type(observations).__name__}: must be a list of Observations")
+    for b, o in enumerate(observations):
+        if not isinstance(o, Observation):
+            raise TypeError(f"observations[{b}] is a {type(o).__name__}, not an Observation")
+
+
 def score_completions(
     completions: Sequence[Sequence[str]],
     observations: Sequence[Observation],
@@ -129,6 +137,10 @@ def score_completions(
         B lists of `Score`s in candidate order; invalid ones have `valid=False` and a reason starting with
         "parse:" (no YAML or an invalid scene) or "sim:" (the simulation failed or diverged).
     """
+    _check_observations(observations)
+    for b, c in enumerate(completions):  # a text here was scored as its characters, each an invalid candidate
+        if isinstance(c, (str, bytes)) or not hasattr(c, "__len__"):
+            raise TypeError(f"completions[{b}] is a {type(c).__name__}: must be a list of candidate texts")
     if len(completions) != len(observations):
         raise ValueError(f"{len(completions)} candidate lists for {len(observations)} observations: must match")
     if workers < 1:
@@ -151,6 +163,9 @@ def simulator_rewards(
 
     Predictions sharing one `Observation` object are scored in one batch.
     """
+    if isinstance(predictions, (str, bytes)) or not hasattr(predictions, "__len__"):
+        raise TypeError(f"predictions is a {type(predictions).__name__}: must be a list of texts")
+    _check_observations(observations)
     if len(predictions) != len(observations):
         raise ValueError(f"{len(predictions)} predictions for {len(observations)} observations: must match")
     groups: dict[int, list[int]] = {}

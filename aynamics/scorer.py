@@ -150,8 +150,21 @@ class Observation:
         frame (None: the default for `fps`; a generated data set's own: `dataset_store.dataset_substeps`).
 
         Raises:
-            ValueError: the scene's rollout is invalid (diverged), with the simulator's reason.
+            ValueError: the scene's rollout is invalid (diverged), with the simulator's reason; a size, frame
+                rate or frame list that is not whole numbers in range, naming it.
+            TypeError: `scene` is not a Scene.
         """
+        if not isinstance(scene, Scene):  # a YAML text failed on "'str' object has no attribute 'structure'"
+            raise TypeError(f"Observation.from_scene: scene is a {type(scene).__name__}, not a Scene")
+        for name, v, top in (("width", width, 4096), ("height", height, 4096), ("fps", fps, 1000)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= top:  # width 0: empty
+                raise ValueError(f"Observation.from_scene: {name} = {v!r}: must be a whole number in [1, {top}]")
+        if frames is not None:  # [1.7] was taken as frame 1, [[0, 3]] failed broadcasting in the ray cast
+            given = np.asarray(frames)
+            if given.ndim != 1 or not (
+                np.issubdtype(given.dtype, np.integer) or (given.dtype.kind == "f" and (given == np.round(given)).all())
+            ):
+                raise ValueError(f"Observation.from_scene: frames = {frames!r}: must be a list of whole frame indices")
         frames = sample_frames(VIDEO_FRAMES) if frames is None else np.asarray(frames, int)
         shell = cls(np.zeros((len(frames), height, width), np.int16), frames, width, height, fps=fps, substeps=substeps)
         out = cast_group([scene], scene.structure, frames, width, height, shell.config, nthread, with_next=True)
@@ -442,7 +455,21 @@ def score(candidates: Sequence[Scene | str], observed: Observation, *, nthread: 
     Never raises for a bad candidate: parse/validation errors and diverging simulations give an invalid Score
     with the reason. Candidates of one structure are simulated and ray-cast in one batch; if a batch fails as a
     whole, its candidates are retried one by one so a single broken candidate cannot spoil the others.
+
+    Raises:
+        TypeError: `candidates` is one scene or text rather than a list of them (a text was scored as its
+            characters, each an invalid candidate), or `observed` is not an `Observation`.
     """
+    if isinstance(candidates, (Scene, str, bytes)) or not hasattr(candidates, "__len__"):
+        raise TypeError(
+            f"score: candidates is a {type(candidates).__name__}: must be a list of scenes or texts "
+            "(one candidate: [candidate])"
+        )
+    if not isinstance(observed, Observation):
+        raise TypeError(
+            f"score: observed is a {type(observed).__name__}, not an Observation "
+            "(Observation.from_scene(scene) or Observation.from_dir(path))"
+        )
     out: list[Score | None] = [None] * len(candidates)
     scenes: dict[int, Scene] = {}
     for k, c in enumerate(candidates):

@@ -444,6 +444,8 @@ class SimConfig:
     substeps: int | None = None
 
     def __post_init__(self):
+        if isinstance(self.duration, bool) or not isinstance(self.duration, (int, float, np.integer, np.floating)):
+            raise ValueError(f"duration = {self.duration!r}: must be a number of seconds in (0, 60]")
         if not (0 < self.duration <= 60):
             raise ValueError(f"duration = {self.duration}: must be in (0, 60] s")
         object.__setattr__(self, "fps", _whole(self.fps, "fps"))
@@ -473,6 +475,11 @@ class SimConfig:
 
 def simulate(scene: Scene, config: SimConfig = SimConfig()) -> Rollout:
     """Simulate one scene."""
+    if not isinstance(scene, Scene):  # a list went on to "'list' object has no attribute 'structure'"
+        raise TypeError(
+            f"simulate: scene is a {type(scene).__name__}, not a Scene (parse YAML text with aynamics.scene.parse; "
+            "simulate_batch takes a list)"
+        )
     return simulate_batch([scene], config, nthread=1)[0]
 
 
@@ -491,7 +498,19 @@ def simulate_batch(scenes: list[Scene], config: SimConfig = SimConfig(), nthread
     """Simulate many scenes at once on MuJoCo's threaded Batch, one batch per structure.
 
     Results are in the order of `scenes` and bit-identical to `simulate` one by one.
+
+    Raises:
+        TypeError: `scenes` is not a list of `Scene`s, `config` not a `SimConfig`, `nthread` not a whole number.
     """
+    if isinstance(scenes, (Scene, str, bytes)) or not hasattr(scenes, "__len__"):
+        raise TypeError(f"simulate_batch: scenes is a {type(scenes).__name__}: must be a list of Scenes")
+    for k, s in enumerate(scenes):
+        if not isinstance(s, Scene):
+            raise TypeError(f"simulate_batch: scenes[{k}] is a {type(s).__name__}, not a Scene")
+    if not isinstance(config, SimConfig):
+        raise TypeError(f"config is a {type(config).__name__}, not a SimConfig (e.g. SimConfig(duration=2.0))")
+    if nthread is not None and (isinstance(nthread, bool) or not isinstance(nthread, (int, np.integer))):
+        raise TypeError(f"nthread = {nthread!r}: must be a whole number of threads (or None: the default)")
     out: list[Rollout | None] = [None] * len(scenes)
     groups: dict[tuple[str, ...], list[int]] = {}
     for k, s in enumerate(scenes):

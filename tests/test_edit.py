@@ -122,6 +122,15 @@ def test_refused(scene, instruction, message):
     assert dump(scene) == before
 
 
+def test_what_is_not_a_scene_or_an_instruction_text_is_named(scene):
+    """An instruction as bytes was refused as an "empty instruction"; the scene as YAML text failed with "'str'
+    object has no attribute 'objects'" from inside to_items."""
+    with pytest.raises(TypeError, match=r"apply_instruction: instruction is a bytes, not a str"):
+        apply_instruction(scene, b"reduce the x-velocity of box_0 by 80%")
+    with pytest.raises(TypeError, match=r"apply_instruction: scene is a str, not a Scene"):
+        apply_instruction(dump(scene), "reduce the x-velocity of box_0 by 80%")
+
+
 def test_unknown_instruction_lists_what_it_understands(scene):
     with pytest.raises(EditError) as err:
         apply_instruction(scene, "paint the box red")

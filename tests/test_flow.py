@@ -100,6 +100,37 @@ def test_static_scene_has_zero_flow():
     assert not obs.occluded.any()
 
 
+def test_motion_flow_refuses_ids_and_depths_it_cannot_map():
+    """Hand-made 2-frame maps of a 1-object scene, 4×4 pixels, the object on pixel (1, 1) at 3 m. A NaN depth there
+    gave flow 0, not occluded (the pixel dropped as background: a still object); a negative depth a flow from behind
+    the camera; id 1 (the scene has object 0 only) an IndexError from inside; a list as the scene or None as the
+    camera an AttributeError."""
+    scene = _floating_box(linear=(1.0, 0.0, 0.0))
+    rollout = sim.simulate(scene, sim.SimConfig(duration=0.1))
+    cam = camlib.matrices(scene.camera, 4, 4)
+    seg = np.full((2, 4, 4), -1, np.int16)
+    seg[:, 1, 1] = 0
+    depth = np.where(seg >= 0, 3.0, np.inf)
+    flow, occluded = flowlib.motion_flow(scene, rollout, depth, cam, seg)
+    assert flow.shape == (1, 4, 4, 2) and flow[0, 1, 1, 0] > 0  # moving right
+    for bad in (np.nan, -3.0, np.inf):
+        d = depth.copy()
+        d[0, 1, 1] = bad
+        with pytest.raises(ValueError, match=rf"depth: {bad} m at frame 0, row 1, column 1, an object pixel"):
+            flowlib.motion_flow(scene, rollout, d, cam, seg)
+    for bad in (1, -2):
+        s = seg.copy()
+        s[1, 2, 3] = bad
+        with pytest.raises(ValueError, match=rf"segmentation: value {bad} at frame 1, row 2, column 3: .* 0..0 "):
+            flowlib.motion_flow(scene, rollout, depth, cam, s)
+    with pytest.raises(ValueError, match=r"segmentation: value 0.5 at frame 0, row 1, column 1"):
+        flowlib.motion_flow(scene, rollout, depth, cam, np.where(seg >= 0, 0.5, -1.0))
+    with pytest.raises(TypeError, match=r"motion_flow: scene is a list, not a Scene"):
+        flowlib.motion_flow([scene], rollout, depth, cam, seg)
+    with pytest.raises(TypeError, match=r"motion_flow: cam is a NoneType, not CameraMatrices"):
+        flowlib.motion_flow(scene, rollout, depth, None, seg)
+
+
 def test_sample_frames():
     np.testing.assert_array_equal(flowlib.sample_frames(30), np.arange(0, 30, 3))
     assert len(flowlib.sample_frames(31)) == 10 and flowlib.sample_frames(31)[-1] == 27

@@ -95,6 +95,62 @@ def test_epe_over_the_observed_objects_else_the_predicted():
         metrics.flow_epe(pred, obs[:1], pred_seg, obs_seg)
 
 
+def test_malformed_segmentations_are_refused_not_scored():
+    """A (H, W) mask pair was scored as H one-row frames (this pair, IoU 1/3 as one frame: (0.0, 0.5)); float ids
+    were truncated (0.7 scored as object 0: 1/3), ids below -1 were background (IoU 0), and one id of 10**9 asked
+    NumPy for a 16 GB histogram. Each is now a ValueError naming the argument and the value."""
+    obs = _seg([[0, 0, 0, 0, -1, -1]])
+    pred = _seg([[-1, -1, 0, 0, 0, 0]])
+    assert metrics.segmentation_iou(pred, obs) == (1 / 3, 1 / 3)
+    with pytest.raises(ValueError, match=r"pred_seg: shape \(1, 6\): must be \(frames, height, width\)"):
+        metrics.segmentation_iou(pred[0], obs[0])
+    with pytest.raises(ValueError, match=r"obs_seg: shape \(0, 1, 6\): .* at least one frame"):
+        metrics.segmentation_iou(pred, obs[:0])
+    with pytest.raises(ValueError, match=r"pred_seg: value 0.7 at frame 0, row 0, column 2: ids must be whole"):
+        metrics.segmentation_iou(np.where(pred >= 0, 0.7, -1.0), obs)
+    with pytest.raises(ValueError, match=r"pred_seg: value nan at frame 0, row 0, column 2"):
+        metrics.segmentation_iou(np.where(pred >= 0, np.nan, -1.0), obs)
+    assert metrics.segmentation_iou(pred.astype(float), obs) == (1 / 3, 1 / 3)  # whole-valued floats are ids
+    with pytest.raises(ValueError, match=r"obs_seg: id -5 at frame 0, row 0, column 0: must be -1"):
+        metrics.segmentation_iou(pred, np.where(obs >= 0, -5, -1))
+    with pytest.raises(ValueError, match=r"pred_seg: dtype bool"):
+        metrics.segmentation_iou(pred >= 0, obs >= 0)
+    with pytest.raises(ValueError, match=r"object ids up to 1000000000 \(predicted\) and 0 \(observed\)"):
+        metrics.segmentation_iou(np.where(pred >= 0, 10**9, -1), obs)
+
+
+def test_epe_of_malformed_or_non_finite_flow_is_refused():
+    """The hand case above (EPE 1.25) with a NaN predicted vector on the off pixel scored (0.0, 0.0), a perfect EPE
+    (the frame dropped as empty); a (1, H, W) predicted segmentation and an (H, W) occlusion mask were broadcast
+    over the frames; flows with 3 components were scored on the first two."""
+    obs = np.zeros((2, 2, 3, 2))
+    pred = np.zeros((2, 2, 3, 2))
+    pred[0, 0, 0] = (3.0, 4.0)
+    seg = np.array([[[0, 0, -1], [0, 0, -1]]] * 2)
+    assert metrics.flow_epe(pred, obs, seg, seg) == (1.25, 0.625)
+    pred[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match=r"pred_flow: 1 NaN or infinite vectors .* at frame 0, row 0, column 0\)"):
+        metrics.flow_epe(pred, obs, seg, seg)
+    pred[0, 0, 0] = (3.0, 4.0)
+    pred[0, 1, 2] = np.inf  # on no object: never read
+    assert metrics.flow_epe(pred, obs, seg, seg) == (1.25, 0.625)
+    obs[1, 0, 1] = (np.inf, 0.0)
+    with pytest.raises(ValueError, match=r"obs_flow: 1 NaN or infinite vectors .* \(the first \[inf, 0.0\] at frame 1"):
+        metrics.flow_epe(pred, obs, seg, seg)
+    occ = np.zeros((2, 2, 3), bool)
+    occ[1, 0, 1] = True  # occluded there: not read
+    assert metrics.flow_epe(pred, obs, seg, seg, occ) == (1.25, 0.625)
+    obs[1, 0, 1] = 0.0
+    with pytest.raises(ValueError, match=r"segmentation shapes differ: predicted \(1, 2, 3\), observed \(2, 2, 3\)"):
+        metrics.flow_epe(pred, obs, seg[:1], seg)
+    with pytest.raises(ValueError, match=r"obs_occluded: shape \(2, 3\), expected the segmentations' \(2, 2, 3\)"):
+        metrics.flow_epe(pred, obs, seg, seg, occ[0])
+    with pytest.raises(ValueError, match=r"obs_occluded: dtype float64 with values other than 0 and 1"):
+        metrics.flow_epe(pred, obs, seg, seg, np.full((2, 2, 3), 0.5))
+    with pytest.raises(ValueError, match=r"flow shapes differ: predicted \(2, 2, 3, 3\)"):
+        metrics.flow_epe(np.zeros((2, 2, 3, 3)), np.zeros((2, 2, 3, 3)), seg, seg)
+
+
 def test_epe_mask_leaves_out_occluded_flow():
     pred = _seg([[0, -1, -1, 0]])
     obs = _seg([[-1, 0, -1, 0]])

@@ -738,6 +738,47 @@ def test_refine_takes_its_groups_as_one_string(truth):
         refine(truth, observed, params="position, spin", budget=4)
 
 
+@pytest.mark.parametrize(
+    ("kw", "message"),
+    [
+        ({"budget": -5}, r"budget = -5: must be >= 1 simulation"),
+        ({"budget": 1.5}, r"budget = 1.5: must be a whole number"),
+        ({"seconds": float("nan")}, r"seconds = nan: must be a number"),
+        ({"seconds": -1}, r"seconds = -1: must be > 0"),
+        ({"seed": None}, r"seed = None: must be a whole number"),
+        ({"sigma_scale": -1}, r"sigma_scale = -1: must be a finite number > 0"),
+        ({"track_sigma": 0}, r"track_sigma = 0: must be a finite number > 0"),
+        ({"flow_weight": float("nan")}, r"flow_weight = nan: must be a number"),
+        ({"flow_weight": -0.5}, r"flow_weight = -0.5: must be a finite number >= 0"),
+        ({"track_share": 5}, r"track_share = 5: must be in \[0, 1\]"),
+        ({"kinematic_share": -1}, r"kinematic_share = -1: must be in \[0, 1\]"),
+        ({"track_below": float("nan")}, r"track_below = nan: must be a number"),
+        ({"stop_at": float("nan")}, r"stop_at = nan: must be a number"),
+    ],
+)
+def test_refine_names_a_number_out_of_range(truth, kw, message):
+    """What `aynamics refine` refuses as options the function ran with: budget -5 scored the start and returned it
+    as refined, sigma_scale -1 or a NaN flow_weight spent 48 simulations moving nowhere, a share of 5 or -1
+    was used as given, sigma_scale NaN failed in CMA-ES's assert. Refused before any simulation."""
+    from aynamics.scorer import Observation
+
+    observed = Observation(np.full((1, 2, 2), -1, np.int16), np.array([0]), 2, 2)  # never simulated
+    with pytest.raises(ValueError, match=f"refine: {message}"):
+        refine(truth, observed, **kw)
+
+
+def test_refine_names_what_is_not_a_scene_or_an_observation(truth):
+    from aynamics.scorer import Observation
+
+    observed = Observation(np.full((1, 2, 2), -1, np.int16), np.array([0]), 2, 2)
+    with pytest.raises(TypeError, match=r"refine: initial is a str, not a Scene"):
+        refine(dump(truth), observed)
+    with pytest.raises(TypeError, match=r"refine: initial\[1\] is a str, not a Scene"):
+        refine([truth, dump(truth)], observed)
+    with pytest.raises(TypeError, match=r"refine: observed is a Scene, not an aynamics.scorer.Observation"):
+        refine(truth, truth)
+
+
 def test_cmaes_tells_a_candidate_without_a_value_as_worse_than_the_worst(truth, monkeypatch):
     """One generation with a recording stand-in for `cmaes.CMA`: 3 position dims -> population 4 + int(3 ln 3)
     = 4 + int(3.30) = 7, a budget of exactly 7. Values 1.0, -inf, 0.5, 0.25, 0.75, 0.5, 0.5: CMA minimises, so it is

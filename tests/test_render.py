@@ -50,6 +50,26 @@ def test_render_shapes_and_determinism(rollout):
 
 
 @needs_gl
+def test_render_refuses_another_scenes_rollout_and_sizes_that_are_not_whole(rollout):
+    """A rollout of the 3-object SCENE drawn for its first object alone was rendered (with that object's poses, no
+    error); the other way round an IndexError. A width of 20.5 failed in MuJoCo's MjrRect, True ran as 1 pixel
+    until MuJoCo refused it, seed -1 failed in NumPy."""
+    items = scenelib.to_items(SCENE)
+    one = scenelib.from_items([items[0], *(i for i in items if i["type"] == "camera")])
+    with pytest.raises(ValueError, match=r"rollout \(of 3 object\(s\)\) is not a rollout of this scene \(of 1"):
+        renderlib.render(one, rollout, width=8, height=8)
+    with pytest.raises(ValueError, match=r"render: rollout \(a NoneType\) is not a rollout of this scene"):
+        renderlib.render(SCENE, None, width=8, height=8)
+    for w in (20.5, True, "20"):
+        with pytest.raises(ValueError, match=r"width and height must be whole numbers in \[1, 4096\]"):
+            renderlib.render(SCENE, rollout, width=w, height=8)
+    with pytest.raises(ValueError, match=r"render: seed = -1: must be a whole number >= 0"):
+        renderlib.render(SCENE, rollout, width=8, height=8, seed=-1)
+    with pytest.raises(TypeError, match=r"render: scene is a list, not a Scene"):
+        renderlib.render([SCENE], rollout, width=8, height=8)
+
+
+@needs_gl
 def test_default_render_has_30_frames_and_29_flows(rollout):
     frames = renderlib.render(SCENE, rollout, width=64, height=48, rgb=False)
     assert frames.segmentation.shape == (30, 48, 64) and frames.states.tolist() == list(range(30))

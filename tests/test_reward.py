@@ -570,6 +570,23 @@ def test_unparsable_candidates_have_no_epe_without_observed_flow():
     assert (s.valid, s.epe_first, s.epe_full) == (False, EPE_INVALID, EPE_INVALID)
 
 
+def test_a_text_where_a_list_of_candidates_goes_is_refused():
+    """score_completions([text], [obs]) scored the text's characters as B x len(text) invalid candidates and
+    simulator_rewards(text, ...) one per character; an Observation or None in place of the list of observations
+    failed deep inside ("has no len()", "no attribute 'frames'")."""
+    seg = np.full((1, 4, 4), -1, np.int16)
+    obs = Observation(segmentation=seg, frames=np.array([0]), width=4, height=4)
+    with pytest.raises(TypeError, match=r"completions\[0\] is a str: must be a list of candidate texts"):
+        rw.score_completions(["- type: sphere"], [obs])
+    with pytest.raises(TypeError, match=r"predictions is a str: must be a list of texts"):
+        rw.simulator_rewards("ab", [obs, obs])
+    with pytest.raises(TypeError, match=r"observations is a Observation: must be a list of Observations"):
+        rw.simulator_rewards(["junk"], obs)
+    with pytest.raises(TypeError, match=r"observations\[0\] is a NoneType, not an Observation"):
+        rw.score_completions([["junk"]], [None])
+    assert rw.simulator_rewards(("junk",), (obs,)) == [0.0]
+
+
 def test_generated_videos_score_candidates_with_the_data_sets_own_substeps(tmp_path):
     """A data set generated with substeps=2 (recorded in generate.json) was scored by simulating candidates at the
     default round(240 / fps) = 8: its true scenes got IoU 0.59-0.99 against their own masks."""

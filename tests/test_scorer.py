@@ -51,6 +51,38 @@ def test_self_score_is_perfect(observed):
     assert t == s
 
 
+def test_one_candidate_or_a_scene_as_observed_is_refused(observed):
+    """A YAML text given where the list of candidates goes was scored as its characters (one invalid Score per
+    character, no error); a Scene where the Observation goes failed inside with "no attribute 'frames'"."""
+    text = scenelib.dump(SCENE)
+    with pytest.raises(TypeError, match=r"score: candidates is a str: must be a list of scenes or texts"):
+        scorer.score(text, observed)
+    with pytest.raises(TypeError, match=r"score: candidates is a Scene: must be a list"):
+        scorer.score(SCENE, observed)
+    with pytest.raises(TypeError, match=r"score: observed is a Scene, not an Observation"):
+        scorer.score([SCENE], SCENE)
+    assert scorer.score((text,), observed)[0].iou_full == 1.0 and scorer.score([], observed) == []
+
+
+def test_observation_from_scene_names_a_bad_size_rate_or_frame_list():
+    """width 0 gave an observation with no pixels (scoring against it: a ZeroDivisionError), -5 NumPy's "negative
+    dimensions", fps 0 a ZeroDivisionError, frames [1.7] was frame 1 and [[0, 3]]
+    a broadcasting error inside the ray cast; a YAML text "no attribute 'structure'"."""
+    for kw, message in [
+        ({"width": 0}, r"width = 0: must be a whole number in \[1, 4096\]"),
+        ({"height": -5}, r"height = -5: must be a whole number in \[1, 4096\]"),
+        ({"width": 1.5}, r"width = 1.5: must be a whole number"),
+        ({"fps": 0}, r"fps = 0: must be a whole number in \[1, 1000\]"),
+        ({"frames": [1.7]}, r"frames = \[1.7\]: must be a list of whole frame indices"),
+        ({"frames": [[0, 3]]}, r"frames = \[\[0, 3\]\]: must be a list of whole frame indices"),
+    ]:
+        with pytest.raises(ValueError, match=f"Observation.from_scene: {message}"):
+            scorer.Observation.from_scene(SCENE, **kw)
+    with pytest.raises(TypeError, match=r"Observation.from_scene: scene is a str, not a Scene"):
+        scorer.Observation.from_scene(scenelib.dump(SCENE))
+    assert scorer.Observation.from_scene(SCENE, width=6, height=4, frames=[3.0]).frames.tolist() == [3]
+
+
 def test_a_batch_that_fails_is_scored_one_by_one(observed, monkeypatch):
     """When simulating a structure group raises (a MuJoCo error on one candidate), each candidate is scored alone:
     the good ones get their solo scores, the broken one is invalid naming the error."""

@@ -510,6 +510,28 @@ def test_invalid_timing_is_refused():
             sim.SimConfig(**bad)
 
 
+def test_simulate_refuses_what_is_not_a_scene_or_a_config():
+    """A list, YAML text or a dict in place of a Scene or SimConfig is named with its argument (it was
+    "'list' object has no attribute 'structure'" from inside simulate_batch, or a bare comparison TypeError)."""
+    s = scene([sphere()])
+    with pytest.raises(TypeError, match=r"simulate: scene is a list, not a Scene"):
+        sim.simulate([s])
+    with pytest.raises(TypeError, match=r"simulate: scene is a str, not a Scene"):
+        sim.simulate(S.dump(s))
+    with pytest.raises(TypeError, match=r"simulate_batch: scenes is a Scene: must be a list of Scenes"):
+        sim.simulate_batch(s)
+    with pytest.raises(TypeError, match=r"simulate_batch: scenes\[1\] is a str, not a Scene"):
+        sim.simulate_batch([s, S.dump(s)])
+    with pytest.raises(TypeError, match=r"config is a dict, not a SimConfig"):
+        sim.simulate(s, {"duration": 1.0})
+    with pytest.raises(TypeError, match=r"nthread = '2': must be a whole number"):
+        sim.simulate_batch([s], nthread="2")
+    for bad in ("1", np.array([1.0]), None):
+        with pytest.raises(ValueError, match=r"duration = .*: must be a number of seconds in \(0, 60\]"):
+            sim.SimConfig(duration=bad)
+    assert sim.simulate_batch([]) == []
+
+
 def test_the_physics_step_stays_near_1_240_s_at_any_frame_rate():
     """Steps per frame follow the frame rate: a 15 fps video is the 30 fps rollout's every other frame, bit for
     bit (with 8 steps per frame at 15 fps it was simulated at 1/120 s: other bounces, a true scene scored 0.56)."""
