@@ -27,7 +27,7 @@ import numpy as np
 
 from aynamics import scene as scenelib
 from aynamics.effects import CANDIDATES, GRIDS, NAMES, STEP_HZ, physics_rate, scene_with, simulate_many
-from aynamics.fit import FitResult, fit, flat, track_errors
+from aynamics.fit import FitResult, check_candidates, fit, flat, track_errors
 from aynamics.measured import Measured, MeasuredError, Track, check_units, split
 from aynamics.residuals import sparse_terms
 
@@ -123,6 +123,13 @@ def check_objects(measured: Measured, scene: scenelib.Scene) -> scenelib.Scene:
 
 def bootstrap(before: np.ndarray, after: np.ndarray, seed: int = 0) -> tuple[tuple, tuple]:
     """95 % intervals of RMS(before) - RMS(after) and RMS(after) / RMS(before), resampling whole tracks."""
+    before, after = np.asarray(before, float), np.asarray(after, float)
+    if before.ndim != 1 or before.shape != after.shape or not len(before) or not np.isfinite([before, after]).all():
+        # unequal lengths failed on an IndexError; none, or a NaN, gave a NaN interval
+        raise ValueError(
+            f"bootstrap: before {before.shape}, after {after.shape}: need two equal, non-empty 1-D "
+            "arrays of finite per-track errors"
+        )
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(before), (BOOTSTRAP, len(before)))
     b = np.sqrt(np.mean(before[idx] ** 2, axis=1))
@@ -260,6 +267,15 @@ def audit(
     `held_out` fixes the held-out trajectories (the rest is split into fit / validation by `seed`); `step_hz`
     is the physics rate of every simulation (see `aynamics.effects.physics_rate`).
     """
+    if not isinstance(measured, Measured):  # a path failed on "'str' object has no attribute 'objects'"
+        raise TypeError(
+            f"audit: measured is a {type(measured).__name__}, not Measured (measured.read_csv reads a file)"
+        )
+    scenelib.require_scene(scene, "audit: scene")
+    candidates = tuple(check_candidates(candidates, "audit: candidates"))
+    for name, value in (("max_causes", max_causes), ("step_hz", step_hz), ("seed", seed)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+            raise ValueError(f"audit: {name} = {value!r}: must be a whole number >= 0")
     with physics_rate(step_hz):
         result = _audit(measured, scene, seed, max_causes, candidates, log, held_out)
     result.step_hz = step_hz

@@ -35,7 +35,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from aynamics.scene import Scene, SceneError, from_items, to_items
+from aynamics.scene import Scene, SceneError, from_items, require_scene, to_items
 
 # --------------------------------------------------------------------------------------------
 # Vocabulary
@@ -433,8 +433,7 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
         EditError: the instruction is not understood (the message lists what is), or the edit makes the
             scene invalid (the message carries the validation problems).
     """
-    if not isinstance(scene, Scene):  # YAML text failed on "'str' object has no attribute 'objects'"
-        raise TypeError(f"apply_instruction: scene is a {type(scene).__name__}, not a Scene (scene.parse reads YAML)")
+    require_scene(scene, "apply_instruction: scene")  # YAML text failed on "'str' ... has no attribute 'objects'"
     if not isinstance(instruction, str):  # bytes were called an "empty instruction"
         raise TypeError(f"apply_instruction: instruction is a {type(instruction).__name__}, not a str")
     if not instruction.strip():
@@ -486,6 +485,10 @@ def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
     Raises:
         EditError: the scenes differ in their objects (count, names or shapes).
     """
+    require_scene(before, "diff: before")  # YAML text failed on "'str' object has no attribute 'names'"
+    require_scene(after, "diff: after")
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0 <= tol < math.inf:  # NaN: tol ignored
+        raise ValueError(f"diff: tol = {tol!r}: must be a finite number >= 0")
     if before.names != after.names or before.structure != after.structure:
         raise EditError(
             f"the edit changed the objects: {list(zip(before.names, before.structure, strict=False))} -> "
@@ -525,6 +528,7 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     every object. A component named ('x-velocity') restricts a vector to that element. Moves name positions,
     'stop' names both velocities.
     """
+    require_scene(scene, "named_fields: scene")
     text = " ".join(instruction.lower().split())
     lower = {n.lower(): n for n in scene.names}
     objs = [n for low, n in lower.items() if re.search(rf"(?<![\w]){re.escape(low)}(?![\w])", text)]

@@ -92,11 +92,34 @@ def lag1(res: list[np.ndarray]) -> float:
     return num / den if den > 0 else 0.0
 
 
+def check_candidates(names, where: str) -> list[str]:
+    """`names` as a list of known candidate causes (`effects.CANDIDATES`), else an error naming `where`: an unknown
+    one failed on a bare KeyError, and a str was read as its letters (KeyError: 'w')."""
+    if isinstance(names, (str, bytes)) or not hasattr(names, "__iter__"):
+        raise TypeError(f"{where} is a {type(names).__name__} {names!r:.60}: must be a list of candidate names")
+    names = list(names)
+    unknown = [n for n in names if n not in CANDIDATES]
+    if unknown:
+        raise ValueError(f"{where}: unknown candidate(s) {unknown}; known: {list(CANDIDATES)}")
+    return names
+
+
 def fit(
     scene: Scene, tracks: list[Track], start: dict[str, float], active: list[str], max_evals: int = MAX_EVALS
 ) -> FitResult:
-    """Fit μ plus the parameters of every active candidate (others held at `start`) by bounded least squares."""
-    names, lo, hi, x0, scale = ["mu"], [MU_BOUNDS[0]], [MU_BOUNDS[1]], [start["mu"]], [MU_SCALE]
+    """Fit μ plus the parameters of every active candidate (others held at `start`) by bounded least squares.
+
+    Every start is clipped into its bounds: a scene's μ of 0 or 1.8 (valid scene values, outside `MU_BOUNDS`)
+    failed inside scipy ("Initial guess is outside of provided bounds")."""
+    active = check_candidates(active, "fit: active")
+    mu = start.get("mu") if isinstance(start, dict) else None
+    if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not math.isfinite(mu):  # KeyError; NaN in scipy
+        raise ValueError(f"fit: start['mu'] = {mu!r}: start must be a dict with a finite friction 'mu'")
+    if isinstance(tracks, (str, bytes)) or not hasattr(tracks, "__len__") or not len(tracks):  # IndexError
+        raise ValueError(f"fit: tracks = {tracks!r:.80}: must be a non-empty list of measured Tracks")
+    if isinstance(max_evals, bool) or not isinstance(max_evals, int) or max_evals < 1:
+        raise ValueError(f"fit: max_evals = {max_evals!r}: must be a whole number >= 1")
+    names, lo, hi, x0, scale = ["mu"], [MU_BOUNDS[0]], [MU_BOUNDS[1]], [float(np.clip(mu, *MU_BOUNDS))], [MU_SCALE]
     for a in active:
         c = CANDIDATES[a]
         for p, a_lo, a_hi, s0, sc in zip(c.params, c.lo, c.hi, c.start, c.scale, strict=True):
@@ -175,6 +198,11 @@ def clustered_cov(jac: np.ndarray, r: np.ndarray, sizes: list[int]) -> np.ndarra
     may be correlated in any way (the curvature errors assume lag-1 at most and came out ~80 times too small on a
     hidden-effect case); trajectories are independent. NaN for fewer than 2 trajectories."""
     k, g = jac.shape[1], len(sizes)
+    if not len(r) == jac.shape[0] == sum(sizes):  # a short `sizes` left residuals out of every cluster, silently
+        raise ValueError(
+            f"clustered_cov: {jac.shape[0]} Jacobian rows, {len(r)} residuals, sizes summing to "
+            f"{sum(sizes)}: must all be equal"
+        )
     if g < 2:
         return np.full((k, k), np.nan)
     bounds = np.cumsum([0, *sizes])

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from aynamics.camera import CameraMatrices
-from aynamics.scene import Scene
+from aynamics.scene import Scene, require_scene
 from aynamics.simulate import quat_to_mat
 
 FRAME_STRIDE = 3  # the paper samples every third frame: 10 of 30
@@ -178,8 +178,7 @@ def motion_flow(
     Returns:
         flow (T-1, H, W, 2) float32 pixels (dx right, dy down) and occluded (T-1, H, W) bool: 29 maps for 30 frames.
     """
-    if not isinstance(scene, Scene):
-        raise TypeError(f"motion_flow: scene is a {type(scene).__name__}, not a Scene")
+    require_scene(scene, "motion_flow: scene")
     if not isinstance(cam, CameraMatrices):
         raise TypeError(f"motion_flow: cam is a {type(cam).__name__}, not CameraMatrices (render(...).camera)")
     depth = np.asarray(depth)

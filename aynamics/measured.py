@@ -18,6 +18,7 @@ import csv
 import gzip
 import io
 import math
+import os
 import zlib
 from dataclasses import dataclass
 
@@ -99,6 +100,11 @@ def read_csv(path: str) -> Measured:
         MeasuredError: missing or unreadable file, missing column, a row with more or fewer values than the
             header, non-numeric or non-finite value, duplicate timestamp.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"read_csv: path is a {type(path).__name__}: must be a file path (str or pathlib.Path)")
+    path = os.fspath(path)  # a pathlib.Path failed on "'PosixPath' object has no attribute 'endswith'"
+    if not isinstance(path, str):
+        raise TypeError(f"read_csv: path {path!r} is bytes: must be a str or pathlib.Path")
     try:
         with open(path, "rb") as f:
             raw = f.read()
@@ -115,6 +121,9 @@ def read_csv(path: str) -> Measured:
         # the cube tosses as published (../shared/data/cube_tosses/tosses.csv.gz): one object, "cube"
         header = ["trajectory" if h == "toss" else h for h in header] + ["object"]
         reader = (line + ["cube"] if line else line for line in reader)
+    twice = sorted({h for h in header if header.count(h) > 1 and h})
+    if twice:  # the last of two "z" columns was read, silently
+        raise MeasuredError(f"{path}: column(s) {twice} appear more than once in the header {header}")
     missing = [c for c in REQUIRED if c not in header]
     if missing:
         raise MeasuredError(f"{path}: missing column(s) {missing}; header is {header}; required: {list(REQUIRED)}")
@@ -189,6 +198,8 @@ def check_units(data: Measured, path: str = "the measured data") -> None:
         MeasuredError: a trajectory longer than `MAX_DURATION` s, a position beyond `MAX_EXTENT` m, or an initial
             velocity component beyond `MAX_SPEED` m/s, naming the trajectory, object and value.
     """
+    if not isinstance(data, Measured):  # a path failed on "'str' object has no attribute 'tracks'"
+        raise TypeError(f"check_units: data is a {type(data).__name__}, not Measured (read_csv reads a file)")
     for tid, tr in data.tracks.items():
         if tr.duration > MAX_DURATION:
             raise MeasuredError(
@@ -230,6 +241,21 @@ def cube_tosses_csv(src: str, dst: str, tosses: list[int] | None = None) -> int:
     return len(out) - 1
 
 
+def trajectory_ids(ids, where: str) -> list[str]:
+    """`ids` as a list of distinct str trajectory ids, else an error naming `where`: a str was taken as a list of
+    its characters ("10" held out trajectories 1 and 0) and a repeated id put one trajectory in two splits."""
+    if isinstance(ids, (str, bytes)) or not hasattr(ids, "__iter__"):
+        raise TypeError(f"{where} is a {type(ids).__name__} {ids!r:.60}: must be a list of trajectory ids")
+    ids = list(ids)
+    for k, i in enumerate(ids):
+        if not isinstance(i, str):
+            raise TypeError(f"{where}[{k}] = {i!r}: trajectory ids are str (as read_csv gives them)")
+    twice = sorted({i for i in ids if ids.count(i) > 1}) if len(set(ids)) != len(ids) else []
+    if twice:
+        raise MeasuredError(f"{where}: trajectory id(s) {twice[:5]} appear more than once")
+    return ids
+
+
 def split(
     ids: list[str], seed: int = 0, fractions: tuple[float, float] = (0.5, 0.25), held_out: list[str] | None = None
 ) -> tuple[list, list, list]:
@@ -238,7 +264,17 @@ def split(
     With `held_out` given, those ids are the held-out split and the rest is cut into fit and validation in the
     ratio of `fractions`.
     """
+    ids = trajectory_ids(ids, "split: ids")
+    fr = fractions
+    if (
+        isinstance(fr, (str, bytes))
+        or len(fr) != 2
+        or not all(isinstance(f, (int, float)) and not isinstance(f, bool) for f in fr)
+        or not (fr[0] > 0 and fr[1] > 0 and fr[0] + fr[1] < 1)
+    ):  # (2, 0.25) left the validation and held-out splits empty; (-1, 0.25) gave fit one trajectory
+        raise ValueError(f"split: fractions = {fr!r}: must be (fit, validation), each > 0, summing to less than 1")
     if held_out is not None:
+        held_out = trajectory_ids(held_out, "split: held_out")
         unknown = [h for h in held_out if h not in ids]
         if unknown:
             raise MeasuredError(f"held-out trajectories {unknown[:5]} are not in the data")
@@ -264,6 +300,9 @@ def split(
 def every_nth(ids: list[str], n: int) -> list[str]:
     """The ids whose index is a multiple of n: the integer id itself when every id is an integer, else the
     position in the file (e.g. cube tosses 0, 5, 10, ... for n = 5)."""
+    ids = trajectory_ids(ids, "every_nth: ids")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):  # 2.5 held out ['0'], "2" failed on '<'
+        raise TypeError(f"held-out every {n!r}: must be a whole number >= 2, not a {type(n).__name__}")
     if n < 2:
         raise MeasuredError(f"held-out every {n}: must be >= 2")
     try:

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from aynamics.scene import Scene, SceneError, is_default_name, parse
+from aynamics.scene import Scene, SceneError, is_default_name, parse, require_scene
 
 MAX_HISTOGRAM = 2**24  # cells of the joint id histogram (F × (Np + 1) × (No + 1)): 128 MB of counts
 POSITION_MAE_INVALID = 10.0  # m: state MAE given to a prediction that cannot be parsed (half the position range)
@@ -61,8 +61,11 @@ def match_objects(
     Returns:
         (i, j) pairs, sorted by i, each index at most once.
     """
-    score = np.asarray(score, float)
+    score = _score_matrix(score)
     n_pred, n_obs = score.shape
+    for side, names, n in (("pred_names", pred_names, n_pred), ("obs_names", obs_names, n_obs)):
+        if isinstance(names, (str, bytes)) or (names is not None and len(names) > n):  # names past the matrix
+            raise ValueError(f"match_objects: {side} = {names!r}: must be a list of at most {n} names (score's shape)")
     pairs: list[tuple[int, int]] = []
     free_p, free_o = list(range(n_pred)), list(range(n_obs))
     if pred_names is not None and obs_names is not None:
@@ -78,6 +81,21 @@ def match_objects(
         rows, cols = linear_sum_assignment(sub, maximize=True)
         pairs += [(free_p[r], free_o[c]) for r, c in zip(rows, cols, strict=True) if sub[r, c] != 0]
     return sorted(pairs)
+
+
+def _score_matrix(score) -> np.ndarray:
+    """`score` as a finite float (Np, No) array, else a ValueError naming it: a 1-D or 3-D one failed on "not
+    enough values to unpack", NaN or infinity inside scipy ("matrix contains invalid numeric entries")."""
+    try:
+        a = np.asarray(score, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"match_objects: score = {score!r:.80}: must be an (Np, No) array of numbers") from None
+    if a.ndim != 2:
+        raise ValueError(f"match_objects: score has shape {a.shape}: must be (predicted objects, observed objects)")
+    if not np.isfinite(a).all():
+        i, j = (int(k) for k in np.argwhere(~np.isfinite(a))[0])
+        raise ValueError(f"match_objects: score[{i}, {j}] = {a[i, j]}: scores must be finite")
+    return a
 
 
 # --------------------------------------------------------------------------------------------
@@ -262,6 +280,8 @@ def state_mae(pred: Scene, obs: Scene) -> tuple[float, float]:
     other three against it, not 0). Extra predicted objects are not scored here (pairing them too would let copies
     of a well-placed object lower the mean); the count and composition accuracies and the IoU see them.
     """
+    require_scene(pred, "state_mae: pred")
+    require_scene(obs, "state_mae: obs")
     p_pos = np.array([o.state.position for o in pred.objects])
     o_pos = np.array([o.state.position for o in obs.objects])
     if not len(p_pos) or not len(o_pos):
@@ -276,8 +296,22 @@ def state_mae(pred: Scene, obs: Scene) -> tuple[float, float]:
     return float(np.abs(p_pos[i] - o_pos[j]).mean()), float(np.abs(p_vel[i] - o_vel[j]).mean())
 
 
+def _check_pairs(where: str, predictions, targets) -> None:
+    """Predictions (texts or Scenes) and target Scenes of equal count, else a TypeError / ValueError naming them: a
+    YAML text passed as the list was scored as its characters (each an invalid prediction), targets given as text
+    scored every prediction invalid, and unequal lengths failed on zip's "argument 2 is shorter"."""
+    for name, seq in (("predictions", predictions), ("targets", targets)):
+        if isinstance(seq, (str, bytes)) or not hasattr(seq, "__len__"):
+            raise TypeError(f"{where}: {name} is a {type(seq).__name__}: must be a list")
+    if len(predictions) != len(targets):
+        raise ValueError(f"{where}: {len(predictions)} predictions for {len(targets)} targets: must match")
+    for k, t in enumerate(targets):
+        require_scene(t, f"{where}: targets[{k}]")
+
+
 def state_mae_batch(predictions: Sequence[Scene | str], targets: Sequence[Scene]) -> list[tuple[float, float]]:
     """`state_mae` for each (prediction, target); unparsable predictions get the invalid penalties."""
+    _check_pairs("state_mae_batch", predictions, targets)
     out = []
     for p, t in zip(predictions, targets, strict=True):
         try:
@@ -294,6 +328,7 @@ def composition_accuracy(
 
     An unparsable prediction scores 0 on both.
     """
+    _check_pairs("composition_accuracy", predictions, targets)
     count, shapes = [], []
     for p, t in zip(predictions, targets, strict=True):
         try:
@@ -309,5 +344,18 @@ def composition_accuracy(
 
 def mean_finite(values: Sequence[float]) -> float:
     """Mean of the finite values (nan when none): for averaging per-video metrics."""
-    v = [x for x in values if x is not None and math.isfinite(x)]
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__iter__"):
+        raise TypeError(f"mean_finite: values is a {type(values).__name__}: must be a list of numbers")
+    v = []
+    for k, x in enumerate(values):
+        if x is None:
+            continue
+        try:  # str, complex and arrays are refused here, not by math.isfinite's bare "must be real number"
+            if isinstance(x, (str, bytes)):
+                raise TypeError
+            f = float(x)
+        except (TypeError, ValueError):
+            raise TypeError(f"mean_finite: values[{k}] = {x!r:.80}: must be a number or None") from None
+        if math.isfinite(f):
+            v.append(f)
     return float(np.mean(v)) if v else float("nan")

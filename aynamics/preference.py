@@ -12,15 +12,37 @@ import torch
 
 
 def _check(seq_logps: torch.Tensor, rewards: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """The candidate mask (B, N) bool, once the shapes, the batch and the kept candidates' rewards are sound.
+
+    Raises:
+        ValueError: shapes that are not one (B, N), an empty batch (B = 0: its mean is NaN), a row without a
+            candidate, or a NaN / infinite reward on a kept candidate (softmax(s / τ) of one is NaN for every
+            candidate of its row; the ranking compared it with none), naming where.
+    """
     if seq_logps.ndim != 2 or seq_logps.shape != rewards.shape:
         raise ValueError(f"seq_logps {tuple(seq_logps.shape)} and rewards {tuple(rewards.shape)}: both must be (B, N)")
+    if rewards.shape[0] == 0:
+        raise ValueError(f"rewards {tuple(rewards.shape)}: an empty batch has no loss (B = 0)")
     if mask is None:
-        return torch.ones_like(rewards, dtype=torch.bool)
-    if mask.shape != rewards.shape:
+        keep = torch.ones_like(rewards, dtype=torch.bool)
+    elif mask.shape != rewards.shape:
         raise ValueError(f"mask {tuple(mask.shape)}: must match rewards {tuple(rewards.shape)}")
-    if not mask.any(dim=1).all():
+    else:
+        keep = mask.bool()
+    if not keep.any(dim=1).all():
         raise ValueError("mask: every row needs at least one candidate")
-    return mask.bool()
+    _check_finite(rewards, keep)
+    return keep
+
+
+def _check_finite(rewards: torch.Tensor, keep: torch.Tensor) -> None:
+    bad = ~torch.isfinite(rewards.detach()) & keep
+    if bad.any():
+        b, n = (int(i) for i in bad.nonzero()[0])
+        raise ValueError(
+            f"rewards[{b}, {n}] = {rewards[b, n].item()}: simulator scores must be finite numbers "
+            f"({int(bad.sum())} are not)"
+        )
 
 
 def soft_targets(rewards: torch.Tensor, temperature: float, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -29,16 +51,18 @@ def soft_targets(rewards: torch.Tensor, temperature: float, mask: torch.Tensor |
     τ → 0 gives the one-hot of the best candidate (ties share equally: τ = 0 is that limit exactly);
     τ → ∞ gives the uniform distribution over the candidates.
     """
-    if temperature < 0:
+    if not temperature >= 0:  # NaN too
         raise ValueError(f"temperature = {temperature}: must be >= 0")
     keep = _check(rewards, rewards, mask)
     s = rewards.detach().to(torch.float64)
+    # weights of integer (or bool) scores are fractions: cast back to those, they truncated to 0
+    dtype = rewards.dtype if rewards.is_floating_point() else torch.get_default_dtype()
     if temperature == 0:
         best = s.masked_fill(~keep, float("-inf")).amax(dim=1, keepdim=True)
         w = ((s == best) & keep).to(torch.float64)
-        return (w / w.sum(dim=1, keepdim=True)).to(rewards.dtype)
+        return (w / w.sum(dim=1, keepdim=True)).to(dtype)
     logits = (s / temperature).masked_fill(~keep, float("-inf"))
-    return torch.softmax(logits, dim=1).to(rewards.dtype)
+    return torch.softmax(logits, dim=1).to(dtype)
 
 
 def soft_preference_loss(
@@ -98,8 +122,22 @@ def sft_on_best(token_logps: torch.Tensor, token_mask: torch.Tensor, rewards: to
     Args:
         token_logps: (B, N, L) per-token log-probabilities of the responses.
         token_mask: (B, N, L) bool, True on response tokens.
-        rewards: (B, N) simulator scores.
+        rewards: (B, N) simulator scores (finite).
+
+    A best candidate without response tokens adds 0 (as `processor.mean_token_logprob`).
+
+    Raises:
+        ValueError: shapes that do not match (B, N, L) and (B, N), an empty batch, or a NaN / infinite reward (its
+            `argmax` is the NaN candidate).
     """
+    if token_logps.ndim != 3 or token_mask.shape != token_logps.shape or rewards.shape != token_logps.shape[:2]:
+        raise ValueError(
+            f"token_logps {tuple(token_logps.shape)}, token_mask {tuple(token_mask.shape)}, rewards "
+            f"{tuple(rewards.shape)}: must be (B, N, L), (B, N, L) and (B, N)"
+        )
+    if rewards.shape[0] == 0 or rewards.shape[1] == 0:
+        raise ValueError(f"rewards {tuple(rewards.shape)}: no candidate to imitate (B = 0 or N = 0)")
+    _check_finite(rewards, torch.ones_like(rewards, dtype=torch.bool))
     best = rewards.argmax(dim=1)  # (B,)
     idx = torch.arange(len(best))
     lp, m = token_logps[idx, best], token_mask[idx, best].to(token_logps.dtype)

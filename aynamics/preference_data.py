@@ -137,7 +137,11 @@ def build_preferences(
 
 def stored_clock(path: str | Path) -> dict | None:
     """{"fps", "clip_frames"} of the videos a stored preference data set was sampled from (the prompt's clock, which
-    sets a video's temporal positions), or None for one written without it."""
+    sets a video's temporal positions), or None for one written without it.
+
+    Raises:
+        ValueError: a clock of values no video has (hand-edited), naming summary.json.
+    """
     summary_path = Path(path) / "summary.json"
     try:
         clock = json.loads(summary_path.read_text()).get("clock")
@@ -145,7 +149,12 @@ def stored_clock(path: str | Path) -> dict | None:
         return None
     if not isinstance(clock, dict) or not {"fps", "clip_frames"} <= set(clock):
         return None
-    return {"fps": float(clock["fps"]), "clip_frames": tuple(int(k) for k in clock["clip_frames"])}
+    try:  # hand-edited: float('abc') or a number as clip_frames named no file
+        out = {"fps": float(clock["fps"]), "clip_frames": tuple(int(k) for k in clock["clip_frames"])}
+        lm.PromptSpec(**out)  # the values a prompt accepts (fps > 0, increasing frames)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{str(summary_path)!r}: clock {clock} is not the videos' clock ({e})") from None
+    return out
 
 
 def check_made_for(path: str | Path, prompt: Any, tokenizer) -> None:
@@ -156,7 +165,12 @@ def check_made_for(path: str | Path, prompt: Any, tokenizer) -> None:
         ValueError: naming the stored and the current values. Data sets without the record (older ones) pass.
     """
     summary_path = Path(path) / "summary.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    try:
+        summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    except ValueError as e:  # truncated or hand-edited: json's message names no file
+        raise ValueError(f"{str(summary_path)!r} cannot be read ({e}): it records what the preferences mean") from None
+    if not isinstance(summary, dict):
+        raise ValueError(f"{str(summary_path)!r} holds a {type(summary).__name__}, not the record of a preference set")
     mismatch = lm.prompt_mismatch(summary.get("prompt") or {}, prompt)
     if mismatch:
         was, now = mismatch
@@ -225,8 +239,22 @@ def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
         check_out(out)  # checked again: the folder may have appeared while sampling
     except ValueError as e:
         raise ValueError(f"{e}; the preferences are kept in {str(tmp)!r}") from None
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)
+    # the earlier set is moved aside, not deleted, until the new one is in place: deleting it first (seconds for a
+    # large set) left, if interrupted, half of it at `out` and the new set under a temporary name nobody was told
+    old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-", dir=out.parent))
+    old.rmdir()
+    try:
+        out.rename(old)
+    except FileNotFoundError:  # no earlier set
+        old = None
+    try:
+        tmp.rename(out)
+    except OSError as e:  # e.g. another writer's set appeared at `out` meanwhile
+        if old is not None and not out.exists():
+            old.rename(out)
+        raise OSError(f"{e}; the preferences are kept in {str(tmp)!r}") from None
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
     return out
 
 
@@ -249,12 +277,59 @@ def load_preferences(path: str | Path):
         ds = datasets.load_from_disk(str(root))
     except IndexError:  # `datasets` cannot load back a data set of 0 rows (no table to concatenate)
         raise empty from None
+    except (OSError, ValueError) as e:  # truncated .arrow or JSON files, a data file gone: arrow's words name none
+        raise ValueError(
+            f"preferences {str(root)!r} cannot be read ({type(e).__name__}: {e}): write them again with "
+            "`aynamics preferences`"
+        ) from None
     missing = [c for c in COLUMNS if c not in ds.column_names]
     if missing:
         raise ValueError(f"preferences {str(root)!r}: columns {missing} are missing (has {ds.column_names})")
     if len(ds) == 0:
         raise empty
+    _check_rows(ds, root)
     return ds
+
+
+def _check_rows(ds, root: Path) -> None:
+    """Refuse rows that training cannot read as one (B, N) batch of candidates (a hand-edited or foreign set): the
+    same N >= 2 completion ids and rewards in every row, each completion at least one token, finite rewards, frames.
+    Without this, NaN rewards were skipped as ties (no loss, silently) and uneven rows stopped the run mid-training
+    with torch's reshape error. Reads the columns' lengths and numbers only (no image is decoded)."""
+    import numpy as np
+    import pyarrow.compute as pc
+
+    table = ds.data.table if hasattr(ds.data, "table") else ds.data
+
+    def lengths(column) -> np.ndarray:  # a null list reads as -1
+        return pc.fill_null(pc.list_value_length(column), -1).to_numpy()
+
+    def any_per_row(bad_values: np.ndarray, counts: np.ndarray) -> np.ndarray:  # flattened values -> rows
+        out = np.zeros(len(counts), bool)
+        np.logical_or.at(out, np.repeat(np.arange(len(counts)), np.maximum(counts, 0)), bad_values)
+        return out
+
+    ids, rewards = table.column("completion_ids"), table.column("rewards")
+    n_ids, n_rewards = lengths(ids), lengths(rewards)
+    n = int(n_rewards[0])
+    finite = pc.fill_null(pc.is_finite(pc.list_flatten(rewards)), False).to_numpy(zero_copy_only=False)
+    checks = (
+        (
+            (n_rewards != n) | (n_ids != n_rewards) | (n_rewards < 2),
+            f"need as many completion_ids as rewards, the same N >= 2 in every row (row 0 has {n})",
+        ),
+        (any_per_row(~finite, n_rewards), "rewards must be finite numbers"),
+        (any_per_row(lengths(pc.list_flatten(ids)) < 1, n_ids), "every completion needs at least one token id"),
+        (lengths(table.column("frames")) < 1, "no frames"),
+    )
+    for bad, what in checks:
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            row = ds.select_columns(["key", "rewards", "completion_ids"])[i]
+            raise ValueError(
+                f"preferences {str(root)!r}: row {i} (key {row['key']!r}, rewards {row['rewards']}, "
+                f"{len(row['completion_ids'] or [])} completion_ids) and {int(bad.sum()) - 1} more: {what}"
+            )
 
 
 # --------------------------------------------------------------------------------------------

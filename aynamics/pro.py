@@ -297,6 +297,8 @@ class ProModule(lm.ExactResume, L.LightningModule):
         b, n = rewards.shape
         seq = (tok_lp.sum(-1) / mask.sum(-1).clamp(min=1)).view(b, n)
         r = rewards.to(seq.device, seq.dtype)
+        if not torch.isfinite(r).all():  # NaN fails `amax > amin`: the video was skipped as a tie, silently
+            raise ValueError(f"rewards {r.tolist()}: simulator scores must be finite numbers")
         # a video whose candidates all score the same (e.g. all invalid) says nothing about which is better
         keep = r.amax(1) > r.amin(1) if hp.skip_ties else torch.ones(b, dtype=torch.bool, device=seq.device)
         if not keep.any():

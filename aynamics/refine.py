@@ -50,7 +50,7 @@ from aynamics.refine_tracks import (
     track_objective,
     track_start,
 )
-from aynamics.scene import Scene
+from aynamics.scene import Scene, require_scene
 
 __all__ = [
     "DEFAULT_PARAMS",
@@ -349,9 +349,7 @@ def refine(
     )
     scenes = [initial] if isinstance(initial, Scene) else None if isinstance(initial, (str, bytes)) else list(initial)
     for k, s in enumerate(scenes or [initial]):  # a YAML text failed on "'str' object has no attribute 'structure'"
-        if not isinstance(s, Scene):
-            where = "initial" if scenes is None else f"initial[{k}]"
-            raise TypeError(f"refine: {where} is a {type(s).__name__}, not a Scene (parse YAML with scene.parse)")
+        require_scene(s, "refine: initial" if scenes is None else f"refine: initial[{k}]")
     if not isinstance(observed, Observation):
         raise TypeError(f"refine: observed is a {type(observed).__name__}, not an aynamics.scorer.Observation")
     if not scenes:

@@ -30,7 +30,7 @@ import numpy as np
 
 from aynamics import camera as camlib
 from aynamics import simulate as sim
-from aynamics.scene import MAX_OBJECTS, Scene
+from aynamics.scene import MAX_OBJECTS, Scene, require_scene
 from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image
 
 FLOOR_TEXTURE = 512  # pixels per side of the floor photograph texture
@@ -404,8 +404,7 @@ class Renderer:
         """Render the rollout's states (default `video_states`) from the scene's camera."""
         if self._ctx is None:
             raise RenderError("Renderer.render called after close()")
-        if not isinstance(scene, Scene):
-            raise TypeError(f"render: scene is a {type(scene).__name__}, not a Scene")
+        require_scene(scene, "render: scene")
         positions = getattr(rollout, "position", None)
         shaped = isinstance(positions, np.ndarray) and positions.ndim == 3
         if not shaped or positions.shape[1] != len(scene.objects):

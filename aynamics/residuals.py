@@ -22,6 +22,11 @@ LIBRARY = ("const_x", "const_y", "const_z", "v", "|v|v", "w×v", "z")
 
 def derivatives(t: np.ndarray, x: np.ndarray, window: int = WINDOW) -> tuple[np.ndarray, np.ndarray]:
     """Velocity and acceleration (T, 3) from local quadratic fits over `window` frames (irregular t)."""
+    t, x = np.asarray(t, float), np.asarray(x, float)
+    if t.ndim != 1 or x.shape != (len(t), 3):  # a 1-D x was broadcast into all three columns, a short one failed
+        raise ValueError(f"derivatives: t {t.shape}, x {x.shape}: need t (T,) and x (T, 3)")
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
+        raise ValueError(f"derivatives: window = {window!r}: must be an odd whole number >= 3 (a centred quadratic)")
     n, half = len(t), window // 2
     vel, acc = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
     for k in range(half, n - half):

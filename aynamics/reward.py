@@ -20,6 +20,7 @@ In a multi-GPU run every rank calls these on its own batch, so each rank samples
 from __future__ import annotations
 
 import math
+import numbers
 from collections import Counter
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -60,6 +61,10 @@ class RewardConfig:
             raise ValueError(f"reward metric = {self.metric!r}: must be one of {METRICS}")
         if self.span not in SPANS:
             raise ValueError(f"reward span = {self.span!r}: must be one of {SPANS}")
+        for name in ("mix_weight", "epe_scale"):  # "0.5" from a config failed on "'<=' not supported"
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise TypeError(f"reward {name} = {value!r}: must be a number, not a {type(value).__name__}")
         if not 0.0 <= self.mix_weight <= 1.0:
             raise ValueError(f"reward mix_weight = {self.mix_weight}: must be in [0, 1]")
         if not (self.epe_scale > 0 and math.isfinite(self.epe_scale)):
@@ -76,20 +81,36 @@ def reward_of(s: Score, config: RewardConfig = RewardConfig()) -> float:
     Raises:
         ValueError: an EPE reward asked of a score without flow (the observation has none).
     """
+    if not isinstance(s, Score):  # a str failed on "'str' object has no attribute 'valid'"
+        raise TypeError(f"reward_of: s is a {type(s).__name__}, not a Score")
+    if not isinstance(config, RewardConfig):
+        raise TypeError(f"reward_of: config is a {type(config).__name__}, not a RewardConfig")
     if not s.valid:
         return 0.0
     iou = s.iou_full if config.span == "full" else s.iou_first
+    if not 0.0 <= iou <= 1.0:  # NaN was returned as the reward
+        raise ValueError(f"reward_of: {'iou_' + config.span} = {iou!r}: an IoU must be in [0, 1]")
     if config.metric == "iou":
         return float(iou)
     epe = s.epe_full if config.span == "full" else s.epe_first
     if epe is None:
         raise ValueError(f"reward metric = {config.metric!r} needs flow, but the observed video has none")
+    if not epe >= 0:  # NaN was returned as the reward, -epe_scale divided by zero, below it a negative reward
+        raise ValueError(f"reward_of: {'epe_' + config.span} = {epe!r}: an end-point error must be >= 0 pixels")
     r_epe = 1.0 / (1.0 + float(epe) / config.epe_scale)
     return r_epe if config.metric == "epe" else config.mix_weight * float(iou) + (1 - config.mix_weight) * r_epe
 
 
 def rewards_of(scores: Sequence[Sequence[Score]], config: RewardConfig = RewardConfig()) -> torch.Tensor:
     """(B, N) float32 rewards of B videos x N candidates' scores."""
+    if isinstance(scores, (str, bytes, Score)) or not hasattr(scores, "__len__"):
+        raise TypeError(f"rewards_of: scores is a {type(scores).__name__}: must be B lists of N Scores")
+    for b, row in enumerate(scores):  # a flat list failed on "'Score' object is not iterable"
+        if isinstance(row, (str, bytes, Score)) or not hasattr(row, "__len__"):
+            hint = " (one video's scores: rewards_of([scores]))" if isinstance(row, Score) else ""
+            raise TypeError(f"rewards_of: scores[{b}] is a {type(row).__name__}: must be a list of Scores{hint}")
+        if len(row) != len(scores[0]):  # torch's "expected sequence of length 1 at dim 1 (got 0)"
+            raise ValueError(f"rewards_of: scores[{b}] has {len(row)} scores, scores[0] {len(scores[0])}: need N each")
     return torch.tensor([[reward_of(s, config) for s in row] for row in scores], dtype=torch.float32)
 
 

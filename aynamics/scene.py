@@ -928,6 +928,14 @@ def _emit(value: Any, indent: int, lines: list[str], key: str | None = None, dec
 _DEFAULT_NAME = re.compile(r"(box|sphere|cylinder)_\d+")
 
 
+def require_scene(value: Any, where: str) -> Scene:
+    """`value` if it is a Scene, else a TypeError naming `where` (e.g. "state_mae: pred") and what was passed: YAML
+    text or None failed deep inside on "'str' object has no attribute 'objects'"."""
+    if not isinstance(value, Scene):
+        raise TypeError(f"{where} is a {type(value).__name__}, not a Scene (scene.parse reads YAML text)")
+    return value
+
+
 def is_default_name(name: str) -> bool:
     """Whether `name` has the form `parse` gives an unnamed object (`{type}_{k}`): a label for the object's place
     in the list, which says nothing about which object it is (`metrics.match_objects` pairs such objects by

@@ -46,7 +46,7 @@ from aynamics import metrics
 from aynamics import simulate as sim
 from aynamics.flow import sample_frames
 from aynamics.raycast import Cast, SampleGrid, cast_group
-from aynamics.scene import Scene, SceneError, parse
+from aynamics.scene import Scene, SceneError, parse, require_scene
 from aynamics.video_io import image_files
 
 WIDTH, HEIGHT = 120, 80  # scorer resolution: a quarter of 480×320 per side
@@ -154,8 +154,7 @@ class Observation:
                 rate or frame list that is not whole numbers in range, naming it.
             TypeError: `scene` is not a Scene.
         """
-        if not isinstance(scene, Scene):  # a YAML text failed on "'str' object has no attribute 'structure'"
-            raise TypeError(f"Observation.from_scene: scene is a {type(scene).__name__}, not a Scene")
+        require_scene(scene, "Observation.from_scene: scene")  # a YAML text failed on "... no attribute 'structure'"
         for name, v, top in (("width", width, 4096), ("height", height, 4096), ("fps", fps, 1000)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= top:  # width 0: empty
                 raise ValueError(f"Observation.from_scene: {name} = {v!r}: must be a whole number in [1, {top}]")

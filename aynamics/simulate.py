@@ -41,7 +41,7 @@ import numpy as np
 from mujoco import batch as mjbatch
 
 from aynamics import camera as camlib
-from aynamics.scene import Box, Object, Scene, Sphere
+from aynamics.scene import Box, Object, Scene, Sphere, require_scene
 
 FPS = 30
 PHYSICS_HZ = 240  # physics steps per second of every rollout (contacts and restitution are tuned at 1/240 s)
@@ -475,11 +475,7 @@ class SimConfig:
 
 def simulate(scene: Scene, config: SimConfig = SimConfig()) -> Rollout:
     """Simulate one scene."""
-    if not isinstance(scene, Scene):  # a list went on to "'list' object has no attribute 'structure'"
-        raise TypeError(
-            f"simulate: scene is a {type(scene).__name__}, not a Scene (parse YAML text with aynamics.scene.parse; "
-            "simulate_batch takes a list)"
-        )
+    require_scene(scene, "simulate: scene")  # a list went on to "'list' object has no attribute 'structure'"
     return simulate_batch([scene], config, nthread=1)[0]
 
 
@@ -505,8 +501,7 @@ def simulate_batch(scenes: list[Scene], config: SimConfig = SimConfig(), nthread
     if isinstance(scenes, (Scene, str, bytes)) or not hasattr(scenes, "__len__"):
         raise TypeError(f"simulate_batch: scenes is a {type(scenes).__name__}: must be a list of Scenes")
     for k, s in enumerate(scenes):
-        if not isinstance(s, Scene):
-            raise TypeError(f"simulate_batch: scenes[{k}] is a {type(s).__name__}, not a Scene")
+        require_scene(s, f"simulate_batch: scenes[{k}]")
     if not isinstance(config, SimConfig):
         raise TypeError(f"config is a {type(config).__name__}, not a SimConfig (e.g. SimConfig(duration=2.0))")
     if nthread is not None and (isinstance(nthread, bool) or not isinstance(nthread, (int, np.integer))):

@@ -231,15 +231,17 @@ def video_from_folder(
         )
     n_video, full_h, full_w = obs.video_shape
     every = n_video if inputs == "rgb" else n_video - 1  # flow images: f -> f + 1 for every frame but the last
+    picked = [int(round(t * obs.fps + 1e-9)) for t in clip_times] if clip_times is not None else None
+    if picked is not None and max(picked) >= max(every, 1) and len(files) in (len(obs.frames), every):
+        # a video shorter than the clip; a still (1 frame: its one image is also "the sampled ones") was shown alone,
+        # the simulator scoring that one frame
+        raise ValueError(
+            f"{str(folder)!r}: {every} images at {obs.fps} fps (meta.json), but the clip the model was trained "
+            f"on needs the image at {max(clip_times):.3g} s (image {max(picked)}): give a longer video"
+        )
     if len(files) == len(obs.frames):
         chosen = files
-    elif len(files) == every and clip_times is not None:  # the adapter's clip, on the video's own clock
-        picked = [int(round(t * obs.fps + 1e-9)) for t in clip_times]
-        if max(picked) >= every:
-            raise ValueError(
-                f"{str(folder)!r}: {every} images at {obs.fps} fps (meta.json), but the clip the model was trained "
-                f"on needs the image at {max(clip_times):.3g} s (image {max(picked)}): give a longer video"
-            )
+    elif len(files) == every and picked is not None:  # the adapter's clip, on the video's own clock
         chosen = [files[k] for k in picked]
     elif len(files) == every:
         chosen = [files[int(k)] for k in obs.frames]
@@ -269,10 +271,24 @@ def _is_video_folder(path: Path) -> bool:
     return path.is_dir() and any((path / part).exists() for part in VIDEO_PARTS)
 
 
+def _holds_videos(path: Path) -> bool:
+    """A sub-folder of a collection that is no video but holds video folders (hidden ones aside)."""
+    if path.name.startswith(".") or not path.is_dir() or _is_video_folder(path):
+        return False
+    try:
+        return any(_is_video_folder(p) for p in path.iterdir())
+    except OSError:  # unreadable: not a video of the collection either way
+        return False
+
+
 def video_folders(path: str | Path) -> list[Path]:
     """One video folder, or every sub-folder (in name order) of a collection that holds one. A sub-folder is a
     video when it holds any part of one (frames/, flow/, segmentation), so one missing its images or masks is named
-    when it is read rather than passed over unseen."""
+    when it is read rather than passed over unseen; a sub-folder holding videos a level deeper is refused (named).
+
+    Raises:
+        FileNotFoundError: `path` is missing, or neither a video nor a collection of them.
+        ValueError: `path` is a file, or a sub-folder groups videos a level deeper."""
     root = Path(path)
     if not root.exists():
         raise FileNotFoundError(2, f"video folder {str(root)!r} does not exist", str(root))
@@ -281,6 +297,13 @@ def video_folders(path: str | Path) -> list[Path]:
     if _is_video_folder(root):
         return [root]
     subs = sorted(p for p in root.iterdir() if _is_video_folder(p))
+    # a sub-folder that is no video but holds videos (videos grouped a level deeper) was passed over unseen
+    nested = next((p for p in sorted(root.iterdir()) if _holds_videos(p)), None)
+    if nested is not None:
+        raise ValueError(
+            f"{str(nested)!r} holds video folders, a level below the collection {str(root)!r}: a collection's videos "
+            f"are its sub-folders (frames/ beside the segmentation); give {str(nested)!r} on its own or move them up"
+        )
     if not subs:
         raise FileNotFoundError(
             2, f"{str(root)!r} is no video folder (frames/ beside the segmentation), nor holds any", str(root)

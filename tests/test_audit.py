@@ -24,6 +24,7 @@ from aynamics.audit import audit, bootstrap  # noqa: E402
 from aynamics.cli import main  # noqa: E402
 from aynamics.effects import NAMES, V_REF, scene_with  # noqa: E402
 from aynamics.measured import (  # noqa: E402
+    Measured,
     MeasuredError,
     bounces,
     check_units,
@@ -33,6 +34,7 @@ from aynamics.measured import (  # noqa: E402
     read_csv,
     split,
 )
+from aynamics.residuals import derivatives  # noqa: E402
 
 CUBES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cube_tosses" / "tosses.csv.gz"
 
@@ -88,6 +90,37 @@ def test_csv_errors_name_row_column_and_value(tmp_path):
     # a byte-order mark (a CSV saved by a spreadsheet) is not part of the first column's name
     p.write_bytes("\ufefftrajectory,t,object,x,y,z\n".encode() + "\n".join(r for r in rows if ",b," not in r).encode())
     assert len(read_csv(str(p)).tracks) == 2
+
+
+def test_loader_and_split_arguments_of_the_wrong_kind_are_named(tmp_path):
+    """read_csv(pathlib.Path) failed on "'PosixPath' object has no attribute 'endswith'" and a header with two z
+    columns read the last one; check_units of a path on AttributeError; every_nth(ids, 2.5) held out ['0'] and
+    ("2") failed on '<'; a str of ids was split as its characters, a repeated id landed in two splits, and
+    fractions (2, 0.25) left validation and held-out empty. A Path reads as its str: 6 rows, 1 trajectory."""
+    p = tmp_path / "m.csv"
+    p.write_text("trajectory,t,object,x,y,z\n" + "".join(f"0,{k / 100},a,0,0,1\n" for k in range(6)))
+    assert read_csv(p).tracks["0"].t.tolist() == [0.0, 0.01, 0.02, 0.03, 0.04, 0.05]
+    with pytest.raises(TypeError, match=r"read_csv: path is a NoneType: must be a file path"):
+        read_csv(None)
+    p.write_text("trajectory,t,object,x,y,z,z\n" + "".join(f"0,{k / 100},a,0,0,1,5\n" for k in range(6)))
+    with pytest.raises(MeasuredError, match=r"column\(s\) \['z'\] appear more than once in the header"):
+        read_csv(p)
+    with pytest.raises(TypeError, match=r"check_units: data is a str, not Measured"):
+        check_units(str(p))
+    ids = ["0", "1", "2", "3"]
+    with pytest.raises(TypeError, match=r"held-out every 2.5: must be a whole number >= 2, not a float"):
+        every_nth(ids, 2.5)
+    with pytest.raises(TypeError, match=r"held-out every '2': must be a whole number"):
+        every_nth(ids, "2")
+    with pytest.raises(TypeError, match=r"every_nth: ids is a str '0123'"):
+        every_nth("0123", 2)
+    with pytest.raises(TypeError, match=r"split: held_out is a str '10'"):
+        split([str(k) for k in range(12)], held_out="10")
+    with pytest.raises(MeasuredError, match=r"split: ids: trajectory id\(s\) \['a'\] appear more than once"):
+        split(["a", "a", "b"])
+    with pytest.raises(ValueError, match=r"split: fractions = \(2, 0.25\): must be \(fit, validation\), each > 0"):
+        split(ids, fractions=(2, 0.25))
+    assert every_nth(ids, 2) == ["0", "2"]
 
 
 def test_split_is_by_whole_trajectory_and_initial_state_recovers_a_parabola(tmp_path):
@@ -790,3 +823,40 @@ def test_phase_errors_are_rms_distances_per_phase():
     got = phase_errors(scenelib.parse(BALL), tracks, [flying + (0.03, 0.04, 0.0), model_rest])
     assert got["flight"] == pytest.approx(0.05) and got["rest"] == pytest.approx(0.05)
     assert all(math.isnan(got[k]) for k in ("impact", "sliding", "rolling"))
+
+
+def test_audit_arguments_of_the_wrong_kind_are_named_before_any_simulation():
+    """audit(path, scene) failed on "'str' object has no attribute 'objects'", a YAML scene on 'names', candidates
+    "wind" on KeyError: 'w' and an unknown one on a bare KeyError; bootstrap of unequal lengths on an IndexError
+    and of no tracks or a NaN error gave a NaN interval; derivatives of a 1-D x broadcast it into all three
+    columns and window 0 fitted a quadratic to one point (velocity 0). A parabola x = t² has v = 2t, a = 2."""
+    data = Measured(("ball",), {})
+    one = scenelib.parse(
+        "- {type: sphere, name: ball, radius: 0.1, state: {position: [0, 0, 0.1]}}\n"
+        "- {type: camera, position: [0, -2, 1]}\n"
+    )
+    with pytest.raises(TypeError, match=r"audit: measured is a str, not Measured"):
+        audit("m.csv", one)
+    with pytest.raises(TypeError, match=r"audit: scene is a str, not a Scene"):
+        audit(data, scenelib.dump(one))
+    with pytest.raises(TypeError, match=r"audit: candidates is a str 'wind'"):
+        audit(data, one, candidates="wind")
+    with pytest.raises(ValueError, match=r"audit: candidates: unknown candidate\(s\) \['drag'\]"):
+        audit(data, one, candidates=("drag",))
+    with pytest.raises(ValueError, match=r"audit: max_causes = -1: must be a whole number >= 0"):
+        audit(data, one, max_causes=-1)
+    with pytest.raises(ValueError, match=r"bootstrap: before \(3,\), after \(2,\): need two equal, non-empty"):
+        bootstrap(np.ones(3), np.ones(2))
+    with pytest.raises(ValueError, match=r"bootstrap: before \(0,\), after \(0,\)"):
+        bootstrap(np.zeros(0), np.zeros(0))
+    with pytest.raises(ValueError, match=r"bootstrap: before \(2,\)"):
+        bootstrap(np.array([1.0, np.nan]), np.ones(2))
+    t = np.arange(10) * 0.1
+    with pytest.raises(ValueError, match=r"derivatives: t \(10,\), x \(10,\): need t \(T,\) and x \(T, 3\)"):
+        derivatives(t, t**2)
+    for window in (0, 4):
+        with pytest.raises(ValueError, match=rf"derivatives: window = {window}: must be an odd whole number >= 3"):
+            derivatives(t, np.repeat((t**2)[:, None], 3, 1), window)
+    vel, acc = derivatives(t, np.repeat((t**2)[:, None], 3, 1), 3)
+    np.testing.assert_allclose(vel[1:-1, 0], 2 * t[1:-1], atol=1e-9)
+    np.testing.assert_allclose(acc[1:-1], 2.0, atol=1e-9)

@@ -402,6 +402,20 @@ def test_diff_names_leaves(scene):
     assert [str(c) for c in diff(scene, edited)] == ["box_0.physics.mass: 1.0 -> 3.0"]
 
 
+def test_diff_and_named_fields_name_what_is_not_a_scene(scene):
+    """diff(YAML text, scene) failed on "'str' object has no attribute 'names'" and a NaN tol was ignored (every
+    float compared exactly); named_fields of a text scene on AttributeError too."""
+    with pytest.raises(TypeError, match=r"diff: before is a str, not a Scene"):
+        diff(dump(scene), scene)
+    with pytest.raises(TypeError, match=r"diff: after is a NoneType, not a Scene"):
+        diff(scene, None)
+    with pytest.raises(ValueError, match=r"diff: tol = nan: must be a finite number >= 0"):
+        diff(scene, scene, tol=math.nan)
+    with pytest.raises(TypeError, match=r"named_fields: scene is a str, not a Scene"):
+        named_fields("make it heavier", dump(scene))
+    assert diff(scene, scene, tol=0) == []
+
+
 def test_write_animation_gif_and_mp4_read_back(tmp_path):
     """Two tiles of a square moving right by 4 px per frame, side by side; odd sizes (15 × 21 per tile) make
     the MP4 pad to 16 × 42. Both files read back (the MP4 through PyAV, as `aynamics predict` reads a video)

@@ -117,3 +117,35 @@ def test_mahalanobis_by_hand():
     r = FitResult(values, ["wind", "restitution"], {}, 1.0, 10, 10.0, 4, 0, cov, names)
     assert r.mahalanobis("wind") == pytest.approx(2 / math.sqrt(3))
     assert r.mahalanobis("restitution") == pytest.approx(5.0)
+
+
+def test_fit_arguments_of_the_wrong_kind_are_named():
+    """No 'mu' in start failed on a bare KeyError, a NaN μ inside scipy, an unknown or str candidate on KeyError
+    ('w' for "wind"), no tracks on an IndexError and max_evals 0 in scipy; clustered_cov with sizes summing to 2
+    of 4 residuals left two out of every cluster, silently."""
+    with pytest.raises(ValueError, match=r"fit: start\['mu'\] = None: start must be a dict with a finite"):
+        fitlib.fit(None, [_track(0.5, [0.1] * 4)], {}, [])
+    with pytest.raises(ValueError, match=r"fit: start\['mu'\] = nan"):
+        fitlib.fit(None, [_track(0.5, [0.1] * 4)], {"mu": math.nan}, [])
+    with pytest.raises(ValueError, match=r"fit: active: unknown candidate\(s\) \['nope'\]; known: \['rolling"):
+        fitlib.fit(None, [_track(0.5, [0.1] * 4)], {"mu": 0.4}, ["nope"])
+    with pytest.raises(TypeError, match=r"fit: active is a str 'wind'"):
+        fitlib.fit(None, [_track(0.5, [0.1] * 4)], {"mu": 0.4}, "wind")
+    with pytest.raises(ValueError, match=r"fit: tracks = \[\]: must be a non-empty list"):
+        fitlib.fit(None, [], {"mu": 0.4}, [])
+    with pytest.raises(ValueError, match=r"fit: max_evals = 0: must be a whole number >= 1"):
+        fitlib.fit(None, [_track(0.5, [0.1] * 4)], {"mu": 0.4}, [], max_evals=0)
+    with pytest.raises(ValueError, match=r"clustered_cov: 4 Jacobian rows, 4 residuals, sizes summing to 2"):
+        fitlib.clustered_cov(np.ones((4, 1)), np.ones(4), [1, 1])
+    # two clusters of 2, J = 1: scores 2 and 2, B = 1/4: 1/4 · 8 · 1/4 · 2/1 = 1
+    assert fitlib.clustered_cov(np.ones((4, 1)), np.ones(4), [2, 2]) == pytest.approx(np.ones((1, 1)))
+
+
+@pytest.mark.parametrize("mu0", [0.0, 1.8])
+def test_fit_from_a_scene_mu_outside_its_bounds_starts_at_the_bound(monkeypatch, mu0):
+    """A scene's μ of 0 or 1.8 (valid scene values, outside MU_BOUNDS [0.02, 1.5]) made the audit's baseline fail
+    inside scipy ("Initial guess is outside of provided bounds"); clipped to the bound, the optimum 0.5 is found."""
+    _linear_model(monkeypatch)
+    tracks = [_track(0.5, [0.1, 0.1, -0.1, -0.1]), _track(0.5, [0.2, 0.2, -0.2, -0.2])]
+    res = fitlib.fit(None, tracks, {"mu": mu0}, [])
+    assert res.values["mu"] == pytest.approx(0.5, abs=1e-6)

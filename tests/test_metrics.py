@@ -350,3 +350,35 @@ def test_iou_pairs_objects_by_overlap_over_the_whole_sequence():
     pred = _seg([[1, 1, 0, 0]], [[0, 0, 1, 1]], [[0, 0, 1, 1]])
     first, full = metrics.segmentation_iou(pred, obs)
     assert first == 0.0 and full == pytest.approx(2 / 3)
+
+
+def test_metric_arguments_of_the_wrong_kind_are_named_not_failed_deep_inside():
+    """match_objects: a 1-D, 3-D or NaN score matrix failed on tuple unpacking or inside scipy, and names past
+    the matrix on list.remove; state_mae(str, str) on AttributeError; mismatched batches on zip's unnamed
+    "argument 2 is shorter"; a YAML text as the prediction list was scored as 3 invalid characters; mean_finite
+    of a str on a bare TypeError. A good call is unchanged: a (2, 2) score pairs (0, 1), (1, 0)."""
+    with pytest.raises(ValueError, match=r"score has shape \(2,\)"):
+        metrics.match_objects(None, None, np.array([0.5, 1.0]))
+    with pytest.raises(ValueError, match=r"score has shape \(1, 2, 2\)"):
+        metrics.match_objects(None, None, np.ones((1, 2, 2)))
+    with pytest.raises(ValueError, match=r"score\[1, 0\] = nan: scores must be finite"):
+        metrics.match_objects(None, None, np.array([[0.0, 1.0], [np.nan, 0.0]]))
+    with pytest.raises(ValueError, match=r"pred_names = \['x', 'y', 'a'\]: must be a list of at most 2 names"):
+        metrics.match_objects(["x", "y", "a"], ["a"], np.ones((2, 1)))
+    assert metrics.match_objects(None, None, np.array([[0.0, 0.9], [0.8, 0.0]])) == [(0, 1), (1, 0)]
+    obs = _scene("- {type: sphere, radius: 0.2, state: {position: [0, 0, 0.2]}}\n")
+    with pytest.raises(TypeError, match=r"state_mae: pred is a str, not a Scene"):
+        metrics.state_mae("- {type: sphere}", obs)
+    with pytest.raises(TypeError, match=r"state_mae: obs is a NoneType, not a Scene"):
+        metrics.state_mae(obs, None)
+    with pytest.raises(ValueError, match=r"state_mae_batch: 2 predictions for 1 targets"):
+        metrics.state_mae_batch([obs, obs], [obs])
+    with pytest.raises(TypeError, match=r"state_mae_batch: predictions is a str"):
+        metrics.state_mae_batch("abc", [obs, obs, obs])
+    with pytest.raises(TypeError, match=r"composition_accuracy: targets\[0\] is a str"):
+        metrics.composition_accuracy([obs], ["- {type: sphere}"])
+    with pytest.raises(TypeError, match=r"mean_finite: values is a str"):
+        metrics.mean_finite("abc")
+    with pytest.raises(TypeError, match=r"mean_finite: values\[1\] = '2.0': must be a number or None"):
+        metrics.mean_finite([1.0, "2.0"])
+    assert metrics.mean_finite(x for x in (1.0, None, 3.0)) == 2.0

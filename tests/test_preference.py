@@ -181,3 +181,50 @@ def test_pro_ranking_is_a_mean_over_rows():
     logps = torch.cat([LOGPS, torch.zeros(1, 3, dtype=torch.float64)])
     rewards = torch.tensor([[1.0, 0.5, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
     assert pro_ranking_loss(logps, rewards).item() == pytest.approx((LN(6) + LN(3)) / 2)
+
+
+def test_bad_rewards_batches_and_temperatures_are_refused_not_nan():
+    """A NaN or infinite reward on a kept candidate made the soft loss NaN (softmax of the row) and left the ranking
+    loss silently finite (NaN compares with nothing); an empty batch gave NaN (a mean of nothing); a NaN temperature
+    gave NaN; the SFT term took the NaN candidate as the best, read a (B', N) reward of another batch or a mask that
+    broadcast. Each is now a ValueError naming it; a masked candidate's score may still be anything."""
+    logps = torch.zeros(1, 3, requires_grad=True)
+    for bad in (float("nan"), float("inf"), float("-inf")):
+        rewards = torch.tensor([[bad, 0.5, 0.2]])
+        for loss in (lambda: soft_preference_loss(logps, rewards, 0.1), lambda: pro_ranking_loss(logps, rewards)):
+            with pytest.raises(ValueError, match=rf"rewards\[0, 0\] = {bad}: simulator scores must be finite"):
+                loss()
+        with pytest.raises(ValueError, match="must be finite"):
+            sft_on_best(torch.zeros(1, 3, 2), torch.ones(1, 3, 2, dtype=torch.bool), rewards)
+        masked = torch.tensor([[False, True, True]])
+        assert torch.isfinite(soft_preference_loss(logps, rewards, 0.1, masked))
+    empty = torch.zeros(0, 3)
+    for loss in (lambda: soft_preference_loss(empty, empty, 0.1), lambda: pro_ranking_loss(empty, empty)):
+        with pytest.raises(ValueError, match="empty batch"):
+            loss()
+    with pytest.raises(ValueError, match="every row needs at least one candidate"):  # N = 0: ranking gave 0
+        pro_ranking_loss(torch.zeros(2, 0), torch.zeros(2, 0))
+    with pytest.raises(ValueError, match="temperature = nan"):
+        soft_preference_loss(logps, torch.tensor([[1.0, 0.0, 0.0]]), float("nan"))
+    lp, m = torch.zeros(2, 3, 4), torch.ones(2, 3, 4, dtype=torch.bool)
+    for bad_lp, bad_m, bad_r in (
+        (lp, m, torch.rand(1, 3)),
+        (lp, m[..., :1], torch.rand(2, 3)),
+        (lp, m, torch.rand(2, 2)),
+    ):
+        with pytest.raises(ValueError, match=r"must be \(B, N, L\), \(B, N, L\) and \(B, N\)"):
+            sft_on_best(bad_lp, bad_m, bad_r)
+    with pytest.raises(ValueError, match="no candidate to imitate"):
+        sft_on_best(torch.zeros(0, 3, 4), torch.zeros(0, 3, 4, dtype=torch.bool), torch.zeros(0, 3))
+
+
+def test_integer_rewards_give_fractional_targets():
+    """Integer scores (e.g. 1 valid / 0 invalid): the weights were cast back to the rewards' integer dtype, every
+    fraction truncated to 0 and the loss 0 with no gradient."""
+    rewards = torch.tensor([[1, 0, 0]])
+    torch.testing.assert_close(soft_targets(rewards, 0.0), torch.tensor([[1.0, 0.0, 0.0]]))
+    torch.testing.assert_close(soft_targets(torch.tensor([[1, 1, 0]]), 0.0), torch.tensor([[0.5, 0.5, 0.0]]))
+    logps = LOGPS.clone().requires_grad_()
+    assert soft_preference_loss(logps, rewards, 1 / LN(3)).item() == pytest.approx(
+        soft_preference_loss(LOGPS, rewards.double(), 1 / LN(3)).item()
+    )

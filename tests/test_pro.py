@@ -971,3 +971,96 @@ def test_scoring_threads_follow_the_cores_this_job_may_use(monkeypatch):
     assert ProModule.score_threads(module) == 5
     monkeypatch.setattr(os, "sched_getaffinity", lambda _: {0, 1, 2}, raising=False)
     assert default_threads() == 3  # the scene evaluation's and the CLI's default
+
+
+def test_hand_edited_or_damaged_preference_sets_are_named_on_loading(tmp_path, dataset_dir):
+    """A stored set training cannot use is refused when it is loaded, naming the folder and the row: NaN rewards
+    were skipped as ties (no loss, no word) and uneven rows stopped training mid-run with torch's reshape error;
+    a truncated .arrow, state.json or summary.json raised arrow's or json's words, which name no file. A NaN
+    reward reaching `preference_loss` is refused too (skip_ties skipped it as a tie)."""
+    import datasets
+
+    from aynamics.preference_data import check_made_for
+
+    good = _handmade_preferences(dataset_dir, tmp_path / "good")
+    rows = datasets.load_from_disk(str(good)).to_list()
+    summary = (good / "summary.json").read_text()
+    edits = {
+        "rewards must be finite numbers": lambda r: r | {"rewards": [float("nan"), 0.0]},
+        r"as many completion_ids as rewards, the same N >= 2": lambda r: r | {"rewards": [0.9, 0.1, 0.0]},
+        r"the same N >= 2 in every row \(row 0 has 2\)": lambda r: r | {"completion_ids": r["completion_ids"][:1]},
+        "at least one token id": lambda r: r | {"completion_ids": [r["completion_ids"][0], []]},
+        "no frames": lambda r: r | {"frames": []},
+    }
+    for k, (named, edit) in enumerate(edits.items()):
+        out = write_preferences([rows[0], edit(dict(rows[1]))], json.loads(summary), tmp_path / f"e{k}")
+        with pytest.raises(ValueError, match=rf"preferences '{out}': row 1 \(key '1'.*{named}"):
+            load_preferences(out)
+    damaged = tmp_path / "damaged"
+    shutil.copytree(good, damaged)
+    (arrow,) = damaged.glob("data-*.arrow")
+    os.truncate(arrow, arrow.stat().st_size // 2)  # an interrupted copy
+    with pytest.raises(ValueError, match=f"preferences '{damaged}' cannot be read .*aynamics preferences"):
+        load_preferences(damaged)
+    for text, named in (('{"prompt": {"tar', "cannot be read"), ("[1]", "holds a list")):
+        (damaged / "summary.json").write_text(text)
+        with pytest.raises(ValueError, match=f"'{damaged / 'summary.json'}' {named}"):
+            check_made_for(damaged, PROMPT, None)
+    module = ProModule(SPEC, prompt=PROMPT, num_samples=4)
+    module.ensure_processor()
+    prompts, ids, rewards = _fixed_candidates(module, dataset_dir)
+    rewards[1, 2] = float("nan")
+    with pytest.raises(ValueError, match="simulator scores must be finite"):
+        module.preference_loss(prompts, ids, rewards)
+
+
+def test_a_hand_edited_clock_in_summary_json_is_named(tmp_path):
+    """summary.json's clock of values no video has: float('abc'), int('x') or iterating a number raised Python's
+    words, and fps 0 or frames out of order PromptSpec's, none naming the file."""
+    from aynamics.preference_data import stored_clock
+
+    for clock, why in (
+        ({"fps": "abc", "clip_frames": [0, 3]}, "could not convert"),
+        ({"fps": 30, "clip_frames": 5}, "not iterable"),
+        ({"fps": 0, "clip_frames": [0, 3]}, "fps = 0.0"),
+        ({"fps": 30, "clip_frames": [3, 0]}, "must be increasing"),
+    ):
+        (tmp_path / "summary.json").write_text(json.dumps({"clock": clock}))
+        with pytest.raises(
+            ValueError, match=rf"'{tmp_path / 'summary.json'}': clock .* is not the videos' clock .*{why}"
+        ):
+            stored_clock(tmp_path)
+    (tmp_path / "summary.json").write_text(json.dumps({"clock": {"fps": 15, "clip_frames": [0, 3]}}))
+    assert stored_clock(tmp_path) == {"fps": 15.0, "clip_frames": (0, 3)}
+
+
+def test_an_interrupted_rewrite_of_preferences_leaves_a_whole_set_at_out(tmp_path, dataset_dir, monkeypatch):
+    """Writing over an earlier set deleted it first, then renamed the new one in: interrupted while deleting (a large
+    set takes seconds), `out` held half of the old set (refused by a rerun as no preference set) and the new one
+    lay under a temporary name. Now `out` holds a whole set whenever it stops; a failed rename names where the
+    new set is and puts the earlier one back."""
+    from aynamics import preference_data
+
+    out = _handmade_preferences(dataset_dir, tmp_path / "prefs")
+    real_rmtree = shutil.rmtree
+
+    def interrupted(path, *args, **kwargs):  # one file gone, then Ctrl-C
+        next(Path(path).glob("*.arrow")).unlink()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(preference_data.shutil, "rmtree", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _handmade_preferences(dataset_dir, out)
+    monkeypatch.setattr(preference_data.shutil, "rmtree", real_rmtree)
+    assert len(load_preferences(out)) == 2
+    real_rename = Path.rename
+
+    def refused(self, target):
+        if ".tmp-" in self.name:
+            raise OSError(39, "Directory not empty")
+        return real_rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", refused)
+    with pytest.raises(OSError, match="the preferences are kept in '.*prefs.tmp-"):
+        _handmade_preferences(dataset_dir, out)
+    assert len(load_preferences(out)) == 2  # the earlier set, back in place

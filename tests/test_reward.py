@@ -323,6 +323,29 @@ def test_reward_config_bounds():
     assert rw.reward_of(s, rw.RewardConfig("mix", mix_weight=1.0)) == pytest.approx(0.6)
 
 
+def test_reward_arguments_of_the_wrong_kind_are_named_not_scored():
+    """rewards_of of one video's flat list failed on "'Score' object is not iterable" and ragged rows on torch's
+    "expected sequence of length 1"; a NaN IoU or EPE was returned as the reward, an EPE of -5 px (scale 5)
+    divided by zero; a config value "0.5" failed on "'<=' not supported". Nested: IoU 0.6 and 0.2 -> [[0.6, 0.2]]."""
+    good, other = Score(0.8, 0.6, 1.0, 5.0, True), Score(0.1, 0.2, 1.0, 5.0, True)
+    with pytest.raises(TypeError, match=r"scores\[0\] is a Score: must be a list of Scores \(one video's"):
+        rw.rewards_of([good, other])
+    with pytest.raises(ValueError, match=r"scores\[1\] has 1 scores, scores\[0\] 2"):
+        rw.rewards_of([[good, other], [good]])
+    with pytest.raises(TypeError, match=r"reward_of: s is a str, not a Score"):
+        rw.reward_of("iou_full: 0.6")
+    with pytest.raises(TypeError, match=r"reward_of: config is a str, not a RewardConfig"):
+        rw.reward_of(good, "epe")
+    with pytest.raises(ValueError, match=r"iou_full = nan: an IoU must be in \[0, 1\]"):
+        rw.reward_of(Score(0.5, math.nan, None, None, True))
+    for epe in (math.nan, -5.0):
+        with pytest.raises(ValueError, match=rf"epe_full = {epe}: an end-point error must be >= 0"):
+            rw.reward_of(Score(0.5, 0.5, 1.0, epe, True), rw.RewardConfig(metric="epe"))
+    with pytest.raises(TypeError, match=r"reward mix_weight = '0.5': must be a number, not a str"):
+        rw.RewardConfig(mix_weight="0.5")
+    assert rw.rewards_of([[good, other]])[0].tolist() == pytest.approx([0.6, 0.2])
+
+
 def test_evaluation_modes_hand_worked():
     """Video 0: samples IoU 0.2 / 0.8 (rewards pick the 2nd); video 1: 0.5 / 0.1 (rewards pick the 1st).
 
@@ -606,3 +629,43 @@ def test_generated_videos_score_candidates_with_the_data_sets_own_substeps(tmp_p
         assert obs.config.substeps == 2
         s = rw.score_completions([[rec["scene_yaml"]]], [obs])[0][0]
         assert s.iou_full > 0.98, (rec["index"], s)
+
+
+def test_a_collection_never_passes_over_videos_grouped_a_level_deeper(tmp_path):
+    """Videos in sub-groups of a collection (coll/a, coll/group/b): b was passed over unseen (only a read), and a
+    collection of groups only said it held no videos. The group is named; hidden folders and other folders pass."""
+
+    def video(root):
+        (root / "frames").mkdir(parents=True)
+        np.save(root / "segmentation.npy", np.full((1, 4, 4), -1, np.int16))
+
+    coll = tmp_path / "coll"
+    video(coll / "a")
+    (coll / "notes").mkdir()
+    video(coll / ".cache" / "old")  # hidden: not the user's videos
+    assert [p.name for p in video_folders(coll)] == ["a"]
+    video(coll / "group" / "b")
+    with pytest.raises(ValueError, match=f"'{coll / 'group'}' holds video folders, a level below the collection"):
+        video_folders(coll)
+    video(tmp_path / "groups" / "g1" / "x")  # groups only: "holds no video" named no group
+    with pytest.raises(ValueError, match="'.*g1' holds video folders"):
+        video_folders(tmp_path / "groups")
+
+
+def test_a_still_is_refused_where_the_model_needs_its_clip(tmp_path):
+    """A 1-frame "video" (a still: its one image is also its one sampled frame) was shown to the model alone, and
+    scored on that frame, where a 2- to 27-frame video is refused as shorter than the training clip (0 to 0.9 s).
+    Without the clip's times (a plain read) it is still read; a still is fine for a 1-frame clip."""
+    from PIL import Image
+
+    from aynamics.unlabeled import video_from_folder
+
+    root = tmp_path / "still"
+    (root / "frames").mkdir(parents=True)
+    Image.fromarray(np.zeros((16, 16, 3), np.uint8)).save(root / "frames" / "0.png")
+    np.save(root / "segmentation.npy", np.full((1, 16, 16), -1, np.int16))
+    times = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+    with pytest.raises(ValueError, match=r"1 images at 30 fps .* needs the image at 0.9 s \(image 27\)"):
+        video_from_folder(root, clip_times=times)
+    assert len(video_from_folder(root).frames) == 1
+    assert len(video_from_folder(root, clip_times=(0.0,)).frames) == 1
