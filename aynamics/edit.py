@@ -487,8 +487,13 @@ def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
     """
     require_scene(before, "diff: before")  # YAML text failed on "'str' object has no attribute 'names'"
     require_scene(after, "diff: after")
-    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0 <= tol < math.inf:  # NaN: tol ignored
+    try:  # numpy's float32 / int64 (and 0-d arrays) are numbers too; str and bool are not
+        ok = not isinstance(tol, (bool, str, bytes)) and 0 <= float(tol) < math.inf  # NaN: tol ignored
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
         raise ValueError(f"diff: tol = {tol!r}: must be a finite number >= 0")
+    tol = float(tol)
     if before.names != after.names or before.structure != after.structure:
         raise EditError(
             f"the edit changed the objects: {list(zip(before.names, before.structure, strict=False))} -> "

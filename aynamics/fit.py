@@ -11,6 +11,7 @@ size n·(1-ρ)/(1+ρ) from the lag-1 autocorrelation ρ of the residuals.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,11 +114,11 @@ def fit(
     failed inside scipy ("Initial guess is outside of provided bounds")."""
     active = check_candidates(active, "fit: active")
     mu = start.get("mu") if isinstance(start, dict) else None
-    if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not math.isfinite(mu):  # KeyError; NaN in scipy
+    if isinstance(mu, (bool, np.bool_)) or not isinstance(mu, numbers.Real) or not math.isfinite(mu):  # KeyError; NaN
         raise ValueError(f"fit: start['mu'] = {mu!r}: start must be a dict with a finite friction 'mu'")
     if isinstance(tracks, (str, bytes)) or not hasattr(tracks, "__len__") or not len(tracks):  # IndexError
         raise ValueError(f"fit: tracks = {tracks!r:.80}: must be a non-empty list of measured Tracks")
-    if isinstance(max_evals, bool) or not isinstance(max_evals, int) or max_evals < 1:
+    if isinstance(max_evals, bool) or not isinstance(max_evals, (int, np.integer)) or max_evals < 1:
         raise ValueError(f"fit: max_evals = {max_evals!r}: must be a whole number >= 1")
     names, lo, hi, x0, scale = ["mu"], [MU_BOUNDS[0]], [MU_BOUNDS[1]], [float(np.clip(mu, *MU_BOUNDS))], [MU_SCALE]
     for a in active:

@@ -103,8 +103,9 @@ def reward_of(s: Score, config: RewardConfig = RewardConfig()) -> float:
 
 def rewards_of(scores: Sequence[Sequence[Score]], config: RewardConfig = RewardConfig()) -> torch.Tensor:
     """(B, N) float32 rewards of B videos x N candidates' scores."""
-    if isinstance(scores, (str, bytes, Score)) or not hasattr(scores, "__len__"):
+    if isinstance(scores, (str, bytes, Score)) or not hasattr(scores, "__iter__"):
         raise TypeError(f"rewards_of: scores is a {type(scores).__name__}: must be B lists of N Scores")
+    scores = list(scores)  # a generator of rows is read once
     for b, row in enumerate(scores):  # a flat list failed on "'Score' object is not iterable"
         if isinstance(row, (str, bytes, Score)) or not hasattr(row, "__len__"):
             hint = " (one video's scores: rewards_of([scores]))" if isinstance(row, Score) else ""

@@ -155,9 +155,13 @@ class Observation:
             TypeError: `scene` is not a Scene.
         """
         require_scene(scene, "Observation.from_scene: scene")  # a YAML text failed on "... no attribute 'structure'"
-        for name, v, top in (("width", width, 4096), ("height", height, 4096), ("fps", fps, 1000)):
+        for name, v, top in (("width", width, 4096), ("height", height, 4096)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= top:  # width 0: empty
                 raise ValueError(f"Observation.from_scene: {name} = {v!r}: must be a whole number in [1, {top}]")
+        try:  # 30, 30.0 and numpy's 30 alike, as `SimConfig` takes them (a clock read from JSON is a float)
+            fps = sim._whole(fps, "fps")
+        except ValueError as e:
+            raise ValueError(f"Observation.from_scene: {e}") from None
         if frames is not None:  # [1.7] was taken as frame 1, [[0, 3]] failed broadcasting in the ray cast
             given = np.asarray(frames)
             if given.ndim != 1 or not (

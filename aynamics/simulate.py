@@ -444,6 +444,8 @@ class SimConfig:
     substeps: int | None = None
 
     def __post_init__(self):
+        if isinstance(self.duration, np.ndarray) and self.duration.ndim == 0 and self.duration.dtype.kind in "iuf":
+            object.__setattr__(self, "duration", self.duration.item())  # a 0-d array, as np.float64(...) is taken
         if isinstance(self.duration, bool) or not isinstance(self.duration, (int, float, np.integer, np.floating)):
             raise ValueError(f"duration = {self.duration!r}: must be a number of seconds in (0, 60]")
         if not (0 < self.duration <= 60):

@@ -860,3 +860,12 @@ def test_audit_arguments_of_the_wrong_kind_are_named_before_any_simulation():
     vel, acc = derivatives(t, np.repeat((t**2)[:, None], 3, 1), 3)
     np.testing.assert_allclose(vel[1:-1, 0], 2 * t[1:-1], atol=1e-9)
     np.testing.assert_allclose(acc[1:-1], 2.0, atol=1e-9)
+
+
+def test_split_takes_numpy_fractions():
+    """fractions (np.float64(0.5), np.float32(0.25)) were refused since the argument checks (np.float32 is no Python
+    float); the split is the one of (0.5, 0.25)."""
+    ids = [str(k) for k in range(20)]
+    assert split(ids, seed=1, fractions=(np.float64(0.5), np.float32(0.25))) == split(ids, seed=1)
+    with pytest.raises(ValueError, match=r"split: fractions = \(True, 0.25\)"):
+        split(ids, fractions=(True, 0.25))

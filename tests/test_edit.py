@@ -488,3 +488,15 @@ def test_what_if_files_hold_the_edited_flow_and_tiles_in_place(tmp_path, scene):
     left, right = gif[:64, :96], gif[:64, 96:]
     assert np.abs(left - original).mean() < np.abs(left - changed).mean()
     assert np.abs(right - changed).mean() < np.abs(right - original).mean()
+
+
+def test_diff_takes_numpy_tolerances(scene):
+    """tol = np.float32(1e-6), np.int64(0) or a 0-d array (numbers everywhere else) was refused as "must be a finite
+    number" since the argument checks; a str, bool or NaN still is."""
+    edited = apply_instruction(scene, "reduce the x-velocity of box_0 by 80%").scene
+    expected = diff(scene, edited)
+    for tol in (np.float32(1e-6), np.int64(0), np.array(1e-9)):
+        assert diff(scene, edited, tol=tol) == expected
+    for tol in ("0.1", True, math.nan, -1.0):
+        with pytest.raises(ValueError, match=r"diff: tol = .*: must be a finite number >= 0"):
+            diff(scene, edited, tol=tol)

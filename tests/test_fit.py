@@ -149,3 +149,15 @@ def test_fit_from_a_scene_mu_outside_its_bounds_starts_at_the_bound(monkeypatch,
     tracks = [_track(0.5, [0.1, 0.1, -0.1, -0.1]), _track(0.5, [0.2, 0.2, -0.2, -0.2])]
     res = fitlib.fit(None, tracks, {"mu": mu0}, [])
     assert res.values["mu"] == pytest.approx(0.5, abs=1e-6)
+
+
+def test_fit_takes_numpy_numbers(monkeypatch):
+    """A start μ of np.float32(0.45) and max_evals np.int64(50) were refused ("start must be a dict with a finite
+    friction", "must be a whole number") since the argument checks; they fit as 0.45 and 50 do."""
+    _linear_model(monkeypatch)
+    tracks = [_track(0.5, [0.1, 0.1, -0.1, -0.1]), _track(0.5, [0.2, 0.2, -0.2, -0.2])]
+    plain = fitlib.fit(None, tracks, {"mu": 0.45}, [], max_evals=50)
+    res = fitlib.fit(None, tracks, {"mu": np.float32(0.45)}, [], max_evals=np.int64(50))
+    assert res.values["mu"] == pytest.approx(plain.values["mu"], abs=1e-6)
+    with pytest.raises(ValueError, match=r"fit: start\['mu'\] = np.True_"):
+        fitlib.fit(None, tracks, {"mu": np.True_}, [])

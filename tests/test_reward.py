@@ -669,3 +669,12 @@ def test_a_still_is_refused_where_the_model_needs_its_clip(tmp_path):
         video_from_folder(root, clip_times=times)
     assert len(video_from_folder(root).frames) == 1
     assert len(video_from_folder(root, clip_times=(0.0,)).frames) == 1
+
+
+def test_rewards_of_takes_a_generator_of_rows():
+    """A generator of B rows was refused ("scores is a generator") since the argument checks; torch read it before."""
+    good = Score(1.0, 0.5, 0.0, 0.0, True)
+    rows = [[good, good], [good, good]]
+    assert torch.equal(rw.rewards_of(row for row in rows), rw.rewards_of(rows))
+    with pytest.raises(TypeError, match=r"rewards_of: scores\[0\] is a Score"):
+        rw.rewards_of(s for s in [good])

@@ -462,3 +462,14 @@ def test_a_meta_json_frame_rate_out_of_range_is_refused_with_the_range(tmp_path,
         scorer.Observation.from_dir(tmp_path)
     (tmp_path / "meta.json").write_text(json.dumps({"fps": 1000}))
     assert scorer.Observation.from_dir(tmp_path).fps == 1000
+
+
+def test_from_scene_takes_a_whole_frame_rate_given_as_a_float(observed):
+    """fps 30.0 (a clock read from JSON) or numpy's 30.0 was refused as "not a whole number" since the argument checks,
+    though `SimConfig` takes 30, 30.0 and numpy's 30 alike (and from_scene did before)."""
+    for fps in (30.0, np.float64(30.0), np.int64(30)):
+        obs = scorer.Observation.from_scene(SCENE, width=W, height=H, fps=fps)
+        assert obs.fps == 30 and type(obs.fps) is int
+        assert np.array_equal(obs.segmentation, observed.segmentation)
+    with pytest.raises(ValueError, match=r"Observation.from_scene: fps = 29.5: must be a whole number in \[1, 1000\]"):
+        scorer.Observation.from_scene(SCENE, width=W, height=H, fps=29.5)

@@ -831,3 +831,13 @@ def test_view_test_by_hand_at_the_frustums_side_and_behind_the_camera():
     cam = camlib.CameraMatrices(K=np.eye(3), R=np.eye(3), t=np.zeros(3), width=2, height=2)
     centres = np.array([[1.5, 0.0, 1.0], [1.6, 0.0, 1.0], [0.0, 0.0, -0.3], [0.0, 0.0, -0.5]])
     assert camlib.sphere_in_view(cam, centres, 0.4).tolist() == [True, False, True, False]
+
+
+def test_sim_config_takes_a_zero_dimensional_array_duration():
+    """duration = np.array(1.0) (a 0-d array, e.g. a reduction's result) was refused since the argument checks; it
+    simulated as 1.0 before. A 1-element 1-d array or a str still is not a duration."""
+    cfg = sim.SimConfig(duration=np.array(1.0))
+    assert cfg == sim.SimConfig(duration=1.0) and type(cfg.duration) is float
+    for bad in (np.array([1.0]), "1.0", np.array(True)):
+        with pytest.raises(ValueError, match=r"duration = .*: must be a number of seconds"):
+            sim.SimConfig(duration=bad)
