@@ -947,7 +947,8 @@ def test_fsdp_resumes_checkpoints_of_other_strategies(tmp_path, dataset_dir):
     """A checkpoint written by a one-process run resumes under trainer=fsdp (its optimizer state numbers the
     optimizer's own parameters, which Lightning's loader read as positions among all the model's: a size
     mismatch) and continues as the same checkpoint resumed under DDP does (Adam's noise apart: 1e-3); resumed
-    with another LoRA setting, its optimizer groups are named as not fitting (was a tensor size mismatch)."""
+    with other LoRA targets it is refused on every process, naming them (was a tensor size mismatch; then its
+    optimizer groups were named as not fitting, now `check_same_base` names the setting before that)."""
     from safetensors.torch import load_file
 
     base = [f"data.dir={dataset_dir}", "trainer.val_check_interval=3", "callbacks.checkpoint.every_n_train_steps=2"]
@@ -964,7 +965,9 @@ def test_fsdp_resumes_checkpoints_of_other_strategies(tmp_path, dataset_dir):
     cmd += [f"hydra.run.dir={tmp_path / 'other'}", "trainer.max_steps=3", f"ckpt_path={step2}"]
     cmd += ["model.lora_targets=[q_proj]", "trainer.enable_progress_bar=false"]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600, env=_one_thread())
-    assert done.returncode != 0 and "this run's of" in done.stderr, done.stderr[-3000:]
+    assert done.returncode != 0, done.stderr[-3000:]
+    assert "the checkpoint was trained on model lora_targets=('q_proj', 'k_proj'" in done.stderr, done.stderr[-3000:]
+    assert "but the run builds lora_targets=('q_proj',)" in done.stderr, done.stderr[-3000:]
 
 
 def test_saved_optimizer_ids_are_named_by_their_place_in_the_groups():
