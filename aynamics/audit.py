@@ -274,7 +274,7 @@ def audit(
     scenelib.require_scene(scene, "audit: scene")
     candidates = tuple(check_candidates(candidates, "audit: candidates"))
     for name, value in (("max_causes", max_causes), ("step_hz", step_hz), ("seed", seed)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        if not scenelib.is_whole(value) or value < 0:
             raise ValueError(f"audit: {name} = {value!r}: must be a whole number >= 0")
     with physics_rate(step_hz):
         result = _audit(measured, scene, seed, max_causes, candidates, log, held_out)

@@ -19,7 +19,7 @@ from scipy.optimize import least_squares
 
 from aynamics.effects import CANDIDATES, simulate_many, simulate_tracks
 from aynamics.measured import Track
-from aynamics.scene import Scene
+from aynamics.scene import Scene, is_whole
 
 MU_BOUNDS = (0.02, 1.5)
 MU_SCALE = 0.1
@@ -118,7 +118,7 @@ def fit(
         raise ValueError(f"fit: start['mu'] = {mu!r}: start must be a dict with a finite friction 'mu'")
     if isinstance(tracks, (str, bytes)) or not hasattr(tracks, "__len__") or not len(tracks):  # IndexError
         raise ValueError(f"fit: tracks = {tracks!r:.80}: must be a non-empty list of measured Tracks")
-    if isinstance(max_evals, bool) or not isinstance(max_evals, (int, np.integer)) or max_evals < 1:
+    if not is_whole(max_evals) or max_evals < 1:
         raise ValueError(f"fit: max_evals = {max_evals!r}: must be a whole number >= 1")
     names, lo, hi, x0, scale = ["mu"], [MU_BOUNDS[0]], [MU_BOUNDS[1]], [float(np.clip(mu, *MU_BOUNDS))], [MU_SCALE]
     for a in active:

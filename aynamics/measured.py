@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aynamics.scene import RANGES
+from aynamics.scene import RANGES, is_whole
 from aynamics.simulate import geom_size, quat_to_mat
 
 REQUIRED = ("trajectory", "t", "object", "x", "y", "z")
@@ -302,7 +302,7 @@ def every_nth(ids: list[str], n: int) -> list[str]:
     """The ids whose index is a multiple of n: the integer id itself when every id is an integer, else the
     position in the file (e.g. cube tosses 0, 5, 10, ... for n = 5)."""
     ids = trajectory_ids(ids, "every_nth: ids")
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):  # 2.5 held out ['0'], "2" failed on '<'
+    if not is_whole(n):  # 2.5 held out ['0'], "2" failed on '<'
         raise TypeError(f"held-out every {n!r}: must be a whole number >= 2, not a {type(n).__name__}")
     if n < 2:
         raise MeasuredError(f"held-out every {n}: must be >= 2")

@@ -31,12 +31,14 @@ def _check(seq_logps: torch.Tensor, rewards: torch.Tensor, mask: torch.Tensor | 
         keep = mask.bool()
     if not keep.any(dim=1).all():
         raise ValueError("mask: every row needs at least one candidate")
-    _check_finite(rewards, keep)
+    check_finite_rewards(rewards, keep)
     return keep
 
 
-def _check_finite(rewards: torch.Tensor, keep: torch.Tensor) -> None:
-    bad = ~torch.isfinite(rewards.detach()) & keep
+def check_finite_rewards(rewards: torch.Tensor, keep: torch.Tensor | None = None) -> None:
+    """Refuse a NaN or infinite reward (on a `keep` candidate, default all), naming the first and the count."""
+    bad = ~torch.isfinite(rewards.detach())
+    bad = bad & keep if keep is not None else bad
     if bad.any():
         b, n = (int(i) for i in bad.nonzero()[0])
         raise ValueError(
@@ -137,7 +139,7 @@ def sft_on_best(token_logps: torch.Tensor, token_mask: torch.Tensor, rewards: to
         )
     if rewards.shape[0] == 0 or rewards.shape[1] == 0:
         raise ValueError(f"rewards {tuple(rewards.shape)}: no candidate to imitate (B = 0 or N = 0)")
-    _check_finite(rewards, torch.ones_like(rewards, dtype=torch.bool))
+    check_finite_rewards(rewards)
     best = rewards.argmax(dim=1)  # (B,)
     idx = torch.arange(len(best))
     lp, m = token_logps[idx, best], token_mask[idx, best].to(token_logps.dtype)

@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader
 from aynamics import lm, sharding
 from aynamics import reward as rw
 from aynamics.data import real_rows
-from aynamics.preference import pro_ranking_loss, sft_on_best, soft_preference_loss
+from aynamics.preference import check_finite_rewards, pro_ranking_loss, sft_on_best, soft_preference_loss
 from aynamics.processor import model_inputs, token_logprobs
 from aynamics.sft import check_gradients
 from aynamics.unlabeled import GeneratedVideos, UnlabeledVideo, collate_videos, is_generated, open_videos
@@ -297,8 +297,7 @@ class ProModule(lm.ExactResume, L.LightningModule):
         b, n = rewards.shape
         seq = (tok_lp.sum(-1) / mask.sum(-1).clamp(min=1)).view(b, n)
         r = rewards.to(seq.device, seq.dtype)
-        if not torch.isfinite(r).all():  # NaN fails `amax > amin`: the video was skipped as a tie, silently
-            raise ValueError(f"rewards {r.tolist()}: simulator scores must be finite numbers")
+        check_finite_rewards(r)  # before the ties: NaN fails `amax > amin`, and the video was skipped silently
         # a video whose candidates all score the same (e.g. all invalid) says nothing about which is better
         keep = r.amax(1) > r.amin(1) if hp.skip_ties else torch.ones(b, dtype=torch.bool, device=seq.device)
         if not keep.any():

@@ -50,7 +50,7 @@ from aynamics.refine_tracks import (
     track_objective,
     track_start,
 )
-from aynamics.scene import Scene, require_scene
+from aynamics.scene import Scene, is_whole, require_scene
 
 __all__ = [
     "DEFAULT_PARAMS",
@@ -264,7 +264,7 @@ def _check_arguments(**values) -> None:
 
     for name in ("budget", "seed"):
         v = values[name]
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+        if not is_whole(v):
             raise ValueError(f"refine: {name} = {v!r}: must be a whole number")
     if values["budget"] < 1:
         raise ValueError(f"refine: budget = {values['budget']}: must be >= 1 simulation")

@@ -30,7 +30,7 @@ import numpy as np
 
 from aynamics import camera as camlib
 from aynamics import simulate as sim
-from aynamics.scene import MAX_OBJECTS, Scene, require_scene
+from aynamics.scene import MAX_OBJECTS, Scene, is_whole, require_scene
 from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image
 
 FLOOR_TEXTURE = 512  # pixels per side of the floor photograph texture
@@ -368,7 +368,7 @@ class Renderer:
     """
 
     def __init__(self, width: int = camlib.WIDTH, height: int = camlib.HEIGHT):
-        whole = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (width, height))
+        whole = is_whole(width) and is_whole(height)
         if not (whole and 1 <= width <= 4096 and 1 <= height <= 4096):  # 20.5 failed in MjrRect, True in MuJoCo
             raise ValueError(f"image size {width!r}×{height!r}: width and height must be whole numbers in [1, 4096]")
         width, height = int(width), int(height)
@@ -414,7 +414,7 @@ class Renderer:
                 f"render: rollout ({got}) is not a rollout of this scene (of {len(scene.objects)} object(s)): "
                 "pass simulate(scene)"
             )
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        if not is_whole(seed) or seed < 0:
             raise ValueError(f"render: seed = {seed!r}: must be a whole number >= 0")
         if appearance is None:
             appearance = sample_appearance(seed, textures_dir, n_objects=max(1, len(scene.objects)), backdrop=backdrop)

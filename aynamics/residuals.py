@@ -12,7 +12,7 @@ import numpy as np
 
 from aynamics.effects import simulate_tracks
 from aynamics.measured import Track, object_size, phases, quat_to_mat, support_height
-from aynamics.scene import Scene
+from aynamics.scene import Scene, is_whole
 
 WINDOW = 7  # frames of the local quadratic fit for derivatives
 FLIGHT_GAP = 0.03  # m: lowest point this far above the floor counts as flight for the regression
@@ -25,7 +25,7 @@ def derivatives(t: np.ndarray, x: np.ndarray, window: int = WINDOW) -> tuple[np.
     t, x = np.asarray(t, float), np.asarray(x, float)
     if t.ndim != 1 or x.shape != (len(t), 3):  # a 1-D x was broadcast into all three columns, a short one failed
         raise ValueError(f"derivatives: t {t.shape}, x {x.shape}: need t (T,) and x (T, 3)")
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
+    if not is_whole(window) or window < 3 or window % 2 == 0:
         raise ValueError(f"derivatives: window = {window!r}: must be an odd whole number >= 3 (a centred quadratic)")
     n, half = len(t), window // 2
     vel, acc = np.full((n, 3), np.nan), np.full((n, 3), np.nan)

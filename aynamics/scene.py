@@ -26,6 +26,7 @@ import re
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 from pydantic_core import PydanticCustomError
@@ -926,6 +927,11 @@ def _emit(value: Any, indent: int, lines: list[str], key: str | None = None, dec
 
 
 _DEFAULT_NAME = re.compile(r"(box|sphere|cylinder)_\d+")
+
+
+def is_whole(value: Any) -> bool:
+    """Whether `value` is a whole number as a count, size or seed takes it: an int or a numpy integer, not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def require_scene(value: Any, where: str) -> Scene:

@@ -46,7 +46,7 @@ from aynamics import metrics
 from aynamics import simulate as sim
 from aynamics.flow import sample_frames
 from aynamics.raycast import Cast, SampleGrid, cast_group
-from aynamics.scene import Scene, SceneError, parse, require_scene
+from aynamics.scene import Scene, SceneError, is_whole, parse, require_scene
 from aynamics.video_io import image_files
 
 WIDTH, HEIGHT = 120, 80  # scorer resolution: a quarter of 480×320 per side
@@ -156,7 +156,7 @@ class Observation:
         """
         require_scene(scene, "Observation.from_scene: scene")  # a YAML text failed on "... no attribute 'structure'"
         for name, v, top in (("width", width, 4096), ("height", height, 4096)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= top:  # width 0: empty
+            if not is_whole(v) or not 1 <= v <= top:  # width 0: empty
                 raise ValueError(f"Observation.from_scene: {name} = {v!r}: must be a whole number in [1, {top}]")
         try:  # 30, 30.0 and numpy's 30 alike, as `SimConfig` takes them (a clock read from JSON is a float)
             fps = sim._whole(fps, "fps")

@@ -41,7 +41,7 @@ import numpy as np
 from mujoco import batch as mjbatch
 
 from aynamics import camera as camlib
-from aynamics.scene import Box, Object, Scene, Sphere, require_scene
+from aynamics.scene import Box, Object, Scene, Sphere, is_whole, require_scene
 
 FPS = 30
 PHYSICS_HZ = 240  # physics steps per second of every rollout (contacts and restitution are tuned at 1/240 s)
@@ -506,7 +506,7 @@ def simulate_batch(scenes: list[Scene], config: SimConfig = SimConfig(), nthread
         require_scene(s, f"simulate_batch: scenes[{k}]")
     if not isinstance(config, SimConfig):
         raise TypeError(f"config is a {type(config).__name__}, not a SimConfig (e.g. SimConfig(duration=2.0))")
-    if nthread is not None and (isinstance(nthread, bool) or not isinstance(nthread, (int, np.integer))):
+    if nthread is not None and not is_whole(nthread):
         raise TypeError(f"nthread = {nthread!r}: must be a whole number of threads (or None: the default)")
     out: list[Rollout | None] = [None] * len(scenes)
     groups: dict[tuple[str, ...], list[int]] = {}
