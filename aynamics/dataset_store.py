@@ -280,7 +280,7 @@ def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None
     except BaseException:  # a full disk or a kill: no hidden copy of the data set left holding the space
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    with _exclusive(out / ".assemble.lock"):  # shards that finish together move their (equal) splits in turn
+    with exclusive(out / ".assemble.lock"):  # shards that finish together move their (equal) splits in turn
         (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
         for s in SPLITS:
             shutil.rmtree(out / s, ignore_errors=True)
@@ -291,16 +291,20 @@ def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None
 
 
 @contextlib.contextmanager
-def _exclusive(path: Path):
+def exclusive(path: Path, *, wait: bool = True):
     """Hold an exclusive lock on `path` (POSIX `flock`; processes and threads alike) for the block; where `fcntl`
-    is missing (Windows) the block runs unlocked."""
+    is missing (Windows) the block runs unlocked.
+
+    Raises:
+        BlockingIOError: with `wait=False`, another holds the lock.
+    """
     try:
         import fcntl
     except ImportError:
         yield
         return
     with open(path, "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+        fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         try:
             yield
         finally:

@@ -14,24 +14,33 @@ Stored as a Hugging Face data set on disk (`datasets.load_from_disk(OUT)`), one 
     completion_ids [2][L] int32 (the sampled tokens, end-of-turn id included), rewards [2] float32,
     reasons [2] str or null (why a candidate was invalid), case_rewards [N] float32 (all candidates' rewards).
 Plus `summary.json`: counts, mean/best reward, share invalid, the sampling settings.
+
+Sampling takes hours on real models, so each batch is kept in `OUT.partial` as soon as it is scored
+(`SamplingProgress`): run the same command again after an interruption and it goes on from the last kept batch,
+giving the rows an uninterrupted run gives; the folder is deleted once OUT is written.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
+import os
+import pickle
 import re
 import shutil
+import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from aynamics import lm
+from aynamics import lm, rng
 from aynamics import reward as rw
+from aynamics.scorer import Score
 from aynamics.unlabeled import UnlabeledVideo
 
 COLUMNS = ("key", "frames", "completions", "completion_ids", "rewards", "reasons", "case_rewards")
@@ -78,6 +87,7 @@ def build_preferences(
     pairs: int = 3,
     temperature: float = 0.1,
     batch_size: int = 1,
+    progress: SamplingProgress | None = None,
 ) -> tuple[list[dict], dict]:
     """Sample, score and pair: the rows of the preference data set and a summary.
 
@@ -88,35 +98,54 @@ def build_preferences(
         pairs: Pairs kept per video at most.
         temperature: Sampling temperature (> 0).
         batch_size: Videos sampled together.
+        progress: Where each batch is kept once scored. Batches it already holds are read back, not sampled
+            again, and the random generators continue from their states after the last one, so the rows are
+            those of an uninterrupted run.
+
+    Raises:
+        ValueError: a bad argument, or a kept batch of other videos or another shape than these settings give.
     """
     if num_samples < 2 or not (0 < temperature < math.inf) or batch_size < 1:  # nan fails the comparison too
         raise ValueError(
             f"num_samples = {num_samples}, temperature = {temperature}, batch_size = {batch_size}: "
             "need num_samples >= 2, a finite temperature > 0, batch_size >= 1"
         )
-    rows: list[dict] = []
-    all_rewards, all_scores = [], []
-    for start in range(0, len(videos), batch_size):
+    starts = range(0, len(videos), batch_size)
+    batches = progress.done() if progress is not None else []
+    for start, batch in zip(starts, batches, strict=False):
+        keys = [videos[i].key for i in range(start, min(start + batch_size, len(videos)))]
+        if batch["keys"] != keys or tuple(batch["rewards"].shape) != (len(keys), num_samples):
+            raise ValueError(
+                f"{progress.folder}: its batch at video {start} holds videos {batch['keys']} with "
+                f"{tuple(batch['rewards'].shape)} rewards, but these settings give videos {keys} with "
+                f"{(len(keys), num_samples)}: the videos changed since it was written; delete it to sample afresh"
+            )
+    if len(batches) > len(starts):
+        raise ValueError(f"{progress.folder} holds {len(batches)} batches, but these videos make {len(starts)}")
+    if batches:  # the generators as they were after the last kept batch: what follows is what would have
+        rng.restore({"per_rank": [batches[-1]["rng"]]}, 0)
+    for start in starts[len(batches) :]:
         chunk = [videos[i] for i in range(start, min(start + batch_size, len(videos)))]
-        prompts, ids, scores, rewards = module.sample_and_score(chunk, num_samples, temperature)
+        _, ids, scores, rewards = module.sample_and_score(chunk, num_samples, temperature)
         texts = module.processor.tokenizer.batch_decode([c for row in ids for c in row], skip_special_tokens=True)
-        for b, video in enumerate(chunk):
-            r = rewards[b].tolist()
-            for hi, lo in select_pairs(r, pairs):
-                rows.append(
-                    {
-                        "key": video.key,
-                        "frames": list(video.frames),
-                        "completions": [texts[b * num_samples + hi], texts[b * num_samples + lo]],
-                        "completion_ids": [ids[b][hi], ids[b][lo]],
-                        "rewards": [r[hi], r[lo]],
-                        "reasons": [scores[b][hi].reason, scores[b][lo].reason],
-                        "case_rewards": r,
-                    }
-                )
-        all_rewards.append(rewards)
-        all_scores += scores
-    stats = rw.RewardStats.of(torch.cat(all_rewards), all_scores) if all_rewards else None
+        batch = {
+            "start": start,
+            "keys": [v.key for v in chunk],
+            "rows": _pair_rows(start, [v.key for v in chunk], ids, texts, rewards, scores, pairs),
+            "rewards": rewards.detach().cpu().float(),
+            "scores": [[dataclasses.asdict(s) for s in row] for row in scores],
+            "rng": rng.local_state(),
+        }
+        if progress is not None:
+            progress.save(len(batches), batch)
+        batches.append(batch)
+    rows = [
+        {**{k: v for k, v in row.items() if k != "video"}, "frames": list(videos[row["video"]].frames)}
+        for batch in batches
+        for row in batch["rows"]
+    ]
+    scores = [[Score(**s) for s in row] for batch in batches for row in batch["scores"]]
+    stats = rw.RewardStats.of(torch.cat([b["rewards"] for b in batches]), scores) if batches else None
     cases_with_pairs = len({row["key"] for row in rows})
     summary = {
         "videos": len(videos),
@@ -133,6 +162,156 @@ def build_preferences(
         "tokenizer": lm.tokenizer_fingerprint(module.processor.tokenizer),
     }
     return rows, summary
+
+
+def _pair_rows(
+    start: int,
+    keys: Sequence[str],
+    ids: Sequence[Sequence[Sequence[int]]],
+    texts: Sequence[str],
+    rewards: torch.Tensor,
+    scores: Sequence[Sequence[Score]],
+    pairs: int,
+) -> list[dict]:
+    """The preference rows of one batch (videos `start`, `start + 1`, ...), their frames left out: each row says
+    which video it is of (`video`, its position) and the frames are taken from it when the set is written."""
+    n = rewards.shape[1]
+    rows = []
+    for b, key in enumerate(keys):
+        r = rewards[b].tolist()
+        for hi, lo in select_pairs(r, pairs):
+            rows.append(
+                {
+                    "key": key,
+                    "video": start + b,
+                    "completions": [texts[b * n + hi], texts[b * n + lo]],
+                    "completion_ids": [list(ids[b][hi]), list(ids[b][lo])],
+                    "rewards": [r[hi], r[lo]],
+                    "reasons": [scores[b][hi].reason, scores[b][lo].reason],
+                    "case_rewards": r,
+                }
+            )
+    return rows
+
+
+class SamplingProgress:
+    """The batches `build_preferences` has scored, kept in a folder as each one is done, so that an interrupted
+    run goes on where it stopped (at most one batch is sampled again) and gives the rows an uninterrupted run gives.
+
+    The folder holds `settings.json` (everything the samples depend on: a run with other settings is refused,
+    naming what differs) and one `batch-NNNNNN.pt` per batch, written atomically: its videos' keys, its rows
+    without frames (taken again from the videos), every candidate's score and the random generators' states
+    after it. `aynamics preferences --out OUT` keeps it in `OUT.partial` and deletes it once OUT is written.
+
+        progress = SamplingProgress("prefs.partial", {"seed": 0, "num_samples": 32, ...})
+        with progress.opened():  # made or checked, and locked: a second writer is refused
+            rows, summary = build_preferences(module, videos, progress=progress, ...)
+        progress.remove()
+    """
+
+    SETTINGS = "settings.json"
+    _BATCH = re.compile(r"batch-(\d{6})\.pt")
+
+    def __init__(self, folder: str | Path, settings: dict) -> None:
+        self.folder = Path(folder)
+        self.settings = json.loads(json.dumps(settings))  # as settings.json reads back (tuples as lists)
+
+    @contextlib.contextmanager
+    def opened(self) -> Iterator[SamplingProgress]:
+        """Make the folder (or check the one there was made with these settings) and hold its lock.
+
+        Raises:
+            ValueError: the folder holds other files, other settings, or another process holds its lock.
+        """
+        from aynamics.dataset_store import exclusive
+
+        if self.folder.exists() and not (self.folder / self.SETTINGS).is_file():
+            other = [p.name for p in self.folder.iterdir() if p.name != ".lock"] if self.folder.is_dir() else []
+            if other or not self.folder.is_dir():
+                raise ValueError(
+                    f"{str(self.folder)!r} exists and is not the kept batches of a preference run (no "
+                    f"{self.SETTINGS}): move it away, or write --out elsewhere"
+                )
+        self.folder.mkdir(parents=True, exist_ok=True)
+        with contextlib.ExitStack() as stack:
+            try:
+                stack.enter_context(exclusive(self.folder / ".lock", wait=False))
+            except BlockingIOError:
+                raise ValueError(
+                    f"another process is sampling into {str(self.folder)!r} (it holds its lock): wait for it, or "
+                    "write --out elsewhere"
+                ) from None
+            self._check_settings()
+            yield self
+
+    def _check_settings(self) -> None:
+        path = self.folder / self.SETTINGS
+        if not path.is_file():
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
+            os.replace(tmp, path)
+            return
+        try:
+            kept = json.loads(path.read_text())
+        except ValueError as e:
+            raise ValueError(
+                f"{str(path)!r} cannot be read ({e}): delete {str(self.folder)!r} to sample afresh"
+            ) from None
+        if kept != self.settings:
+            keys = sorted(set(kept) | set(self.settings)) if isinstance(kept, dict) else []
+            diff = [
+                f"{k} {kept.get(k)!r} there, {self.settings.get(k)!r} now"
+                for k in keys
+                if kept.get(k) != self.settings.get(k)
+            ]
+            raise ValueError(
+                f"{str(self.folder)!r} holds the batches of an interrupted run with other settings "
+                f"({'; '.join(diff) or repr(kept)}): run with its settings to go on from it, or delete it to sample afresh"
+            )
+
+    def done(self) -> list[dict]:
+        """The kept batches in order (the first `len(...)` batches of the run).
+
+        Raises:
+            ValueError: a batch file that cannot be read, or a gap in their numbers, naming the file.
+        """
+        batches = []
+        for k, path in enumerate(self._files()):
+            if int(self._BATCH.fullmatch(path.name).group(1)) != k:
+                raise ValueError(
+                    f"{str(path)!r}: batch {k} is missing before it; delete it and later ones to sample them again"
+                )
+            try:
+                batches.append(torch.load(path, weights_only=True))
+            except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as e:  # torch names no file
+                raise ValueError(
+                    f"{str(path)!r} cannot be read ({type(e).__name__}: {e}): delete it to sample it again"
+                ) from None
+        return batches
+
+    def __len__(self) -> int:
+        """Batches kept (not read)."""
+        return len(self._files())
+
+    def _files(self) -> list[Path]:
+        return sorted(p for p in self.folder.glob("batch-*.pt") if self._BATCH.fullmatch(p.name))
+
+    def save(self, index: int, batch: dict) -> Path:
+        """Keep batch `index` (atomically: a half-written file is never read back)."""
+        path = self.folder / f"batch-{index:06d}.pt"
+        tmp = path.with_suffix(".tmp")
+        torch.save(batch, tmp)
+        os.replace(tmp, path)
+        return path
+
+    def remove(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def partial_folder(out: str | Path) -> Path:
+    """Where `aynamics preferences --out OUT` keeps its batches while sampling: `OUT.partial`, beside OUT."""
+    out = Path(out).resolve()
+    return out.with_name(out.name + ".partial")
 
 
 def stored_clock(path: str | Path) -> dict | None:
@@ -435,19 +614,57 @@ def run_preferences(args) -> int:
         )
         module.to(device)
         torch.manual_seed(args.seed)
-        rows, summary = build_preferences(
-            module,
-            videos,
-            num_samples=args.num_samples,
-            pairs=args.pairs,
-            temperature=args.temperature,
-            batch_size=args.batch_size,
-        )
+        progress = SamplingProgress(partial_folder(args.out), _settings(args, model, spec.dtype))
+        with progress.opened():
+            if len(progress):
+                print(
+                    f"preferences: going on from {str(progress.folder)!r} ({len(progress)} batches kept)",
+                    file=sys.stderr,
+                )
+            try:
+                rows, summary = build_preferences(
+                    module,
+                    videos,
+                    num_samples=args.num_samples,
+                    pairs=args.pairs,
+                    temperature=args.temperature,
+                    batch_size=args.batch_size,
+                    progress=progress,
+                )
+            except KeyboardInterrupt:
+                print(
+                    f"preferences: {len(progress)} batches are kept in {str(progress.folder)!r}: the same command "
+                    "goes on from them",
+                    file=sys.stderr,
+                )
+                raise
+            try:
+                write_preferences(rows, summary, args.out)
+            except (OSError, ValueError) as e:
+                raise UsageError(
+                    f"preferences: cannot write --out {args.out!r}: {e}; the sampled batches are kept in "
+                    f"{str(progress.folder)!r}: the same command writes them without sampling again"
+                ) from None
     except ValueError as e:
         raise UsageError(f"preferences: {e}") from None
-    try:
-        write_preferences(rows, summary, args.out)
-    except (OSError, ValueError) as e:
-        raise UsageError(f"preferences: cannot write --out {args.out!r}: {e}") from None
+    progress.remove()
     _print_json(summary)
     return 0
+
+
+def _settings(args, model: str, dtype: str) -> dict:
+    """What `aynamics preferences`' samples depend on: a kept run is gone on from only with the same."""
+
+    def path(p: str | None) -> str | None:  # a folder by where it is (a hub id stays as written)
+        return p if p is None or not os.path.exists(p) else os.path.abspath(p)
+
+    return {
+        "data": path(args.data),
+        "split": args.split,
+        "limit": args.limit,
+        "model": path(model),
+        "dtype": dtype,
+        "adapter": path(args.adapter),
+        **{k: getattr(args, k) for k in ("num_samples", "pairs", "temperature", "top_p", "max_new_tokens")},
+        **{k: getattr(args, k) for k in ("metric", "span", "inputs", "batch_size", "seed")},
+    }

@@ -1064,3 +1064,52 @@ def test_an_interrupted_rewrite_of_preferences_leaves_a_whole_set_at_out(tmp_pat
     with pytest.raises(OSError, match="the preferences are kept in '.*prefs.tmp-"):
         _handmade_preferences(dataset_dir, out)
     assert len(load_preferences(out)) == 2  # the earlier set, back in place
+
+
+def test_preferences_go_on_after_an_interruption(tmp_path, dataset_dir, monkeypatch, capsys):
+    """Interrupted during its third batch (of 3 videos, one a batch), `aynamics preferences` keeps the two scored
+    batches in OUT.partial; the same command then samples only the third video and writes the rows, rewards and
+    summary of an uninterrupted run, token for token (the generators go on from their kept states), and deletes
+    OUT.partial. Other settings, and a second writer, are refused, naming what differs. Rewards here are a
+    function of the sampled ids (the tiny model's samples all score 0), so that the rows show the sampling."""
+    from aynamics.dataset_store import exclusive
+
+    real, calls, stop = ProModule.sample_and_score, [], {"after": None}
+
+    def scored_by_ids(self, chunk, num_samples, temperature):
+        calls.append([v.key for v in chunk])
+        if stop["after"] is not None and len(calls) > stop["after"]:
+            raise KeyboardInterrupt
+        prompts, ids, scores, _ = real(self, chunk, num_samples, temperature)
+        return prompts, ids, scores, torch.tensor([[sum(c) % 97 / 97 for c in row] for row in ids])
+
+    monkeypatch.setattr(ProModule, "sample_and_score", scored_by_ids)
+    args = ["preferences", "--data", str(dataset_dir), "--limit", "3", "--num-samples", "4", "--pairs", "2"]
+    args += ["--max-new-tokens", "6", "--temperature", "1.0", "--device", "cpu"]
+    whole, part = tmp_path / "whole", tmp_path / "part"
+    assert cli_main([*args, "--out", str(whole)]) == 0 and not (tmp_path / "whole.partial").exists()
+    keys = calls[:]
+    assert len(keys) == 3
+    capsys.readouterr()
+    calls.clear()
+    stop["after"] = 2
+    assert cli_main([*args, "--out", str(part)]) == 130
+    kept = tmp_path / "part.partial"
+    assert sorted(p.name for p in kept.glob("batch-*")) == ["batch-000000.pt", "batch-000001.pt"]
+    assert not part.exists() and "2 batches are kept in" in capsys.readouterr().err
+
+    assert cli_main([*args, "--out", str(part), "--seed", "1"]) == 2  # other settings: refused, nothing sampled
+    assert "with other settings (seed 0 there, 1 now)" in capsys.readouterr().err
+    with exclusive(kept / ".lock"):  # another process sampling into it
+        assert cli_main([*args, "--out", str(part)]) == 2
+        assert "another process is sampling into" in capsys.readouterr().err
+    calls.clear()
+    stop["after"] = None
+    assert cli_main([*args, "--out", str(part)]) == 0
+    assert calls == [keys[2]] and "(2 batches kept)" in capsys.readouterr().err  # only the third video sampled
+    assert not kept.exists()
+    a, b = load_preferences(whole), load_preferences(part)
+    assert len(a) >= 3  # pairs from every video
+    for column in ("key", "completions", "completion_ids", "rewards", "reasons", "case_rewards"):
+        assert a[column] == b[column]
+    assert json.loads((whole / "summary.json").read_text()) == json.loads((part / "summary.json").read_text())
