@@ -129,12 +129,32 @@ def to_markdown(rows: list[dict]) -> str:
 
 
 def write_csv(rows: list[dict], path: str | Path) -> Path:
+    """Write the rows as CSV. An existing file is replaced only when empty or a table this wrote (a header "run",
+    ..., "status", ...): `--out train.py` or a run's metrics.json was overwritten without a word.
+
+    Raises:
+        FileExistsError: `path` holds something else.
+    """
     path = Path(path)
+    if path.is_file() and path.stat().st_size and not _is_table(path):
+        raise FileExistsError(
+            f"{str(path)!r} exists and is not a table that collect wrote (its header is not run,...,status,...): "
+            "choose another --out, or remove the file first"
+        )
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=_columns(rows))
         writer.writeheader()
         writer.writerows(rows)
     return path
+
+
+def _is_table(path: Path) -> bool:
+    try:
+        with open(path, newline="", errors="replace") as f:
+            header = next(csv.reader([f.readline(1 << 16)]), [])
+    except OSError:
+        return False
+    return header[:1] == ["run"] and "status" in header
 
 
 def add_collect_command(sub) -> None:
@@ -155,6 +175,8 @@ def run_collect(args) -> int:
     dest = args.out or Path(args.folder) / "summary.csv"
     try:
         out = write_csv(rows, dest)
+    except FileExistsError as e:
+        raise UsageError(f"collect: --out {e}") from None
     except OSError as e:
         raise UsageError(f"collect: cannot write {dest}: {e}") from None
     sys.stdout.write(to_markdown(rows) + f"\n\n(written to {out})\n")

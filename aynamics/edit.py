@@ -560,6 +560,24 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     return fields
 
 
+_PATHS = "set of str field paths (named_fields gives one)"
+
+
 def outside(changes: list[Change] | tuple[Change, ...], allowed: set[str]) -> list[Change]:
-    """The changes whose path does not start with one of the allowed prefixes."""
+    """The changes whose path does not start with one of the allowed prefixes.
+
+    Raises:
+        TypeError: `changes` is not a list of `Change`s, or `allowed` not a collection of str path prefixes (a str
+            was read as its letters: every change was outside "box_0.mass", and "b.x" inside "box_0").
+    """
+    for name, value, want in (("changes", changes, "list of Changes (diff gives one)"), ("allowed", allowed, _PATHS)):
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
+            raise TypeError(f"outside: {name} is a {type(value).__name__} {value!r:.60}: must be a {want}")
+    changes, allowed = list(changes), tuple(allowed)  # a generator of paths was spent on the first change
+    for k, c in enumerate(changes):
+        if not isinstance(c, Change):
+            raise TypeError(f"outside: changes[{k}] is a {type(c).__name__} {c!r:.60}: must be a Change")
+    for a in allowed:
+        if not isinstance(a, str):
+            raise TypeError(f"outside: allowed holds a {type(a).__name__} {a!r:.60}: must be a {_PATHS}")
     return [c for c in changes if not any(c.path == a or c.path.startswith((a + ".", a + "[")) for a in allowed)]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -45,8 +46,11 @@ def physics_rate(hz: int) -> Iterator[None]:
     effect, e.g. a box sliding at 1–2.5 m/s stops about 3 % shorter at 1/240 s than at 1 ms.
     """
     global STEP_HZ
-    if not 30 <= hz <= 10_000:
-        raise ValueError(f"physics rate = {hz} Hz: must be in [30, 10000]")
+    # 240.5 ran at int(240.5) = 240 Hz, silently; "240" or None failed on a bare TypeError. 240.0 is 240.
+    if isinstance(hz, np.ndarray) and hz.ndim == 0 and hz.dtype.kind in "iuf":
+        hz = hz.item()  # a 0-d array, as np.int64(240) is taken
+    if isinstance(hz, (bool, np.bool_)) or not isinstance(hz, numbers.Real) or not 30 <= hz <= 10_000 or hz % 1:
+        raise ValueError(f"physics_rate: hz = {hz!r}: must be a whole number of steps per second in [30, 10000]")
     old, STEP_HZ = STEP_HZ, int(hz)
     try:
         yield

@@ -75,6 +75,7 @@ def flat(res: list[np.ndarray]) -> np.ndarray:
 
 def track_errors(scene: Scene, tracks: list[Track], values: dict, active: list[str]) -> np.ndarray:
     """(n,) RMS position error (m) of each track."""
+    check_tracks(tracks, "track_errors")
     return np.array([math.sqrt(np.nanmean(np.sum(r**2, -1))) for r in residuals(scene, tracks, values, active)])
 
 
@@ -105,6 +106,13 @@ def check_candidates(names, where: str) -> list[str]:
     return names
 
 
+def check_tracks(tracks, where: str) -> None:
+    """A ValueError naming `where` unless `tracks` is a non-empty list: an empty one failed on a bare IndexError
+    deep in the batched simulation (`effects._run`: scenes[0])."""
+    if isinstance(tracks, (str, bytes)) or not hasattr(tracks, "__len__") or not len(tracks):
+        raise ValueError(f"{where}: tracks = {tracks!r:.80}: must be a non-empty list of measured Tracks")
+
+
 def fit(
     scene: Scene, tracks: list[Track], start: dict[str, float], active: list[str], max_evals: int = MAX_EVALS
 ) -> FitResult:
@@ -116,8 +124,7 @@ def fit(
     mu = start.get("mu") if isinstance(start, dict) else None
     if isinstance(mu, (bool, np.bool_)) or not isinstance(mu, numbers.Real) or not math.isfinite(mu):  # KeyError; NaN
         raise ValueError(f"fit: start['mu'] = {mu!r}: start must be a dict with a finite friction 'mu'")
-    if isinstance(tracks, (str, bytes)) or not hasattr(tracks, "__len__") or not len(tracks):  # IndexError
-        raise ValueError(f"fit: tracks = {tracks!r:.80}: must be a non-empty list of measured Tracks")
+    check_tracks(tracks, "fit")
     if not is_whole(max_evals) or max_evals < 1:
         raise ValueError(f"fit: max_evals = {max_evals!r}: must be a whole number >= 1")
     names, lo, hi, x0, scale = ["mu"], [MU_BOUNDS[0]], [MU_BOUNDS[1]], [float(np.clip(mu, *MU_BOUNDS))], [MU_SCALE]

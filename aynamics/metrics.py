@@ -66,6 +66,10 @@ def match_objects(
     for side, names, n in (("pred_names", pred_names, n_pred), ("obs_names", obs_names, n_obs)):
         if isinstance(names, (str, bytes)) or (names is not None and len(names) > n):  # names past the matrix
             raise ValueError(f"match_objects: {side} = {names!r}: must be a list of at most {n} names (score's shape)")
+        # None in pred_names failed on a bare TypeError in the default-name regex; in obs_names it matched nothing
+        for k, name in enumerate(() if names is None else names):
+            if not isinstance(name, str):
+                raise ValueError(f"match_objects: {side}[{k}] = {name!r}: object names must be str")
     pairs: list[tuple[int, int]] = []
     free_p, free_o = list(range(n_pred)), list(range(n_obs))
     if pred_names is not None and obs_names is not None:

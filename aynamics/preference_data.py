@@ -266,7 +266,8 @@ class SamplingProgress:
             ]
             raise ValueError(
                 f"{str(self.folder)!r} holds the batches of an interrupted run with other settings "
-                f"({'; '.join(diff) or repr(kept)}): run with its settings to go on from it, or delete it to sample afresh"
+                f"({'; '.join(diff) or repr(kept)}): run with its settings to go on from it, or delete it to sample "
+                "afresh"
             )
 
     def done(self) -> list[dict]:

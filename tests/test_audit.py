@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 import tempfile
 import types
@@ -869,3 +870,23 @@ def test_split_takes_numpy_fractions():
     assert split(ids, seed=1, fractions=(np.float64(0.5), np.float32(0.25))) == split(ids, seed=1)
     with pytest.raises(ValueError, match=r"split: fractions = \(True, 0.25\)"):
         split(ids, fractions=(True, 0.25))
+
+
+def test_physics_rate_takes_whole_numbers_and_names_a_fractional_one():
+    """physics_rate(240.5) ran at int(240.5) = 240 steps per second, silently, and "480" or None failed on a bare
+    TypeError ('<=' not supported). 480.0, np.int64(480) and a 0-d array hold the rate at 480; 30 and 10000 are
+    the ends; the rate is 240 again after the block."""
+    from aynamics import effects
+
+    for hz in (480, 480.0, np.int64(480), np.float32(480.0), np.array(480)):
+        with effects.physics_rate(hz):
+            assert effects.STEP_HZ == 480 and type(effects.STEP_HZ) is int
+    assert effects.STEP_HZ == 240
+    for hz in (30, 10_000):
+        with effects.physics_rate(hz):
+            assert effects.STEP_HZ == hz
+    for hz in (240.5, "480", None, True, math.nan, math.inf, 29, 10_001):
+        with pytest.raises(ValueError, match=rf"physics_rate: hz = {re.escape(repr(hz))}: must be a whole number"):
+            with effects.physics_rate(hz):
+                pass
+    assert effects.STEP_HZ == 240

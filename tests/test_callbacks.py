@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from aynamics.callbacks import METRIC_KEYS, evaluate_texts, format_table, side_by_side, summarize
-from aynamics.collect import collect, to_markdown
+from aynamics.collect import DEFAULT_METRICS, collect, to_markdown
 from aynamics.scene import dump, load
 from aynamics.scorer import EPE_INVALID, Observation
 
@@ -766,3 +766,34 @@ def test_collect_runs_named_with_words_beside_numbers(tmp_path):
     assert [r["run"] for r in rows] == ["2", "3_rerun", "10", "best"]
     assert rows[3]["overrides"] == "unreadable .hydra/overrides.yaml" and rows[3]["status"] == "done"
     assert main(["collect", str(tmp_path)]) == 0
+
+
+def test_collect_out_replaces_only_a_table_it_wrote(tmp_path, capsys):
+    """`aynamics collect DIR --out FILE` overwrote any FILE without a word: a run's metrics.json, train.py. FILE is
+    replaced when it is a table collect wrote (header run, ..., status, ...) or empty; anything else is refused
+    (exit 2), naming it, and left as it was. The default DIR/summary.csv is rewritten on every call."""
+    from aynamics.cli import main
+
+    runs = tmp_path / "multirun"
+    (runs / "0").mkdir(parents=True)
+    record = '{"global_step": 5, "metrics": {"val/iou_full": 0.5}}'
+    (runs / "0" / "metrics.json").write_text(record)
+    notes = tmp_path / "notes.csv"
+    notes.write_text("run,score\n1,2\n")  # a CSV, but no status column: not collect's
+    for other in (runs / "0" / "metrics.json", notes):
+        before = other.read_text()
+        assert main(["collect", str(runs), "--out", str(other)]) == 2
+        err = capsys.readouterr().err
+        assert f"collect: --out {str(other)!r} exists and is not a table that collect wrote" in err
+        assert other.read_text() == before
+    table, empty = tmp_path / "table.csv", tmp_path / "empty.csv"
+    empty.write_text("")
+    for out in (table, table, empty):  # new, then its own table again, then an empty file
+        assert main(["collect", str(runs), "--out", str(out)]) == 0
+        assert out.read_text().splitlines()[:2] == [
+            "run,status,step,val_step," + ",".join(DEFAULT_METRICS),
+            "0,done,5,5,,,,,,0.5" + "," * 7,
+        ]
+    assert main(["collect", str(runs)]) == 0 and main(["collect", str(runs)]) == 0
+    assert (runs / "summary.csv").read_text() == table.read_text()
+    assert (runs / "0" / "metrics.json").read_text() == record

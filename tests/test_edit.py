@@ -416,6 +416,31 @@ def test_diff_and_named_fields_name_what_is_not_a_scene(scene):
     assert diff(scene, scene, tol=0) == []
 
 
+def test_outside_names_a_str_where_a_collection_goes():
+    """outside(changes, "box_0.physics") read the str as its letters: every change was outside it (no path is "b"
+    or starts with "b." ...), and one of "b.x" would have passed as inside; a generator of paths was spent on the
+    first change, so the friction change below came out as outside. The mass change is under box_0.physics, the
+    friction change under physics, the position change under neither."""
+    from aynamics.edit import Change
+
+    mass = Change("box_0.physics.mass", 1.0, 3.0)
+    friction = Change("physics.friction", 0.5, 0.2)
+    moved = Change("box_0.state.position[0]", -5.0, -4.0)
+    assert outside([mass, friction, moved], {"box_0.physics", "physics"}) == [moved]
+    assert outside((mass, friction), (p for p in ("physics", "box_0.physics"))) == []
+    assert outside([mass, friction], {"box_0.physics": 1}) == [friction]  # a mapping: its keys
+    with pytest.raises(TypeError, match=r"outside: allowed is a str 'box_0.physics': must be a set of str field"):
+        outside([mass, friction], "box_0.physics")
+    with pytest.raises(TypeError, match=r"outside: allowed is a NoneType None: must be a set"):
+        outside([mass], None)
+    with pytest.raises(TypeError, match=r"outside: allowed holds a NoneType None: must be a set of str"):
+        outside([mass], {"physics", None})
+    with pytest.raises(TypeError, match=r"outside: changes is a str 'box_0.physics.mass': must be a list of Changes"):
+        outside("box_0.physics.mass", {"physics"})
+    with pytest.raises(TypeError, match=r"outside: changes\[1\] is a str 'physics.friction': must be a Change"):
+        outside([mass, "physics.friction"], {"physics"})
+
+
 def test_write_animation_gif_and_mp4_read_back(tmp_path):
     """Two tiles of a square moving right by 4 px per frame, side by side; odd sizes (15 × 21 per tile) make
     the MP4 pad to 16 × 42. Both files read back (the MP4 through PyAV, as `aynamics predict` reads a video)

@@ -141,6 +141,19 @@ def test_fit_arguments_of_the_wrong_kind_are_named():
     assert fitlib.clustered_cov(np.ones((4, 1)), np.ones(4), [2, 2]) == pytest.approx(np.ones((1, 1)))
 
 
+def test_track_errors_by_hand_and_no_tracks_named(monkeypatch):
+    """Residuals 0.1 in x, y and z at every frame: RMS sqrt(3 · 0.01) = 0.173205 m; residuals [0.2, 0.2, NaN]
+    (a missing frame is left out): sqrt(3 · 0.04) = 0.346410 m. No tracks failed on a bare IndexError deep in the
+    batched simulation (effects._run: scenes[0])."""
+    _linear_model(monkeypatch)
+    tracks = [_track(0.5, [0.1] * 4), _track(0.5, [0.2, 0.2, np.nan])]
+    err = fitlib.track_errors(None, tracks, {"mu": 0.5}, [])
+    assert err == pytest.approx([0.173205, 0.346410], abs=1e-6)
+    for empty in ([], ()):
+        with pytest.raises(ValueError, match=r"track_errors: tracks = (\[\]|\(\)): must be a non-empty list"):
+            fitlib.track_errors(None, empty, {"mu": 0.5}, [])
+
+
 @pytest.mark.parametrize("mu0", [0.0, 1.8])
 def test_fit_from_a_scene_mu_outside_its_bounds_starts_at_the_bound(monkeypatch, mu0):
     """A scene's μ of 0 or 1.8 (valid scene values, outside MU_BOUNDS [0.02, 1.5]) made the audit's baseline fail

@@ -213,6 +213,20 @@ def test_match_objects_names_first():
     assert metrics.match_objects(None, None, score) == [(0, 1), (1, 0)]
 
 
+def test_match_objects_names_a_name_that_is_not_a_str():
+    """None among the predicted names failed on a bare TypeError in the default-name regex ("expected string or
+    bytes-like object"), and among the observed ones it silently matched nothing. Names as a tuple or a NumPy array
+    of str pair as a list does: "a" with "a" by name, then "b" / "c" (overlap 0) left unpaired."""
+    score = np.array([[0.0, 0.9], [0.8, 0.0]])
+    with pytest.raises(ValueError, match=r"match_objects: pred_names\[1\] = None: object names must be str"):
+        metrics.match_objects(["a", None], ["a", "c"], score)
+    with pytest.raises(ValueError, match=r"match_objects: obs_names\[1\] = None: object names must be str"):
+        metrics.match_objects(["a", "b"], ["a", None], score)
+    with pytest.raises(ValueError, match=r"match_objects: obs_names\[0\] = 3: object names must be str"):
+        metrics.match_objects(None, [3, "c"], score)
+    assert metrics.match_objects(np.array(["a", "b"]), ("a", "c"), score) == [(0, 0)]
+
+
 def test_default_names_are_not_identities():
     """Two boxes listed in the other order: with default names (what parse gives unnamed objects, and what
     generated scenes carry) they pair by overlap / position, so swapping the list costs nothing; with chosen names

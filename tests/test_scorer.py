@@ -397,6 +397,32 @@ def test_observation_simulates_up_to_its_last_frame():
     assert scorer.Observation(seg, np.array([0, 3]), 4, 4).config.duration == pytest.approx(1.0)
 
 
+def test_an_observation_built_directly_is_checked_as_from_dir_checks_its_files():
+    """Observation(...) built directly took NaN flow (it dropped out of the EPE averages: a wrong candidate scored
+    EPE 0), float ids (truncated: 0.7 was object 0), ids below -1 and int 0/1 occlusion (~ made it -1/-2: every
+    pixel seen). NaN or infinite flow where `occluded` marks the pixel passes (never read), and so do int flow and
+    int64 ids."""
+    seg, frames = np.zeros((1, 4, 4), np.int16), np.array([0])
+    flow = np.zeros((1, 4, 4, 2), np.float32)
+    assert scorer.Observation(seg.astype(np.int64), frames, 4, 4, flow.astype(int)).flow is not None
+    occluded = np.zeros((1, 4, 4), bool)
+    occluded[0, 1, 2] = True
+    for value, shown in (((np.nan, 0.0), r"\[nan, 0.0\]"), ((1.0, -np.inf), r"\[1.0, -inf\]")):
+        bad = flow.copy()
+        bad[0, 1, 2] = value
+        with pytest.raises(ValueError, match=rf"flow\[0, 1, 2\] = {shown}: 1 pixels not occluded hold NaN or infinite"):
+            scorer.Observation(seg, frames, 4, 4, bad)
+        assert scorer.Observation(seg, frames, 4, 4, bad, occluded).occluded[0, 1, 2]
+    with pytest.raises(ValueError, match=r"segmentation dtype float64: must be signed int ids, -1 background"):
+        scorer.Observation(seg + 0.7, frames, 4, 4)
+    with pytest.raises(ValueError, match=r"segmentation dtype int16, lowest id -2: must be signed int ids"):
+        scorer.Observation(seg - 2, frames, 4, 4)
+    with pytest.raises(ValueError, match=r"occluded ndarray of shape \(1, 4, 4\) dtype int64: must be a bool array"):
+        scorer.Observation(seg, frames, 4, 4, flow, occluded.astype(int))
+    with pytest.raises(ValueError, match=r"occluded ndarray of shape \(1, 4, 2\) dtype bool: must be a bool array"):
+        scorer.Observation(seg, frames, 4, 4, flow, occluded[:, :, :2])
+
+
 def test_unsigned_segmentation_npy_is_refused_naming_the_file(tmp_path):
     """uint8 masks (0 background, as most tools save them) cannot hold -1: min(initial=-1) raised OverflowError (a
     traceback from `refine`/`score`); now a ValueError naming the file and the fix."""
