@@ -110,18 +110,46 @@ def build_preferences(
             f"num_samples = {num_samples}, temperature = {temperature}, batch_size = {batch_size}: "
             "need num_samples >= 2, a finite temperature > 0, batch_size >= 1"
         )
+    if module.processor is None:  # sampling loads it; with every batch kept, nothing is sampled: the summary needs it
+        module.ensure_processor()
     starts = range(0, len(videos), batch_size)
     batches = progress.done() if progress is not None else []
+    if len(batches) > len(starts):
+        raise ValueError(f"{progress.folder} holds {len(batches)} batches, but these videos make {len(starts)}")
+    # the images of the videos with rows: each video is read once (a generated data set decodes its images at every
+    # read) and its rows share them, as before batches were kept
+    frames: dict[int, tuple] = {}
+
+    def keep_frames(start: int, chunk: Sequence[UnlabeledVideo], batch: dict) -> None:
+        paired = {row["video"] for row in batch["rows"]}
+        frames.update({start + b: v.frames for b, v in enumerate(chunk) if start + b in paired})
+
+    # what shapes a batch's rows: a progress made for other settings (`SamplingProgress.settings` is the caller's)
+    sampling = {"num_samples": num_samples, "pairs": pairs, "temperature": temperature, "batch_size": batch_size}
     for start, batch in zip(starts, batches, strict=False):
-        keys = [videos[i].key for i in range(start, min(start + batch_size, len(videos)))]
+        kept = batch["sampling"]
+        differ = [f"{k} {kept.get(k)!r} there, {v!r} now" for k, v in sampling.items() if kept.get(k) != v]
+        if differ:
+            raise ValueError(
+                f"{progress.folder}: its batch at video {start} was sampled with other settings ({'; '.join(differ)}):"
+                " run with its settings to go on from it, or delete it to sample afresh"
+            )
+        chunk = [videos[i] for i in range(start, min(start + batch_size, len(videos)))]
+        keys = [v.key for v in chunk]
         if batch["keys"] != keys or tuple(batch["rewards"].shape) != (len(keys), num_samples):
             raise ValueError(
                 f"{progress.folder}: its batch at video {start} holds videos {batch['keys']} with "
                 f"{tuple(batch['rewards'].shape)} rewards, but these settings give videos {keys} with "
                 f"{(len(keys), num_samples)}: the videos changed since it was written; delete it to sample afresh"
             )
-    if len(batches) > len(starts):
-        raise ValueError(f"{progress.folder} holds {len(batches)} batches, but these videos make {len(starts)}")
+        changed = [v.key for v, d in zip(chunk, batch["digests"], strict=True) if video_digest(v) != d]
+        if changed:  # the same keys (a record's index, a folder's name) in a data set made again
+            raise ValueError(
+                f"{progress.folder}: its batch at video {start} was sampled from other images or masks of the "
+                f"videos {changed} than they hold now: the videos changed since it was written; delete it to "
+                "sample afresh"
+            )
+        keep_frames(start, chunk, batch)
     if batches:  # the generators as they were after the last kept batch: what follows is what would have
         rng.restore({"per_rank": [batches[-1]["rng"]]}, 0)
     for start in starts[len(batches) :]:
@@ -131,6 +159,8 @@ def build_preferences(
         batch = {
             "start": start,
             "keys": [v.key for v in chunk],
+            "digests": [video_digest(v) for v in chunk],
+            "sampling": sampling,
             "rows": _pair_rows(start, [v.key for v in chunk], ids, texts, rewards, scores, pairs),
             "rewards": rewards.detach().cpu().float(),
             "scores": [[dataclasses.asdict(s) for s in row] for row in scores],
@@ -139,8 +169,9 @@ def build_preferences(
         if progress is not None:
             progress.save(len(batches), batch)
         batches.append(batch)
+        keep_frames(start, chunk, batch)
     rows = [
-        {**{k: v for k, v in row.items() if k != "video"}, "frames": list(videos[row["video"]].frames)}
+        {**{k: v for k, v in row.items() if k != "video"}, "frames": list(frames[row["video"]])}
         for batch in batches
         for row in batch["rows"]
     ]
@@ -162,6 +193,27 @@ def build_preferences(
         "tokenizer": lm.tokenizer_fingerprint(module.processor.tokenizer),
     }
     return rows, summary
+
+
+def video_digest(video: UnlabeledVideo) -> str:
+    """A short hash of what a video's candidates depend on: the images the model sees and the observation they are
+    scored against (masks, flow). A key names a video (a record's index, a folder's name), not what it holds: a
+    data set generated again holds other videos under the same keys."""
+    import hashlib
+
+    import numpy as np
+
+    h = hashlib.sha256()
+    for im in video.frames:
+        h.update(f"{im.mode} {im.size}".encode())
+        h.update(im.tobytes())
+    obs = video.observation
+    for a in (obs.segmentation, obs.flow) if obs is not None else ():
+        if a is not None:
+            a = np.ascontiguousarray(a)
+            h.update(f"{a.dtype} {a.shape}".encode())
+            h.update(a.tobytes())
+    return h.hexdigest()[:16]
 
 
 def _pair_rows(
@@ -199,9 +251,10 @@ class SamplingProgress:
     run goes on where it stopped (at most one batch is sampled again) and gives the rows an uninterrupted run gives.
 
     The folder holds `settings.json` (everything the samples depend on: a run with other settings is refused,
-    naming what differs) and one `batch-NNNNNN.pt` per batch, written atomically: its videos' keys, its rows
-    without frames (taken again from the videos), every candidate's score and the random generators' states
-    after it. `aynamics preferences --out OUT` keeps it in `OUT.partial` and deletes it once OUT is written.
+    naming what differs) and one `batch-NNNNNN.pt` per batch, written atomically: its videos' keys and
+    `video_digest`s, its sampling settings, its rows without frames (taken again from the videos), every
+    candidate's score and the random generators' states after it. `aynamics preferences --out OUT` keeps it in
+    `OUT.partial` and deletes it once OUT is written.
 
         progress = SamplingProgress("prefs.partial", {"seed": 0, "num_samples": 32, ...})
         with progress.opened():  # made or checked, and locked: a second writer is refused
@@ -211,6 +264,7 @@ class SamplingProgress:
 
     SETTINGS = "settings.json"
     _BATCH = re.compile(r"batch-(\d{6})\.pt")
+    _FIELDS = frozenset({"start", "keys", "digests", "sampling", "rows", "rewards", "scores", "rng"})
 
     def __init__(self, folder: str | Path, settings: dict) -> None:
         self.folder = Path(folder)
@@ -225,6 +279,11 @@ class SamplingProgress:
         """
         from aynamics.dataset_store import exclusive
 
+        if self.folder.is_symlink():  # removing a link at the end leaves its batches to be gone on from next time
+            raise ValueError(
+                f"{str(self.folder)!r} is a link (to {os.readlink(self.folder)!r}): the kept batches need a folder of "
+                "their own; remove the link"
+            )
         if self.folder.exists() and not (self.folder / self.SETTINGS).is_file():
             other = [p.name for p in self.folder.iterdir() if p.name != ".lock"] if self.folder.is_dir() else []
             if other or not self.folder.is_dir():
@@ -246,7 +305,9 @@ class SamplingProgress:
 
     def _check_settings(self) -> None:
         path = self.folder / self.SETTINGS
-        if not path.is_file():
+        # no batch kept, nothing to go on from: a run that failed before its first one (a mistyped --num-samples,
+        # a first batch too large for the GPU) does not bind the next to its settings
+        if not path.is_file() or not len(self):
             tmp = path.with_suffix(".tmp")
             tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
             os.replace(tmp, path)
@@ -283,11 +344,18 @@ class SamplingProgress:
                     f"{str(path)!r}: batch {k} is missing before it; delete it and later ones to sample them again"
                 )
             try:
-                batches.append(torch.load(path, weights_only=True))
+                batch = torch.load(path, weights_only=True)
             except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as e:  # torch names no file
                 raise ValueError(
                     f"{str(path)!r} cannot be read ({type(e).__name__}: {e}): delete it to sample it again"
                 ) from None
+            if not isinstance(batch, dict) or not self._FIELDS <= batch.keys():
+                held = sorted(batch) if isinstance(batch, dict) else type(batch).__name__
+                raise ValueError(
+                    f"{str(path)!r} is not a batch this version keeps (it holds {held}, not {sorted(self._FIELDS)}): "
+                    "delete it to sample it again"
+                )
+            batches.append(batch)
         return batches
 
     def __len__(self) -> int:
@@ -615,7 +683,9 @@ def run_preferences(args) -> int:
         )
         module.to(device)
         torch.manual_seed(args.seed)
-        progress = SamplingProgress(partial_folder(args.out), _settings(args, model, spec.dtype))
+        split = (args.split or "train") if isinstance(videos, GeneratedVideos) else None  # as open_videos read it
+        settings = _settings(args, model=model, dtype=spec.dtype, split=split, inputs=prompt.modality)
+        progress = SamplingProgress(partial_folder(args.out), settings)
         with progress.opened():
             if len(progress):
                 print(
@@ -646,26 +716,28 @@ def run_preferences(args) -> int:
                     f"preferences: cannot write --out {args.out!r}: {e}; the sampled batches are kept in "
                     f"{str(progress.folder)!r}: the same command writes them without sampling again"
                 ) from None
+            progress.remove()  # under the lock: no second writer starts on the batches meanwhile
     except ValueError as e:
         raise UsageError(f"preferences: {e}") from None
-    progress.remove()
     _print_json(summary)
     return 0
 
 
-def _settings(args, model: str, dtype: str) -> dict:
-    """What `aynamics preferences`' samples depend on: a kept run is gone on from only with the same."""
+def _settings(args, *, model: str, dtype: str, split: str | None, inputs: str) -> dict:
+    """What `aynamics preferences`' samples depend on: a kept run is gone on from only with the same (each as it was
+    resolved: the same run spelled otherwise, `--split train` or none, `--inputs` an adapter overrides, goes on)."""
 
     def path(p: str | None) -> str | None:  # a folder by where it is (a hub id stays as written)
         return p if p is None or not os.path.exists(p) else os.path.abspath(p)
 
     return {
         "data": path(args.data),
-        "split": args.split,
+        "split": split,
         "limit": args.limit,
-        "model": path(model),
+        "model": model if model == "tiny" else path(model),  # the tiny model, whatever folder is named so here
         "dtype": dtype,
         "adapter": path(args.adapter),
+        "inputs": inputs,
         **{k: getattr(args, k) for k in ("num_samples", "pairs", "temperature", "top_p", "max_new_tokens")},
-        **{k: getattr(args, k) for k in ("metric", "span", "inputs", "batch_size", "seed")},
+        **{k: getattr(args, k) for k in ("metric", "span", "batch_size", "seed")},
     }

@@ -8,22 +8,32 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from PIL import Image
 from train_fixtures import tiny_dataset
 
 from aynamics import lm
 from aynamics import reward as rw
 from aynamics.cli import main as cli_main
-from aynamics.preference_data import load_preferences, select_pairs, write_preferences
+from aynamics.preference_data import (
+    SamplingProgress,
+    build_preferences,
+    load_preferences,
+    select_pairs,
+    write_preferences,
+)
 from aynamics.pro import ProModule
 from aynamics.processor import load_processor, response_ids
 from aynamics.scene import dump, parse
-from aynamics.unlabeled import GeneratedVideos
+from aynamics.scorer import Score
+from aynamics.unlabeled import GeneratedVideos, UnlabeledVideo
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -1113,3 +1123,181 @@ def test_preferences_go_on_after_an_interruption(tmp_path, dataset_dir, monkeypa
     for column in ("key", "completions", "completion_ids", "rewards", "reasons", "case_rewards"):
         assert a[column] == b[column]
     assert json.loads((whole / "summary.json").read_text()) == json.loads((part / "summary.json").read_text())
+
+
+def test_preferences_interrupted_while_writing_are_written_from_the_kept_batches(tmp_path, dataset_dir, monkeypatch):
+    """Interrupted in write_preferences, after all 3 batches were scored and kept: the same command samples nothing
+    and writes the rows of an uninterrupted run. It stopped with an AttributeError (the processor, loaded only by
+    sampling, was None when the summary named its tokenizer), as after the 'cannot write --out' failure whose
+    message promises that the same command writes them."""
+    from aynamics import preference_data
+
+    calls, real_write = [], preference_data.write_preferences
+    real = ProModule.sample_and_score
+
+    def counted(self, chunk, num_samples, temperature):
+        calls.append([v.key for v in chunk])
+        return real(self, chunk, num_samples, temperature)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ProModule, "sample_and_score", counted)
+    args = ["preferences", "--data", str(dataset_dir), "--limit", "3", "--num-samples", "2", "--pairs", "1"]
+    args += ["--max-new-tokens", "4", "--device", "cpu"]
+    assert cli_main([*args, "--out", str(tmp_path / "whole")]) == 0
+    monkeypatch.setattr(preference_data, "write_preferences", interrupted)
+    assert cli_main([*args, "--out", str(tmp_path / "part")]) == 130
+    assert len(list((tmp_path / "part.partial").glob("batch-*.pt"))) == 3
+    monkeypatch.setattr(preference_data, "write_preferences", real_write)
+    calls.clear()
+    assert cli_main([*args, "--out", str(tmp_path / "part")]) == 0
+    assert calls == [] and not (tmp_path / "part.partial").exists()  # nothing sampled again
+    whole, part = (json.loads((tmp_path / p / "summary.json").read_text()) for p in ("whole", "part"))
+    assert part == whole and whole["videos"] == 3
+
+
+def test_preferences_that_kept_no_batch_do_not_bind_the_next_run(tmp_path, dataset_dir, monkeypatch, capsys):
+    """A run refused before its first batch (--num-samples 1), or failing in it (as a GPU out of memory at
+    --batch-size 3), keeps no batch: the corrected command samples afresh. OUT.partial held the failed run's
+    settings, and the corrected one was refused ("num_samples 1 there, 2 now"), until the user deleted it."""
+    real = ProModule.sample_and_score
+
+    def out_of_memory(self, chunk, num_samples, temperature):
+        if len(chunk) > 1:
+            raise RuntimeError("CUDA out of memory")
+        return real(self, chunk, num_samples, temperature)
+
+    monkeypatch.setattr(ProModule, "sample_and_score", out_of_memory)
+    args = ["preferences", "--data", str(dataset_dir), "--limit", "2", "--pairs", "1", "--max-new-tokens", "4"]
+    args += ["--device", "cpu", "--out", str(tmp_path / "prefs")]
+    assert cli_main([*args, "--num-samples", "1"]) == 2
+    assert "num_samples = 1" in capsys.readouterr().err
+    with pytest.raises(RuntimeError, match="out of memory"):
+        cli_main([*args, "--num-samples", "2", "--batch-size", "3"])
+    assert cli_main([*args, "--num-samples", "2"]) == 0, capsys.readouterr().err
+    assert json.loads((tmp_path / "prefs" / "summary.json").read_text())["videos"] == 2
+    assert not (tmp_path / "prefs.partial").exists()
+
+
+class _DrawnCandidates:
+    """A stand-in for ProModule in build_preferences, with no model (a run takes milliseconds): each candidate is 3
+    token ids drawn from torch's generator, its reward a function of them (sum % 97 / 97), every one invalid."""
+
+    prompt = PROMPT
+
+    def __init__(self, stop_after: int | None = None) -> None:
+        decode = lambda ids, skip_special_tokens: [" ".join(map(str, c)) for c in ids]  # noqa: E731
+        self.processor = SimpleNamespace(tokenizer=SimpleNamespace(get_vocab=lambda: {"a": 0}, batch_decode=decode))
+        self.calls, self.stop_after = [], stop_after
+
+    def sample_and_score(self, chunk, num_samples, temperature):
+        if self.stop_after is not None and len(self.calls) == self.stop_after:
+            raise KeyboardInterrupt
+        self.calls.append([v.key for v in chunk])
+        ids = torch.randint(1, 1000, (len(chunk), num_samples, 3)).tolist()
+        scores = [[Score(0.0, 0.0, None, None, False, "truncated") for _ in row] for row in ids]
+        return None, ids, scores, torch.tensor([[sum(c) % 97 / 97 for c in row] for row in ids])
+
+
+class _CountedVideos(Sequence):
+    """`n` one-image videos keyed "0", "1", ..., counting the reads of each (a generated data set decodes its
+    images at every read); `shade` sets their images."""
+
+    def __init__(self, n: int, shade: int = 0) -> None:
+        self.n, self.shade, self.reads = n, shade, [0] * n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i):
+        self.reads[i] += 1
+        return UnlabeledVideo(str(i), (Image.new("RGB", (4, 4), (i, self.shade, 0)),), None)
+
+
+def _drawn_preferences(videos, module, progress=None, **kwargs):
+    torch.manual_seed(0)
+    kwargs = {"num_samples": 4, "pairs": 2, "batch_size": 2, **kwargs}
+    return build_preferences(module, videos, progress=progress, **kwargs)
+
+
+def test_build_preferences_reads_each_video_once(tmp_path):
+    """4 videos, 2 a batch, 4 candidates and 2 pairs each: every video is read once, uninterrupted or going on
+    from the first kept batch, and its rows share its images. Each row read its video again (1 + its rows reads
+    of a video: a generated data set's images decoded 3 times and held twice over), the kept ones once more."""
+    videos = _CountedVideos(4)
+    whole, _ = _drawn_preferences(videos, _DrawnCandidates())
+    assert videos.reads == [1, 1, 1, 1] and len(whole) == 8  # 4 distinct rewards a video: 2 pairs each
+    assert whole[0]["frames"][0] is whole[1]["frames"][0]  # video 0's two rows: its images once
+    progress = SamplingProgress(tmp_path / "p", {})
+    with progress.opened(), pytest.raises(KeyboardInterrupt):
+        _drawn_preferences(_CountedVideos(4), _DrawnCandidates(stop_after=1), progress)
+    videos, module = _CountedVideos(4), _DrawnCandidates()
+    with progress.opened():
+        rows, _ = _drawn_preferences(videos, module, progress)
+    assert module.calls == [["2", "3"]] and videos.reads == [1, 1, 1, 1]
+    assert [r["completion_ids"] for r in rows] == [r["completion_ids"] for r in whole]
+
+
+def test_build_preferences_refuses_kept_batches_of_other_videos_under_the_same_keys(tmp_path):
+    """The first batch (videos "0" and "1") is kept; the videos are then made again with other images under the
+    same keys (a data set generated again: keys are record indices): going on is refused, naming both. Only the
+    keys were compared, and the kept candidates were paired with the new videos' images."""
+    progress = SamplingProgress(tmp_path / "p", {})
+    with progress.opened(), pytest.raises(KeyboardInterrupt):
+        _drawn_preferences(_CountedVideos(4), _DrawnCandidates(stop_after=1), progress)
+    with progress.opened(), pytest.raises(ValueError, match=r"videos \['0', '1'\] than they hold now"):
+        _drawn_preferences(_CountedVideos(4, shade=9), _DrawnCandidates(), progress)
+    with progress.opened():  # the same videos: it goes on
+        assert len(_drawn_preferences(_CountedVideos(4), _DrawnCandidates(), progress)[0]) == 8
+
+
+def test_build_preferences_refuses_a_progress_kept_with_other_settings(tmp_path):
+    """`SamplingProgress.settings` is the caller's (the CLI's name every setting; these name none): a batch kept
+    with 1 pair a video, resumed with 2, is refused naming pairs, and another batch size names batch_size (it read
+    as 'the videos changed'). Pairs and temperature were not compared, and the rows mixed 1 and 2 pairs a video.
+    A batch file of other contents (another version's) is named, not a KeyError."""
+    progress = SamplingProgress(tmp_path / "p", {})
+    with progress.opened(), pytest.raises(KeyboardInterrupt):
+        _drawn_preferences(_CountedVideos(4), _DrawnCandidates(stop_after=1), progress, pairs=1)
+    for kwargs, named in (({"pairs": 2}, "pairs 1 there, 2 now"), ({"batch_size": 1}, "batch_size 2 there, 1 now")):
+        with progress.opened(), pytest.raises(ValueError, match=f"sampled with other settings \\({named}\\)"):
+            _drawn_preferences(_CountedVideos(4), _DrawnCandidates(), progress, **{"pairs": 1, **kwargs})
+    with progress.opened(), pytest.raises(ValueError, match="sampled with other settings .temperature 0.1 there"):
+        _drawn_preferences(_CountedVideos(4), _DrawnCandidates(), progress, pairs=1, temperature=0.5)
+    torch.save({"keys": ["0", "1"]}, tmp_path / "p" / "batch-000000.pt")
+    with progress.opened(), pytest.raises(ValueError, match="batch-000000.pt' is not a batch this version keeps"):
+        _drawn_preferences(_CountedVideos(4), _DrawnCandidates(), progress, pairs=1)
+
+
+def test_preferences_go_on_with_the_same_split_spelled_otherwise(tmp_path, dataset_dir, monkeypatch, capsys):
+    """Interrupted after its first batch, the run goes on with `--split train` given, the split it read without
+    one (refused before: "split None there, 'train' now"), and only the second video is sampled."""
+    real, calls = ProModule.sample_and_score, []
+
+    def stopped_at_second(self, chunk, num_samples, temperature):
+        calls.append([v.key for v in chunk])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(self, chunk, num_samples, temperature)
+
+    monkeypatch.setattr(ProModule, "sample_and_score", stopped_at_second)
+    args = ["preferences", "--data", str(dataset_dir), "--limit", "2", "--num-samples", "2", "--pairs", "1"]
+    args += ["--max-new-tokens", "4", "--device", "cpu", "--out", str(tmp_path / "prefs")]
+    assert cli_main(args) == 130
+    calls.append("interrupted")
+    assert cli_main([*args, "--split", "train"]) == 0, capsys.readouterr().err
+    assert len(calls) == 4 and calls[3] == calls[1]  # the second video sampled again, the first not
+
+
+def test_kept_batches_need_a_folder_of_their_own(tmp_path):
+    """OUT.partial as a link is refused: removed at the end, the link went and its batches stayed, to be gone on from
+    by the next run into another OUT pointing there."""
+    from aynamics.preference_data import SamplingProgress
+
+    (tmp_path / "real").mkdir()
+    (tmp_path / "p.partial").symlink_to(tmp_path / "real")
+    with pytest.raises(ValueError, match=r"p\.partial' is a link \(to .*real'\)"):
+        with SamplingProgress(tmp_path / "p.partial", {"seed": 0}).opened():
+            pass
+    assert list((tmp_path / "real").iterdir()) == []
