@@ -126,34 +126,20 @@ def build_preferences(
 
     # what shapes a batch's rows: a progress made for other settings (`SamplingProgress.settings` is the caller's)
     sampling = {"num_samples": num_samples, "pairs": pairs, "temperature": temperature, "batch_size": batch_size}
+
+    def chunk_at(start: int) -> list[UnlabeledVideo]:
+        return [videos[i] for i in range(start, min(start + batch_size, len(videos)))]
+
     for start, batch in zip(starts, batches, strict=False):
-        kept = batch["sampling"]
-        differ = [f"{k} {kept.get(k)!r} there, {v!r} now" for k, v in sampling.items() if kept.get(k) != v]
-        if differ:
-            raise ValueError(
-                f"{progress.folder}: its batch at video {start} was sampled with other settings ({'; '.join(differ)}):"
-                " run with its settings to go on from it, or delete it to sample afresh"
-            )
-        chunk = [videos[i] for i in range(start, min(start + batch_size, len(videos)))]
-        keys = [v.key for v in chunk]
-        if batch["keys"] != keys or tuple(batch["rewards"].shape) != (len(keys), num_samples):
-            raise ValueError(
-                f"{progress.folder}: its batch at video {start} holds videos {batch['keys']} with "
-                f"{tuple(batch['rewards'].shape)} rewards, but these settings give videos {keys} with "
-                f"{(len(keys), num_samples)}: the videos changed since it was written; delete it to sample afresh"
-            )
-        changed = [v.key for v, d in zip(chunk, batch["digests"], strict=True) if video_digest(v) != d]
-        if changed:  # the same keys (a record's index, a folder's name) in a data set made again
-            raise ValueError(
-                f"{progress.folder}: its batch at video {start} was sampled from other images or masks of the "
-                f"videos {changed} than they hold now: the videos changed since it was written; delete it to "
-                "sample afresh"
-            )
+        chunk = chunk_at(start)
+        why = _kept_mismatch(batch, chunk, sampling)
+        if why is not None:
+            raise ValueError(f"{progress.folder}: its batch at video {start} {why}")
         keep_frames(start, chunk, batch)
     if batches:  # the generators as they were after the last kept batch: what follows is what would have
         rng.restore({"per_rank": [batches[-1]["rng"]]}, 0)
     for start in starts[len(batches) :]:
-        chunk = [videos[i] for i in range(start, min(start + batch_size, len(videos)))]
+        chunk = chunk_at(start)
         _, ids, scores, rewards = module.sample_and_score(chunk, num_samples, temperature)
         texts = module.processor.tokenizer.batch_decode([c for row in ids for c in row], skip_special_tokens=True)
         batch = {
@@ -193,6 +179,30 @@ def build_preferences(
         "tokenizer": lm.tokenizer_fingerprint(module.processor.tokenizer),
     }
     return rows, summary
+
+
+def _kept_mismatch(batch: dict, chunk: Sequence[UnlabeledVideo], sampling: dict) -> str | None:
+    """Why a kept batch is not what these settings would sample from these videos now, or None."""
+    kept = batch["sampling"]
+    differ = [f"{k} {kept.get(k)!r} there, {v!r} now" for k, v in sampling.items() if kept.get(k) != v]
+    if differ:
+        return (
+            f"was sampled with other settings ({'; '.join(differ)}): run with its settings to go on from it, or "
+            "delete it to sample afresh"
+        )
+    keys = [v.key for v in chunk]
+    if batch["keys"] != keys or batch["rewards"].shape[0] != len(keys):
+        return (
+            f"holds videos {batch['keys']}, but these settings give videos {keys} there: the videos changed since "
+            "it was written; delete it to sample afresh"
+        )
+    changed = [v.key for v, d in zip(chunk, batch["digests"], strict=True) if video_digest(v) != d]
+    if changed:  # the same keys (a record's index, a folder's name) in a data set made again
+        return (
+            f"was sampled from other images or masks of the videos {changed} than they hold now: the videos changed "
+            "since it was written; delete it to sample afresh"
+        )
+    return None
 
 
 def video_digest(video: UnlabeledVideo) -> str:
