@@ -47,7 +47,7 @@ TRAIN_DATA ?= data/generated/make_train_plain
 TRAIN_SCENES ?= 1536
 TRAIN_OUT ?= runs/make_train
 
-train: setup  ## generate a small data set if missing, train the tiny model on the CPU (10-15 min once its data exist), print the validation table
+train: setup  ## generate a small data set if missing, train the tiny model on the CPU (10-17 min once its data exist), print the validation table
 	@# a data set simulated by older physics (simulate.PHYSICS_VERSION) is moved aside, kept, and made again
 	@if [ -f $(TRAIN_DATA)/dataset_dict.json ] && ! $(BIN)/python -c "import sys; from aynamics.dataset_store \
 	  import stale_physics; sys.exit(bool(stale_physics('$(TRAIN_DATA)')))"; then \
