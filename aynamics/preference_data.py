@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -209,8 +210,6 @@ def video_digest(video: UnlabeledVideo) -> str:
     """A short hash of what a video's candidates depend on: the images the model sees and the observation they are
     scored against (masks, flow). A key names a video (a record's index, a folder's name), not what it holds: a
     data set generated again holds other videos under the same keys."""
-    import hashlib
-
     import numpy as np
 
     h = hashlib.sha256()
@@ -680,23 +679,23 @@ def run_preferences(args) -> int:
             from aynamics.data import with_clock
 
             prompt = with_clock(prompt, args.data, videos.ds)
-        module = ProModule(
-            spec,
-            init_adapter=args.adapter,
-            num_samples=max(args.num_samples, 2),
-            temperature=args.temperature,
-            top_p=args.top_p,
-            max_new_tokens=args.max_new_tokens,
-            reward_metric=args.metric,
-            reward_span=args.span,
-            prompt=prompt,
-        )
-        module.to(device)
-        torch.manual_seed(args.seed)
         split = (args.split or "train") if isinstance(videos, GeneratedVideos) else None  # as open_videos read it
         settings = _settings(args, model=model, dtype=spec.dtype, split=split, inputs=prompt.modality)
         progress = SamplingProgress(partial_folder(args.out), settings)
-        with progress.opened():
+        with progress.opened():  # other settings or a second writer are refused before minutes of model loading
+            module = ProModule(
+                spec,
+                init_adapter=args.adapter,
+                num_samples=max(args.num_samples, 2),
+                temperature=args.temperature,
+                top_p=args.top_p,
+                max_new_tokens=args.max_new_tokens,
+                reward_metric=args.metric,
+                reward_span=args.span,
+                prompt=prompt,
+            )
+            module.to(device)
+            torch.manual_seed(args.seed)
             if len(progress):
                 print(
                     f"preferences: going on from {str(progress.folder)!r} ({len(progress)} batches kept)",
@@ -733,6 +732,18 @@ def run_preferences(args) -> int:
     return 0
 
 
+def _file_digest(path: Path) -> str | None:
+    """A short hash of a file's bytes (None for no file): a folder names an adapter, not what it holds (one trained
+    again into the same folder samples other candidates)."""
+    if not path.is_file():
+        return None
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
 def _settings(args, *, model: str, dtype: str, split: str | None, inputs: str) -> dict:
     """What `aynamics preferences`' samples depend on: a kept run is gone on from only with the same (each as it was
     resolved: the same run spelled otherwise, `--split train` or none, `--inputs` an adapter overrides, goes on)."""
@@ -747,6 +758,7 @@ def _settings(args, *, model: str, dtype: str, split: str | None, inputs: str) -
         "model": model if model == "tiny" else path(model),  # the tiny model, whatever folder is named so here
         "dtype": dtype,
         "adapter": path(args.adapter),
+        "adapter_weights": _file_digest(Path(args.adapter) / "adapter_model.safetensors") if args.adapter else None,
         "inputs": inputs,
         **{k: getattr(args, k) for k in ("num_samples", "pairs", "temperature", "top_p", "max_new_tokens")},
         **{k: getattr(args, k) for k in ("metric", "span", "batch_size", "seed")},

@@ -1301,3 +1301,51 @@ def test_kept_batches_need_a_folder_of_their_own(tmp_path):
         with SamplingProgress(tmp_path / "p.partial", {"seed": 0}).opened():
             pass
     assert list((tmp_path / "real").iterdir()) == []
+
+
+def test_preferences_are_refused_before_the_model_is_loaded(tmp_path, dataset_dir, monkeypatch, capsys):
+    """A second writer into OUT.partial, or its batches kept with other settings, were refused only after the model
+    was built and moved to the device (minutes for a real checkpoint): now before it is built."""
+    from aynamics.dataset_store import exclusive
+
+    def loaded(self, *args, **kwargs):
+        raise AssertionError("the model was loaded")
+
+    monkeypatch.setattr(ProModule, "__init__", loaded)
+    args = ["preferences", "--data", str(dataset_dir), "--limit", "1", "--device", "cpu"]
+    args += ["--out", str(tmp_path / "prefs")]
+    kept = SamplingProgress(tmp_path / "prefs.partial", {"seed": 5})
+    with kept.opened():
+        kept.save(0, {})  # one batch kept: its settings bind
+    with exclusive(kept.folder / ".lock"):  # another process sampling into it
+        assert cli_main(args) == 2
+        assert "another process is sampling into" in capsys.readouterr().err
+    assert cli_main(args) == 2
+    assert "seed 5 there, 0 now" in capsys.readouterr().err
+
+
+def test_preferences_with_an_adapter_trained_again_into_its_folder_are_refused(tmp_path):
+    """The settings named --adapter by its folder only: an interrupted run went on with an adapter trained again into
+    the same folder, and the data set mixed two policies' candidates. They hold a hash of its weights file now
+    (sha256 of b"abc": ba7816bf8f01cfea..., of b"": e3b0c44298fc1c14...; no adapter: None)."""
+    from aynamics.preference_data import _settings
+
+    adapter = tmp_path / "adapter"
+    adapter.mkdir()
+    args = SimpleNamespace(data=str(tmp_path), adapter=str(adapter), limit=None, num_samples=2, pairs=1)
+    args.__dict__.update(temperature=0.1, top_p=1.0, max_new_tokens=4, metric="iou", span="full", batch_size=1, seed=0)
+
+    def settings() -> dict:
+        return _settings(args, model="tiny", dtype="float32", split="train", inputs="rgb")
+
+    (adapter / "adapter_model.safetensors").write_bytes(b"abc")
+    kept = SamplingProgress(tmp_path / "prefs.partial", settings())
+    assert kept.settings["adapter_weights"] == "ba7816bf8f01cfea"
+    with kept.opened():
+        kept.save(0, {})
+    (adapter / "adapter_model.safetensors").write_bytes(b"")  # trained again
+    with pytest.raises(ValueError, match="adapter_weights 'ba7816bf8f01cfea' there, 'e3b0c44298fc1c14' now"):
+        with SamplingProgress(kept.folder, settings()).opened():
+            pass
+    args.adapter = None
+    assert settings()["adapter_weights"] is None
