@@ -35,7 +35,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from aynamics.scene import Scene, SceneError, from_items, require_scene, to_items
+from aynamics.scene import Environment, Scene, SceneError, from_items, require_scene, to_items
 
 # --------------------------------------------------------------------------------------------
 # Vocabulary
@@ -44,9 +44,9 @@ UNITS: dict[str, dict[str, float]] = {
     "length": {"m": 1.0, "meter": 1.0, "meters": 1.0, "metre": 1.0, "metres": 1.0, "cm": 0.01, "mm": 0.001},
     "velocity": {"m/s": 1.0, "cm/s": 0.01, "km/h": 1 / 3.6},
     "angular": {"rad/s": 1.0, "deg/s": math.pi / 180, "rpm": 2 * math.pi / 60},
-    "mass": {"kg": 1.0, "g": 0.001, "kilograms": 1.0, "grams": 0.001},
+    "mass": {"kg": 1.0, "g": 0.001, "kilogram": 1.0, "kilograms": 1.0, "gram": 0.001, "grams": 0.001},
     "acceleration": {"m/s^2": 1.0, "m/s²": 1.0, "m/s2": 1.0},
-    "angle": {"deg": 1.0, "degrees": 1.0, "°": 1.0},
+    "angle": {"deg": 1.0, "degree": 1.0, "degrees": 1.0, "°": 1.0},
     "none": {},
 }
 
@@ -149,6 +149,10 @@ class EditError(ValueError):
     """An instruction that can't be read, or an edit refused (the message says which and why)."""
 
 
+class _FieldError(EditError):
+    """A field's own value refuses the edit; `_edit_field` puts the clause and the field's path in front."""
+
+
 @dataclass(frozen=True)
 class Change:
     """One leaf of the scene that an edit changed. `path` uses object names: `box_0.state.position[0]`."""
@@ -211,7 +215,8 @@ def _targets(text: str | None, scene: Scene) -> list[int]:
         singular = m.group(2) == kind and m.group(1) in (None, "the")
         if singular and len(idx) > 1:
             names = [scene.names[i] for i in idx]
-            raise EditError(f"{part!r} is ambiguous: the scene has {len(idx)} {kind}es {names}; name one")
+            plural = "boxes" if kind == "box" else f"{kind}s"  # it said "2 spherees"
+            raise EditError(f"{part!r} is ambiguous: the scene has {len(idx)} {plural} {names}; name one")
         out.extend(idx)
     return sorted(set(out))
 
@@ -274,7 +279,8 @@ def _items_of(q: Quantity, items: list[dict], targets: list[int], scene: Scene, 
     if q.scope == "object":
         return [items[i] for i in targets]
     if named:
-        raise EditError(f"{q.key} is a property of the whole scene, not of {[scene.names[i] for i in targets]}")
+        owner = "the camera" if q.scope == "camera" else "the whole scene"
+        raise EditError(f"{q.key} is a property of {owner}, not of {[scene.names[i] for i in targets]}")
     for it in items:
         if it["type"] == q.scope:
             return [it]
@@ -288,79 +294,91 @@ def _edit_field(item: dict, q: Quantity, comp: int | None, fn, label: str) -> No
     for k in parents:
         holder = holder[k]
     name = item.get("name", q.scope)
-    if leaf not in holder or holder[leaf] is None:
-        if q.key == "restitution":
-            holder[leaf] = fn(None)
-            return
-        raise EditError(f"{name} has no {q.key} ({item['type']}); {label} does not apply to it")
-    if q.index is not None:
-        holder[leaf][q.index] = fn(holder[leaf][q.index])
-    elif comp is not None:
-        holder[leaf][comp] = fn(holder[leaf][comp])
-    else:
-        holder[leaf] = fn(holder[leaf])
+    at = q.index if q.index is not None else comp
+    field = f"{name}.{'.'.join(q.path)}" + ("" if at is None else f"[{at}]")  # as `diff` names it
+    try:  # the refusal names the object and field (it named the clause: "'set the spin ... to 2' is zero")
+        if leaf not in holder or holder[leaf] is None:
+            if q.key == "restitution":
+                holder[leaf] = fn(None)
+                return
+            raise EditError(f"{name} has no {q.key} ({item['type']}); {label} does not apply to it")
+        if at is not None:
+            holder[leaf][at] = fn(holder[leaf][at])
+        else:
+            holder[leaf] = fn(holder[leaf])
+    except _FieldError as e:
+        raise EditError(f"{label}: {field}: {e}") from None
 
 
-def _magnitude(vec: list[float], new: float, what: str) -> list[float]:
+def _magnitude(vec: list[float], new: float, setting: bool = False) -> list[float]:
     norm = math.sqrt(sum(x * x for x in vec))
+    if new < 0 and setting:  # "set the gravity to -9.81" was called "this decrease would leave -9.81"
+        raise _FieldError(
+            f"a magnitude is >= 0, not {new:g}; to point it the other way give [x, y, z], set one component "
+            "(x-, y- or z-) or 'reverse' it"
+        )
     if new < 0:  # scaling by a negative length would turn the vector around, not shorten it
-        raise EditError(
-            f"{what}: its magnitude is {norm:.4g}, so this decrease would leave {new:.4g}, below zero; "
+        raise _FieldError(
+            f"its magnitude is {norm:.4g}, so this decrease would leave {new:.4g}, below zero; "
             "decrease by at most the magnitude, or set it to 0"
         )
     if norm == 0.0 and new == 0.0:
         return list(vec)
     if norm == 0.0:
-        raise EditError(f"{what} is zero, so it has no direction to scale along; give [x, y, z] or a component")
+        raise _FieldError("it is zero, so it has no direction to scale along; give [x, y, z] or a component")
     return [x * new / norm for x in vec]
 
 
 def _relative(q: Quantity, comp: int | None, sign: float, amount: float | list[float], kind: str, what: str):
     """The update function for 'increase/decrease by amount'."""
     if kind == "percent":
-        if sign < 0 and amount > 100:
-            raise EditError(f"{what}: a decrease of {amount:g}% would flip the sign; use 'reverse' or 'set'")
-        return _scale(q, 1.0 + sign * amount / 100.0, what)
+        if 1.0 + sign * amount / 100.0 < 0:  # "increase by -150%" flipped it too (4.3 -> -2.15) and said nothing
+            change = "a decrease" if sign < 0 else "an increase"
+            raise EditError(f"{what}: {change} of {amount:g}% would flip the sign; use 'reverse' or 'set'")
+        return _scale(q, 1.0 + sign * amount / 100.0)
     if isinstance(amount, list):
         raise EditError(f"{what}: increase/decrease takes N% or N UNIT, not a vector; use 'set ... to [x, y, z]'")
     if q.log_rate:
         if kind == "rate":
-            return lambda d: _log_rate(10.0**d + sign * amount, what)
+            return lambda d: _log_rate(10.0**d + sign * amount)
         return lambda d: d + sign * amount
     if q.dims == 3 and comp is None:
-        return lambda v: _magnitude(v, math.sqrt(sum(x * x for x in v)) + sign * amount, what)
-    return lambda x: _require(x, what) + sign * amount
+        return lambda v: _magnitude(v, math.sqrt(sum(x * x for x in v)) + sign * amount)
+    return lambda x: _require(x) + sign * amount
 
 
-def _require(x: float | None, what: str) -> float:
+def _require(x: float | None) -> float:
     if x is None:
-        raise EditError(f"{what}: the field is not set, so it can't be changed relatively; use 'set ... to N'")
+        raise _FieldError("it is not set, so it can't be changed relatively; use 'set ... to N'")
     return x
 
 
-def _log_rate(rate: float, what: str) -> float:
+def _log_rate(rate: float) -> float:
     if rate <= 0:
-        raise EditError(f"{what}: damping is log10 of a decay rate, so the rate must stay > 0 (got {rate:g} /s)")
+        raise _FieldError(f"damping is log10 of a decay rate, so the rate must stay > 0 (got {rate:g} /s)")
     return math.log10(rate)
 
 
-def _scale(q: Quantity, factor: float, what: str):
+def _scale(q: Quantity, factor: float):
     if q.log_rate:
-        return lambda d: _log_rate(10.0**d * factor, what)
-    return lambda x: [v * factor for v in x] if isinstance(x, list) else _require(x, what) * factor
+        return lambda d: _log_rate(10.0**d * factor)
+    return lambda x: [v * factor for v in x] if isinstance(x, list) else _require(x) * factor
 
 
 def _absolute(q: Quantity, comp: int | None, value: float | list[float], kind: str, what: str):
     if kind == "percent":
         raise EditError(f"{what}: 'set' takes a value, not a percentage; use 'increase/decrease ... by N%'")
+    if comp is not None and isinstance(value, list):  # the validation named a list in one component
+        raise EditError(f"{what}: one component takes one number, not {value}; [x, y, z] sets the whole {q.key}")
     if q.log_rate:
-        return (lambda _: _log_rate(value, what)) if kind == "rate" else (lambda _: value)
+        return (lambda _: _log_rate(value)) if kind == "rate" else (lambda _: value)
     if q.dims == 3 and comp is None and not isinstance(value, list):
-        return lambda v: _magnitude(v, value, what)
+        return lambda v: _magnitude(v, value, setting=True)
     return lambda _: list(value) if isinstance(value, list) else value
 
 
 _VERBS_BY = "|".join((*_UP, *_DOWN))
+_ITEM_WORDS = {"camera": r"(?:the )?camera", "gravity": r"(?:the )?(?:scene|world)"}  # targets naming the item
 _MOVE = r"(?:move|shift|push|translate)"
 _DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
 
@@ -382,17 +400,17 @@ def _clause(clause: str, scene: Scene, items: list[dict]) -> None:
     elif m := re.fullmatch(r"(?P<v>double|triple|quadruple|halve) (?:the )?(?P<s>.+)", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
-        fn = _scale(q, _FACTORS[m.group("v")], clause)
+        fn = _scale(q, _FACTORS[m.group("v")])
     elif m := re.fullmatch(rf"(?:multiply|scale) (?:the )?(?P<s>.+?) by (?:a factor of )?(?P<k>{_NUM})", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
-        fn = _scale(q, float(m.group("k")), clause)
+        fn = _scale(q, float(m.group("k")))
     elif m := re.fullmatch(r"(?:reverse|negate|flip) (?:the )?(?P<s>.+)", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
         if not q.signed:
             raise EditError(f"{clause!r}: only velocity, spin, position and gravity can be reversed, not {q.key}")
-        fn = _scale(q, -1.0, clause)
+        fn = _scale(q, -1.0)
     elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c):
         q, comp, t_text = QUANTITIES[2], None, m.group("t")
         value, _ = _value(m.group("a"), q)
@@ -414,6 +432,8 @@ def _clause(clause: str, scene: Scene, items: list[dict]) -> None:
         return
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
+    if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
+        t_text = None  # "the field of view of the camera", "the gravity of the scene" name the item itself
     idx = _targets(t_text, scene)
     for item in _items_of(q, items, idx, scene, t_text is not None):
         _edit_field(item, q, comp, fn, repr(clause))
@@ -439,6 +459,8 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
     if not instruction.strip():
         raise EditError(f"empty instruction. {UNDERSTOOD}")
     clauses = _normalise(instruction)
+    if not clauses:  # ";" or "." was an edit that changed nothing (exit 0)
+        raise EditError(f"empty instruction {instruction!r}: no clause in it. {UNDERSTOOD}")
     items = copy.deepcopy(to_items(scene))
     for clause in clauses:
         _clause(clause, scene, items)
@@ -471,16 +493,20 @@ def _flatten(scene: Scene) -> dict[str, Any]:
         else:
             out[prefix] = value
 
-    for item in to_items(scene):
+    # No environment item is the default one (no air, wind or tilt, clock 1), and time_scale is dumped only when it
+    # is not 1: without both, a default item written out was 8 changes "None -> 0.0" and a clock set back to 1
+    # was "environment.time_scale: 1.5 -> None"
+    env = scene.environment or Environment()
+    for item in to_items(scene.model_copy(update={"environment": env})):
         head = item["name"] if item["type"] in ("box", "sphere", "cylinder") else item["type"]
         walk(head, {k: v for k, v in item.items() if k not in ("type", "name")})
-    if scene.environment is None:
-        out = {k: v for k, v in out.items() if not k.startswith("environment")}
+    out["environment.time_scale"] = env.time_scale
     return out
 
 
 def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
-    """Every leaf that differs between two scenes of the same objects (paths use object names).
+    """Every leaf that differs between two scenes of the same objects (paths use object names). A scene without an
+    environment item compares as one with the default item (no air, wind or tilt, time_scale 1), as it simulates.
 
     Raises:
         EditError: the scenes differ in their objects (count, names or shapes).
@@ -526,22 +552,47 @@ DESCRIBED: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 
 
+# Words for the camera's fields once the camera is named ("rotate the camera", "move the camera back"); "zoom" names
+# the field of view wherever it stands
+CAMERA_WORDS: tuple[tuple[str, str], ...] = (
+    (
+        r"mov(?:e|es|ing)|shift|push|pull|translat\w*|rais(?:e|es|ing)|lower|higher|closer|further|farther|"
+        r"position|location|place|put",
+        "camera.position",
+    ),
+    (r"rotat\w*|tilt\w*|pitch\w*|turn\w*|angle\w*|orientation|look\w*|point\w*|aim\w*", "camera.orientation"),
+)
+
+
 def named_fields(instruction: str, scene: Scene) -> set[str]:
     """Path prefixes of the fields an instruction names (by the vocabulary above), for checking a free editor.
 
     Objects named in the text (or 'the box', 'all spheres') restrict the per-object fields; none named means
-    every object. A component named ('x-velocity') restricts a vector to that element. Moves name positions,
-    'stop' names both velocities.
+    every object, unless the camera is named ("rotate the camera": its fields, no object's; "toward the camera" is a
+    direction, not the camera). A component named ('x-velocity') restricts a vector to that element. Moves name
+    positions, 'stop' names both velocities.
     """
     require_scene(scene, "named_fields: scene")
+    if not isinstance(instruction, str):  # None / bytes failed on "'NoneType' object has no attribute 'lower'"
+        raise TypeError(f"named_fields: instruction is a {type(instruction).__name__}, not a str")
     text = " ".join(instruction.lower().split())
     lower = {n.lower(): n for n in scene.names}
     objs = [n for low, n in lower.items() if re.search(rf"(?<![\w]){re.escape(low)}(?![\w])", text)]
     for kind in ("box", "sphere", "cylinder"):
         if re.search(rf"\b{kind}(?:e?s)?\b", text):
             objs.extend(o.name for o in scene.objects if o.type == kind)
-    objs = sorted(set(objs)) or list(scene.names)
+    # "rotate the camera" named every object's spin and "move the camera back" every position (a free editor that
+    # spun the box passed the check, one that turned the camera was refused)
+    camera = re.search(r"\bcamera\b", re.sub(r"\b(?:towards?|away from) the camera\b", " ", text)) is not None
+    every = re.search(r"\b(?:all|every|each|everything|objects)\b", text) is not None
+    objs = sorted(set(objs)) or ([] if camera and not every else list(scene.names))
     fields: set[str] = set()
+    if re.search(r"\bzoom\w*", text):
+        fields.add("camera.fovy")
+    if camera:
+        fields.update(path for words, path in CAMERA_WORDS if re.search(rf"\b(?:{words})\b", text))
+        if any(re.search(rf"\b{re.escape(d)}\b", text) for d in DIRECTIONS):
+            fields.add("camera.position")
     for q in QUANTITIES:
         for m in re.finditer(rf"(?:\b(?P<c>[xyz])[- ]?)?\b(?:{q.words})\b", text):
             text_q = m.group(0)

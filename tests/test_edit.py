@@ -109,6 +109,7 @@ REFUSED = [
     # |v| = |[4.3, 2.5, 0]| = 4.974: 6 m/s less would turn the velocity around (it did: -1.03 m/s backwards)
     ("decrease the velocity of box_0 by 6 m/s", "its magnitude is 4.974, so this decrease would leave -1.026"),
     ("", "empty instruction"),
+    (" ; .", "empty instruction ' ; .': no clause in it"),  # no clause: it was an edit that changed nothing
     ("increase the x-mass of box_0 by 1 kg", "'x-mass': mass has no x component"),
 ]
 
@@ -525,3 +526,128 @@ def test_diff_takes_numpy_tolerances(scene):
     for tol in ("0.1", True, math.nan, -1.0):
         with pytest.raises(ValueError, match=r"diff: tol = .*: must be a finite number >= 0"):
             diff(scene, edited, tol=tol)
+
+
+# --------------------------------------------------------------------------------------------
+# helper-85's review
+# --------------------------------------------------------------------------------------------
+def test_an_increase_by_a_negative_percentage_may_not_flip_the_sign(scene):
+    """'reduce ... by 150%' was refused as flipping the sign, but 'increase ... by -150%' flipped it in silence:
+    box_0's x-velocity 4.3 × (1 - 1.5) = -2.15. -50% and -100% keep the sign (4.3 × 0.5 = 2.15; 0)."""
+    with pytest.raises(EditError, match=r"an increase of -150% would flip the sign; use 'reverse' or 'set'"):
+        apply_instruction(scene, "increase the x-velocity of box_0 by -150%")
+    with pytest.raises(EditError, match=r"an increase of -300% would flip the sign"):
+        apply_instruction(scene, "increase the z-gravity by -300%")  # -7 × -2 = +14: gravity pointing up
+    (change,) = apply_instruction(scene, "increase the x-velocity of box_0 by -50%").changes
+    assert change.after == pytest.approx(2.15)
+    (change,) = apply_instruction(scene, "increase the x-velocity of box_0 by -100%").changes
+    assert change.after == 0.0
+
+
+def test_refusals_name_the_object_and_field_whose_value_refuses(scene):
+    """A value's refusal named the clause as if it were the field ("'set the spin of box_0 to 2' is zero"), said
+    "the field is not set" without naming which object's, and called a negative size set a decrease ("its magnitude
+    is 7, so this decrease would leave -9.81"). A list for one component was a validation error ("... = [1.0, 2.0,
+    3.0]: must be a number, got list")."""
+    cylinder = scene.objects[1]
+    bouncy = scene.model_copy(
+        update={
+            "objects": (
+                scene.objects[0],
+                cylinder.model_copy(update={"physics": cylinder.physics.model_copy(update={"restitution": 0.5})}),
+            )
+        }
+    )
+    cases = [
+        (bouncy, "increase the restitution by 50%", "box_0.physics.restitution: it is not set"),
+        (scene, "set the spin of box_0 to 2", "box_0.state.angular_velocity: it is zero, so it has no direction"),
+        (scene, "set the gravity to -9.81", "gravity.gravity: a magnitude is >= 0, not -9.81"),
+        (scene, "set the velocity of cylinder_0 to -1 m/s", "cylinder_0.state.linear_velocity: a magnitude is >= 0"),
+        # rate 1e-4 /s - 2e-4 /s = -1e-4 /s
+        (scene, "reduce the damping of cylinder_0 by 2e-4 /s", "cylinder_0.physics.damping: damping is log10"),
+        (scene, "set the x-velocity of box_0 to [1, 2, 3]", "one component takes one number, not [1.0, 2.0, 3.0]"),
+    ]
+    for s, instruction, message in cases:
+        with pytest.raises(EditError) as err:
+            apply_instruction(s, instruction)
+        assert message in str(err.value), (instruction, str(err.value))
+        assert "decrease" not in str(err.value) or "decrease" in instruction or "reduce" in instruction
+
+
+def test_the_camera_and_the_scene_named_as_targets_and_singular_units(scene):
+    """'set the field of view of the camera to 60' was refused: "object 'the camera' not found" (so was 'the gravity
+    of the scene'); 'degree', 'gram' and 'kilogram' were refused units where 'degrees', 'grams', 'kilograms' were
+    read. A camera field of an object is still refused."""
+    table = [
+        ("set the field of view of the camera to 60 degree", "camera.fovy", 60.0),
+        ("set the camera's fov to 50", "camera.fovy", 50.0),
+        ("decrease the gravity of the world by 50%", "gravity.gravity[2]", -3.5),  # -7 × 0.5
+        ("set the mass of box_0 to 500 gram", "box_0.physics.mass", 0.5),
+        ("set the mass of box_0 to 2 kilogram", "box_0.physics.mass", 2.0),
+    ]
+    for instruction, path, value in table:
+        (change,) = apply_instruction(scene, instruction).changes
+        assert (change.path, change.after) == (path, value), instruction
+    with pytest.raises(EditError, match=r"fovy is a property of the camera, not of \['box_0'\]"):
+        apply_instruction(scene, "set the fov of box_0 to 60")
+
+
+def test_ambiguity_names_the_plural():
+    """Two spheres were "2 spherees" in the ambiguity message."""
+    from aynamics.scene import parse
+
+    two = parse(
+        "- {type: sphere, radius: 0.2, state: {position: [0, 1, 0.2]}}\n"
+        "- {type: sphere, radius: 0.2, state: {position: [1, 1, 0.2]}}\n"
+        "- {type: camera, position: [0, -2, 3]}\n"
+    )
+    with pytest.raises(EditError, match=r"the scene has 2 spheres \['sphere_0', 'sphere_1'\]; name one"):
+        apply_instruction(two, "double the mass of the sphere")
+
+
+def test_diff_reads_no_environment_as_the_default_one(scene):
+    """A scene without an environment item simulates as one with the default item, but diff listed writing it out
+    as 8 changes ("environment.air_density: None -> 0.0", ...), so the free editor's answer that wrote it was
+    refused; and a clock set back to 1 (dumped only when not 1) was "environment.time_scale: 1.5 -> None"."""
+    from aynamics.edit import Change
+    from aynamics.scene import Environment
+
+    with_default = scene.model_copy(update={"environment": Environment()})
+    assert diff(scene, with_default) == [] and diff(with_default, scene) == []
+    slow = scene.model_copy(update={"environment": Environment(time_scale=1.5, air_density=1.2)})
+    assert diff(slow, with_default) == [
+        Change("environment.air_density", 1.2, 0.0),
+        Change("environment.time_scale", 1.5, 1.0),
+    ]
+    assert diff(scene, slow) == [
+        Change("environment.air_density", 0.0, 1.2),
+        Change("environment.time_scale", 1.0, 1.5),
+    ]
+    heavier = apply_instruction(scene, "double the mass of box_0").scene.model_copy(
+        update={"environment": Environment()}
+    )
+    result = check_output(scene, "double the mass of box_0", dump(heavier))
+    assert [str(c) for c in result.changes] == ["box_0.physics.mass: 1.0 -> 2.0"]
+
+
+def test_named_fields_of_the_camera(scene):
+    """'rotate the camera' named every object's spin and 'move the camera 1 m back' every position: the free
+    editor's check passed an answer that spun or moved box_0 and refused one that turned or moved the camera.
+    'toward the camera' is still a direction, not the camera."""
+    assert named_fields("rotate the camera by 10 degrees", scene) == {"camera.orientation"}
+    assert named_fields("move the camera 1 m back", scene) == {"camera.position"}
+    assert named_fields("zoom in", scene) == {"camera.fovy"}
+    assert named_fields("move the cylinder 0.3 m toward the camera", scene) == {"cylinder_0.state.position"}
+    assert named_fields("move everything 1 m away from the camera", scene) == {
+        "box_0.state.position",
+        "cylinder_0.state.position",
+    }
+    turned = dump(scene.model_copy(update={"camera": scene.camera.model_copy(update={"orientation": 55.0})}))
+    assert [c.path for c in check_output(scene, "rotate the camera by 10 degrees", turned).changes] == [
+        "camera.orientation"
+    ]
+    spun = _answer(scene, {(0, "state", "angular_velocity"): [0.0, 0.0, 5.0]})
+    with pytest.raises(EditError, match=r"box_0.state.angular_velocity\[2\]"):
+        check_output(scene, "rotate the camera by 10 degrees", spun)
+    with pytest.raises(TypeError, match=r"named_fields: instruction is a NoneType, not a str"):
+        named_fields(None, scene)
