@@ -696,40 +696,46 @@ def run_preferences(args) -> int:
             )
             module.to(device)
             torch.manual_seed(args.seed)
-            if len(progress):
-                print(
-                    f"preferences: going on from {str(progress.folder)!r} ({len(progress)} batches kept)",
-                    file=sys.stderr,
-                )
-            try:
-                rows, summary = build_preferences(
-                    module,
-                    videos,
-                    num_samples=args.num_samples,
-                    pairs=args.pairs,
-                    temperature=args.temperature,
-                    batch_size=args.batch_size,
-                    progress=progress,
-                )
-            except KeyboardInterrupt:
-                print(
-                    f"preferences: {len(progress)} batches are kept in {str(progress.folder)!r}: the same command "
-                    "goes on from them",
-                    file=sys.stderr,
-                )
-                raise
-            try:
-                write_preferences(rows, summary, args.out)
-            except (OSError, ValueError) as e:
-                raise UsageError(
-                    f"preferences: cannot write --out {args.out!r}: {e}; the sampled batches are kept in "
-                    f"{str(progress.folder)!r}: the same command writes them without sampling again"
-                ) from None
+            summary = _sample_and_write(module, videos, progress, args)
             progress.remove()  # under the lock: no second writer starts on the batches meanwhile
     except ValueError as e:
         raise UsageError(f"preferences: {e}") from None
     _print_json(summary)
     return 0
+
+
+def _sample_and_write(module: Any, videos: Sequence[UnlabeledVideo], progress: SamplingProgress, args) -> dict:
+    """`build_preferences` going on from the kept batches, then the set written to --out; its summary. An
+    interruption, or a set that cannot be written, says where the batches are kept."""
+    if len(progress):
+        print(f"preferences: going on from {str(progress.folder)!r} ({len(progress)} batches kept)", file=sys.stderr)
+    try:
+        rows, summary = build_preferences(
+            module,
+            videos,
+            num_samples=args.num_samples,
+            pairs=args.pairs,
+            temperature=args.temperature,
+            batch_size=args.batch_size,
+            progress=progress,
+        )
+    except KeyboardInterrupt:
+        print(
+            f"preferences: {len(progress)} batches are kept in {str(progress.folder)!r}: the same command goes on "
+            "from them",
+            file=sys.stderr,
+        )
+        raise
+    try:
+        write_preferences(rows, summary, args.out)
+    except (OSError, ValueError) as e:
+        from aynamics.cli import UsageError
+
+        raise UsageError(
+            f"preferences: cannot write --out {args.out!r}: {e}; the sampled batches are kept in "
+            f"{str(progress.folder)!r}: the same command writes them without sampling again"
+        ) from None
+    return summary
 
 
 def _file_digest(path: Path) -> str | None:
