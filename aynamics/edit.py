@@ -500,13 +500,17 @@ def _flatten(scene: Scene) -> dict[str, Any]:
     for item in to_items(scene.model_copy(update={"environment": env})):
         head = item["name"] if item["type"] in ("box", "sphere", "cylinder") else item["type"]
         walk(head, {k: v for k, v in item.items() if k not in ("type", "name")})
+        if item["type"] in ("box", "sphere", "cylinder"):  # absent simulates as 0 (restitution's absence does not)
+            for k in ("magnus", "friction_slope"):
+                out[f"{head}.physics.{k}"] = item["physics"].get(k) or 0.0
     out["environment.time_scale"] = env.time_scale
     return out
 
 
 def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
     """Every leaf that differs between two scenes of the same objects (paths use object names). A scene without an
-    environment item compares as one with the default item (no air, wind or tilt, time_scale 1), as it simulates.
+    environment item compares as one with the default item (no air, wind or tilt, time_scale 1), and an object
+    without `magnus` or `friction_slope` as one with 0, as they simulate.
 
     Raises:
         EditError: the scenes differ in their objects (count, names or shapes).

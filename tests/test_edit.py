@@ -630,6 +630,23 @@ def test_diff_reads_no_environment_as_the_default_one(scene):
     assert [str(c) for c in result.changes] == ["box_0.physics.mass: 1.0 -> 2.0"]
 
 
+def test_diff_reads_no_magnus_or_friction_slope_as_zero(scene):
+    """An object without magnus / friction_slope simulates as one with 0, but diff listed writing them out as
+    changes ("box_0.physics.magnus: None -> 0.0"); restitution's absence (MuJoCo's soft contact) is not 0."""
+    from aynamics.edit import Change
+
+    box = scene.objects[0]
+    zeros = box.model_copy(update={"physics": box.physics.model_copy(update={"magnus": 0.0, "friction_slope": 0})})
+    written = scene.model_copy(update={"objects": [zeros, *scene.objects[1:]]})
+    assert diff(scene, written) == [] and diff(written, scene) == []
+    lift = box.model_copy(update={"physics": box.physics.model_copy(update={"magnus": 0.01, "restitution": 0.0})})
+    lifted = scene.model_copy(update={"objects": [lift, *scene.objects[1:]]})
+    assert diff(scene, lifted) == [  # keys of both scenes first, then those only the second has
+        Change("box_0.physics.magnus", 0.0, 0.01),
+        Change("box_0.physics.restitution", None, 0.0),
+    ]
+
+
 def test_named_fields_of_the_camera(scene):
     """'rotate the camera' named every object's spin and 'move the camera 1 m back' every position: the free
     editor's check passed an answer that spun or moved box_0 and refused one that turned or moved the camera.
