@@ -205,8 +205,6 @@ def run_edit_command(args) -> int:
     from aynamics.edit import EditError, apply_instruction
 
     scene = load_scene("edit", args.scene)
-    if args.llm and args.max_new_tokens < 1:  # before the model is loaded; transformers raised it in generate
-        raise UsageError(f"edit: --max-new-tokens {args.max_new_tokens}: must be >= 1")
     if args.render:  # before --out is written: the renderer refused these after it, NumPy's seed naming no option
         if not (1 <= args.width <= 4096 and 1 <= args.height <= 4096):
             raise UsageError(f"edit: --width {args.width} --height {args.height}: each must be in [1, 4096]")
