@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import numbers
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -31,7 +30,7 @@ import numpy as np
 
 from aynamics import simulate as sim
 from aynamics.measured import Track, initial_state
-from aynamics.scene import Environment, Scene
+from aynamics.scene import Environment, Scene, is_number
 
 STEP_HZ = 240  # physics steps per second of the data clock (simulate's default 1/240 s, × time_scale per scene)
 WIND_AIR_DENSITY = 1.2  # kg/m³: the air the wind acts through when no density is fitted
@@ -49,7 +48,7 @@ def physics_rate(hz: int) -> Iterator[None]:
     # 240.5 ran at int(240.5) = 240 Hz, silently; "240" or None failed on a bare TypeError. 240.0 is 240.
     if isinstance(hz, np.ndarray) and hz.ndim == 0 and hz.dtype.kind in "iuf":
         hz = hz.item()  # a 0-d array, as np.int64(240) is taken
-    if isinstance(hz, (bool, np.bool_)) or not isinstance(hz, numbers.Real) or not 30 <= hz <= 10_000 or hz % 1:
+    if not is_number(hz) or not 30 <= hz <= 10_000 or hz % 1:
         raise ValueError(f"physics_rate: hz = {hz!r}: must be a whole number of steps per second in [30, 10000]")
     old, STEP_HZ = STEP_HZ, int(hz)
     try:

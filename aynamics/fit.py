@@ -11,7 +11,6 @@ size n·(1-ρ)/(1+ρ) from the lag-1 autocorrelation ρ of the residuals.
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,7 +18,7 @@ from scipy.optimize import least_squares
 
 from aynamics.effects import CANDIDATES, simulate_many, simulate_tracks
 from aynamics.measured import Track
-from aynamics.scene import Scene, is_whole
+from aynamics.scene import Scene, is_number, is_whole
 
 MU_BOUNDS = (0.02, 1.5)
 MU_SCALE = 0.1
@@ -122,7 +121,7 @@ def fit(
     failed inside scipy ("Initial guess is outside of provided bounds")."""
     active = check_candidates(active, "fit: active")
     mu = start.get("mu") if isinstance(start, dict) else None
-    if isinstance(mu, (bool, np.bool_)) or not isinstance(mu, numbers.Real) or not math.isfinite(mu):  # KeyError; NaN
+    if not is_number(mu) or not math.isfinite(mu):  # KeyError; NaN
         raise ValueError(f"fit: start['mu'] = {mu!r}: start must be a dict with a finite friction 'mu'")
     check_tracks(tracks, "fit")
     if not is_whole(max_evals) or max_evals < 1:

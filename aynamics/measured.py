@@ -18,14 +18,13 @@ import csv
 import gzip
 import io
 import math
-import numbers
 import os
 import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
-from aynamics.scene import RANGES, is_whole
+from aynamics.scene import RANGES, is_number, is_whole
 from aynamics.simulate import geom_size, quat_to_mat
 
 REQUIRED = ("trajectory", "t", "object", "x", "y", "z")
@@ -270,7 +269,7 @@ def split(
     if (
         isinstance(fr, (str, bytes))
         or len(fr) != 2
-        or not all(isinstance(f, numbers.Real) and not isinstance(f, (bool, np.bool_)) for f in fr)  # np.float32
+        or not all(is_number(f) for f in fr)  # np.float32 too
         or not (fr[0] > 0 and fr[1] > 0 and fr[0] + fr[1] < 1)
     ):  # (2, 0.25) left the validation and held-out splits empty; (-1, 0.25) gave fit one trajectory
         raise ValueError(f"split: fractions = {fr!r}: must be (fit, validation), each > 0, summing to less than 1")

@@ -20,7 +20,6 @@ In a multi-GPU run every rank calls these on its own batch, so each rank samples
 from __future__ import annotations
 
 import math
-import numbers
 from collections import Counter
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -30,7 +29,7 @@ import numpy as np
 import torch
 
 from aynamics.processor import append_response, collate, model_inputs, trim_completion
-from aynamics.scene import SceneError, parse
+from aynamics.scene import SceneError, is_number, parse
 from aynamics.scorer import EPE_INVALID, Observation, Score, score
 from aynamics.simulate import usable_cores
 
@@ -63,7 +62,7 @@ class RewardConfig:
             raise ValueError(f"reward span = {self.span!r}: must be one of {SPANS}")
         for name in ("mix_weight", "epe_scale"):  # "0.5" from a config failed on "'<=' not supported"
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            if not is_number(value):
                 raise TypeError(f"reward {name} = {value!r}: must be a number, not a {type(value).__name__}")
         if not 0.0 <= self.mix_weight <= 1.0:
             raise ValueError(f"reward mix_weight = {self.mix_weight}: must be in [0, 1]")

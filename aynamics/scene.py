@@ -21,6 +21,7 @@ Every problem in a text is reported at once in one `SceneError`, each as
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import re
 from dataclasses import dataclass
@@ -932,6 +933,12 @@ _DEFAULT_NAME = re.compile(r"(box|sphere|cylinder)_\d+")
 def is_whole(value: Any) -> bool:
     """Whether `value` is a whole number as a count, size or seed takes it: an int or a numpy integer, not a bool."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def is_number(value: Any) -> bool:
+    """Whether `value` is a real number as a rate, share or coefficient takes it: an int, a float or a numpy number
+    (`numbers.Real`), not a bool (numpy's bool is no `numbers.Real`), a str or an array."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def require_scene(value: Any, where: str) -> Scene:
