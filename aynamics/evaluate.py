@@ -20,11 +20,15 @@ beside the observed segmentation (and optional flow) that `aynamics render` writ
 (`aynamics.unlabeled`); there only validity, IoU and EPE can be measured.
 
 `--out DIR` writes `predictions.jsonl` (per scene: the response, the target and each metric; with `--refine` the
-refined scene and its metrics) and `metrics.json` (the table, the split, the counts, the settings).
+refined scene and its metrics) and `metrics.json` (the table, the split, the counts, the settings). Meanwhile it
+keeps each batch of responses and each refinement in `OUT.partial` as it is done (`kept_batches`; a real model with
+`--refine` takes hours): run the same command again after an interruption and it goes on from there, with the
+table an uninterrupted run gives; another process on the same OUT, or the same OUT with other settings, is refused.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -44,10 +48,18 @@ from aynamics.callbacks import (
     summarize,
     write_predictions,
 )
+from aynamics.kept_batches import KeptBatches, content_digest, file_digest, partial_folder
 
 MODEL, BASELINE = "model", "average scene"
 REFINED, BASELINE_REFINED = f"{MODEL} + refine", f"{BASELINE} + refine"
 OUT_FILES = ("predictions.jsonl", "metrics.json")
+# what `--out OUT` keeps in OUT.partial as it goes (`kept_batches`): each batch's responses, each refinement
+RESPONSES, REFINED_KEPT, AVERAGE_REFINED_KEPT = "responses", "refined", "average-refined"
+KEPT_FIELDS = {
+    RESPONSES: frozenset({"keys", "digests", "texts"}),
+    REFINED_KEPT: frozenset({"keys", "digests", "texts", "timed_out"}),
+    AVERAGE_REFINED_KEPT: frozenset({"keys", "digests", "texts", "timed_out"}),
+}
 
 
 @dataclass
@@ -102,26 +114,71 @@ def _generate(
     max_new_tokens: int,
     desc: str,
     progress: bool,
-) -> tuple[list[dict], list[str]]:
+    kept: KeptBatches | None = None,
+) -> tuple[list[dict], list[str], list[str]]:
     """Greedy responses for the records of `items` (per source item, a list of 0 or 1 scorable records with a
     `prompt`), `batch_size` scorable records at a time (the training evaluation's batches); the records are
-    returned without their prompts."""
+    returned without their prompts, with each one's `content_digest` of prompt and observation.
+
+    With `kept`, each batch's responses are kept as they are generated, and batches it holds are read back rather
+    than generated again (greedy: the responses an uninterrupted run gives, batched the same way).
+
+    Raises:
+        ValueError: a kept batch of other records or other prompts than these (the data changed since).
+    """
     from tqdm.auto import tqdm
 
     from aynamics import lm
 
+    done = kept.done(RESPONSES) if kept is not None else []
     records: list[dict] = []
     texts: list[str] = []
+    digests: list[str] = []
     pending: list[dict] = []
+
+    def answer(batch: list[dict]) -> list[str]:
+        k = len(records) // batch_size  # every batch but the last is full
+        keys = [r["index"] for r in batch]
+        digests.extend(content_digest(r["prompt"], r["observation"]) for r in batch)
+        if k < len(done):
+            _check_kept(kept, RESPONSES, k, done[k], keys, digests[-len(batch) :])
+            return list(done[k]["texts"])
+        out = lm.greedy_texts(model, processor, [r["prompt"] for r in batch], max_new_tokens)
+        if kept is not None:
+            kept.save(RESPONSES, k, {"keys": keys, "digests": digests[-len(batch) :], "texts": out})
+        return out
+
     with tqdm(total=n, unit="scene", desc=desc, disable=not progress) as bar:
         for i, found in enumerate(items):
             pending += found
             if pending and (len(pending) == batch_size or i == n - 1):
-                texts += lm.greedy_texts(model, processor, [r["prompt"] for r in pending], max_new_tokens)
+                texts += answer(pending)
                 records += [{k: v for k, v in r.items() if k != "prompt"} for r in pending]
                 pending.clear()
             bar.update(1)
-    return records, texts
+    made = -(-len(records) // batch_size)
+    if len(done) > made:
+        raise ValueError(
+            f"{str(kept.folder)!r} holds {len(done)} batches of responses, but these records make {made}: the data "
+            "changed since it was written; delete it to score afresh"
+        )
+    return records, texts, digests
+
+
+def _check_kept(kept: KeptBatches, stream: str, k: int, batch: dict, keys: list, digests: list[str]) -> None:
+    """Refuse a kept batch made from other records (keys) or other contents under the same keys (a data set made
+    again, a video folder replaced) than batch `k` of this run."""
+    if batch["keys"] != keys or len(batch["texts"]) != len(keys):
+        raise ValueError(
+            f"{str(kept.folder)!r}: its {stream} batch {k} holds records {batch['keys']}, but this run's batch {k} "
+            f"is records {keys}: the data changed since it was written; delete it to score afresh"
+        )
+    changed = [key for key, d, d_kept in zip(keys, digests, batch["digests"], strict=True) if d != d_kept]
+    if changed:
+        raise ValueError(
+            f"{str(kept.folder)!r}: its {stream} batch {k} was made from other frames, masks or responses of the "
+            f"records {changed} than this run's: the data changed since it was written; delete it to score afresh"
+        )
 
 
 def _score(
@@ -135,10 +192,13 @@ def _score(
     n: int,
     split_size: int,
     what: str,
+    kept: KeptBatches | None = None,
+    digests: list[str] | None = None,
 ) -> Evaluation:
     """The table of the responses to the `records` scorable among the `n` read (of `split_size`; `what` they
     were, for the error when none is), and of the `average` scene, refined when `refine_budget` > 0. Records with
-    a true `scene` get every metric; videos without one the validity, IoU and EPE only."""
+    a true `scene` get every metric; videos without one the validity, IoU and EPE only. With `kept`, each
+    refinement is kept as it ends and those kept are read back (`refine_texts`; `digests`: the records')."""
     if not records:
         raise ValueError(f"no {what} can be scored (each one was named above)")
     targets = [r["scene"] for r in records] if "scene" in records[0] else None
@@ -148,12 +208,17 @@ def _score(
     if average is not None:
         result.table[BASELINE] = baseline_summary(average, records)
     if refine_budget:
-        result.refined, result.refine_timed_out = refine_texts(texts, records, refine_budget, refine_seconds, progress)
+        keep = {"kept": kept, "digests": digests} if kept is not None else {}
+        result.refined, result.refine_timed_out = refine_texts(
+            texts, records, refine_budget, refine_seconds, progress, stream=REFINED_KEPT, **keep
+        )
         result.refined_per_item = evaluate_texts(result.refined, targets, observations)
         result.table[REFINED] = summarize(result.refined_per_item)
         if average is not None:  # the same search from the average scene: what the model's start adds
             start = [average] * len(records)
-            from_average, timed_out = refine_texts(start, records, refine_budget, refine_seconds, progress)
+            from_average, timed_out = refine_texts(
+                start, records, refine_budget, refine_seconds, progress, stream=AVERAGE_REFINED_KEPT, **keep
+            )
             result.refine_timed_out += timed_out
             result.table[BASELINE_REFINED] = summarize(evaluate_texts(from_average, targets, observations))
     return result
@@ -172,9 +237,11 @@ def evaluate_adapter(
     refine_seconds: float = 60.0,
     baseline: bool = True,
     progress: bool = False,
+    kept: KeptBatches | None = None,
 ) -> Evaluation:
     """Generate greedily for the first `num` records of `split` (all when None), score the responses by
-    simulation, and the average scene beside them.
+    simulation, and the average scene beside them. With `kept` (opened: `evaluation_progress`), each batch of
+    responses and each refinement is kept as it is done, and what it holds is read back, not done again.
 
     Raises:
         FileNotFoundError: no data set at `data_dir`, or no adapter folder.
@@ -206,7 +273,9 @@ def evaluate_adapter(
     steps = dataset_substeps(data_dir)  # the physics the videos were made with
     found = (data.readable_eval_record(rows, i, processor, prompt, where, steps) for i in range(n))
     items = ([] if r is None else scorable_records([r], where) for r in found)
-    records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, f"evaluate {split}", progress)
+    records, texts, digests = _generate(
+        model, processor, items, n, batch_size, max_new_tokens, f"evaluate {split}", progress, kept
+    )
     average = None
     if baseline and records:  # (without records `_score` says so)
         if "train" in splits:
@@ -223,6 +292,8 @@ def evaluate_adapter(
         n=n,
         split_size=len(rows),
         what=f"scene of the {where}",
+        kept=kept,
+        digests=digests,
     )
 
 
@@ -237,6 +308,7 @@ def evaluate_videos(
     refine_budget: int = 0,
     refine_seconds: float = 60.0,
     progress: bool = False,
+    kept: KeptBatches | None = None,
 ) -> Evaluation:
     """The same for videos without a scene label (`aynamics.unlabeled`: a folder of frames/*.png, or flow/*.png for
     a flow-trained adapter, beside the observed segmentation and optional flow, or a folder of such folders):
@@ -270,7 +342,9 @@ def evaluate_videos(
         return [{"index": video.key, "prompt": inputs, "observation": video.observation}]
 
     items = (item(folder) for folder in found[:n])
-    records, texts = _generate(model, processor, items, n, batch_size, max_new_tokens, "evaluate videos", progress)
+    records, texts, digests = _generate(
+        model, processor, items, n, batch_size, max_new_tokens, "evaluate videos", progress, kept
+    )
     return _score(
         records,
         texts,
@@ -281,34 +355,67 @@ def evaluate_videos(
         n=n,
         split_size=len(found),
         what=f"video of --videos {str(videos)!r}",
+        kept=kept,
+        digests=digests,
     )
 
 
 def refine_texts(
-    texts: list[str], records: list[dict], budget: int, seconds: float, progress: bool = False
+    texts: list[str],
+    records: list[dict],
+    budget: int,
+    seconds: float,
+    progress: bool = False,
+    *,
+    kept: KeptBatches | None = None,
+    stream: str = "refined",
+    digests: list[str] | None = None,
 ) -> tuple[list[str], int]:
     """Each response's scene refined by CMA-ES against its record's observation (`aynamics.refine`, seed 0: the
     same result for a budget of simulations unless the time limit `seconds` stops it first); a response without a
     valid scene is kept as it is (it scores as invalid again).
 
+    With `kept`, each refinement is kept in its `stream` as it ends (a minute of search a scene on a real
+    evaluation), and those it holds are read back, checked against the records' `digests` (`content_digest` of
+    prompt and observation) and the response.
+
     Returns:
         The refined texts, and how many refinements the time limit stopped before their budget.
+
+    Raises:
+        ValueError: a kept refinement of another record, response or observation.
     """
     from tqdm.auto import tqdm
 
     from aynamics.refine import refine
     from aynamics.scene import SceneError, parse
 
+    done = kept.done(stream) if kept is not None else []
+    if len(done) > len(texts):
+        raise ValueError(
+            f"{str(kept.folder)!r} holds {len(done)} {stream} scenes, but there are {len(texts)} to refine: the data "
+            "changed since it was written; delete it to score afresh"
+        )
     out, timed_out = [], 0
-    for text, r in tqdm(list(zip(texts, records, strict=True)), unit="scene", desc="refine", disable=not progress):
+    pairs = list(zip(texts, records, strict=True))
+    for k, (text, r) in enumerate(tqdm(pairs, unit="scene", desc="refine", disable=not progress)):
+        mark = [content_digest(digests[k], text)] if kept is not None else []
+        if k < len(done):
+            _check_kept(kept, stream, k, done[k], [r["index"]], mark)
+            out += done[k]["texts"]
+            timed_out += done[k]["timed_out"]
+            continue
         try:
             start = parse(text)
         except SceneError:
-            out.append(text)
-            continue
-        result = refine(start, r["observation"], budget=budget, seconds=seconds)
-        timed_out += result.simulations < budget and result.seconds >= seconds
-        out.append(result.yaml)
+            refined, cut = text, False
+        else:
+            result = refine(start, r["observation"], budget=budget, seconds=seconds)
+            refined, cut = result.yaml, result.simulations < budget and result.seconds >= seconds
+        if kept is not None:
+            kept.save(stream, k, {"keys": [r["index"]], "digests": mark, "texts": [refined], "timed_out": int(cut)})
+        out.append(refined)
+        timed_out += cut
     return out, timed_out
 
 
@@ -408,20 +515,43 @@ def run_evaluate(args) -> int:
         "refine_seconds": args.refine_seconds,
         "progress": not args.quiet,
     }
+    common["kept"] = kept = (
+        None if args.out is None else evaluation_progress(args.out, settings | {"baseline": not args.no_baseline})
+    )
     try:
-        with warnings_as_lines("evaluate", "scene evaluation: "):  # records left out: named as they are found
-            if args.data is not None:
-                result = evaluate_adapter(
-                    args.adapter, args.data, split=args.split, baseline=not args.no_baseline, **common
-                )
-            else:
-                result = evaluate_videos(args.adapter, args.videos, **common)
+        with contextlib.ExitStack() as stack:
+            if kept is not None:  # other settings or a second writer are refused before the model loads
+                stack.enter_context(kept.opened())
+                if len(kept):
+                    print(f"evaluate: going on from {str(kept.folder)!r} ({_kept_line(kept)})", file=sys.stderr)
+            try:
+                with warnings_as_lines("evaluate", "scene evaluation: "):  # records left out: named as found
+                    if args.data is not None:
+                        split, baseline = args.split, not args.no_baseline
+                        result = evaluate_adapter(args.adapter, args.data, split=split, baseline=baseline, **common)
+                    else:
+                        result = evaluate_videos(args.adapter, args.videos, **common)
+            except KeyboardInterrupt:
+                if kept is not None:
+                    print(
+                        f"evaluate: {_kept_line(kept)} are kept in {str(kept.folder)!r}: the same command goes on "
+                        "from them",
+                        file=sys.stderr,
+                    )
+                raise
+            if kept is not None:
+                try:
+                    write_evaluation(args.out, result, settings)
+                except OSError as e:
+                    raise UsageError(
+                        f"evaluate: cannot write --out {args.out!r}: {e}; the responses and refinements are kept in "
+                        f"{str(kept.folder)!r}: the same command writes them without generating again"
+                    ) from None
+                kept.remove()  # under the lock: no second writer starts on the batches meanwhile
     except FileNotFoundError as e:
         raise UsageError(f"evaluate: {missing_file_message(e)}") from None
     except ValueError as e:
         raise UsageError(f"evaluate: {e}") from None
-    if args.out is not None:
-        write_evaluation(args.out, result, settings)
     if args.json:
         json.dump(summary(result), sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
@@ -429,6 +559,35 @@ def run_evaluate(args) -> int:
         print(describe(result, args.split if args.data else None))
         print(format_table(result.table))
     return 0
+
+
+def evaluation_progress(out: str | Path, settings: dict) -> KeptBatches:
+    """Where `aynamics evaluate --out OUT` keeps each batch of responses and each refinement as it is done
+    (`OUT.partial`, deleted once OUT is written): run the same command again after an interruption and it goes on
+    from them, with the table an uninterrupted run prints. `settings` are the command's; the adapter and the data
+    are kept by absolute path, and the adapter's weights by their digest (one trained again into its folder writes
+    other responses)."""
+
+    def path(p: str | None) -> str | None:
+        return None if p is None else os.path.abspath(p)
+
+    adapter = settings["adapter"]
+    resolved = settings | {
+        "adapter": path(adapter),
+        "adapter_weights": file_digest(Path(adapter) / "adapter_model.safetensors"),
+        "data": path(settings.get("data")),
+        "videos": path(settings.get("videos")),
+    }
+    return KeptBatches(partial_folder(out), resolved, run="an evaluation", verb="score", fields=KEPT_FIELDS)
+
+
+def _kept_line(kept: KeptBatches) -> str:
+    """What `kept` holds, in words: "3 batches of responses, 5 refinements"."""
+    counts = [
+        (kept.count(RESPONSES), "batch", "batches", " of responses"),
+        (kept.count(REFINED_KEPT) + kept.count(AVERAGE_REFINED_KEPT), "refinement", "refinements", ""),
+    ]
+    return ", ".join(f"{n} {one if n == 1 else many}{of}" for n, one, many, of in counts if n) or "nothing"
 
 
 def summary(result: Evaluation) -> dict:

@@ -22,18 +22,15 @@ giving the rows an uninterrupted run gives; the folder is deleted once OUT is wr
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import hashlib
 import json
 import math
 import os
-import pickle
 import re
 import shutil
 import sys
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +38,7 @@ import torch
 
 from aynamics import lm, rng
 from aynamics import reward as rw
+from aynamics.kept_batches import KeptBatches, content_digest, file_digest, partial_folder
 from aynamics.scorer import Score
 from aynamics.unlabeled import UnlabeledVideo
 
@@ -114,7 +112,7 @@ def build_preferences(
     if module.processor is None:  # sampling loads it; with every batch kept, nothing is sampled: the summary needs it
         module.ensure_processor()
     starts = range(0, len(videos), batch_size)
-    batches = progress.done() if progress is not None else []
+    batches = progress.done(progress.STREAM) if progress is not None else []
     if len(batches) > len(starts):
         raise ValueError(f"{progress.folder} holds {len(batches)} batches, but these videos make {len(starts)}")
     # the images of the videos with rows: each video is read once (a generated data set decodes its images at every
@@ -154,7 +152,7 @@ def build_preferences(
             "rng": rng.local_state(),
         }
         if progress is not None:
-            progress.save(len(batches), batch)
+            progress.save(progress.STREAM, len(batches), batch)
         batches.append(batch)
         keep_frames(start, chunk, batch)
     rows = [
@@ -210,19 +208,8 @@ def video_digest(video: UnlabeledVideo) -> str:
     """A short hash of what a video's candidates depend on: the images the model sees and the observation they are
     scored against (masks, flow). A key names a video (a record's index, a folder's name), not what it holds: a
     data set generated again holds other videos under the same keys."""
-    import numpy as np
-
-    h = hashlib.sha256()
-    for im in video.frames:
-        h.update(f"{im.mode} {im.size}".encode())
-        h.update(im.tobytes())
     obs = video.observation
-    for a in (obs.segmentation, obs.flow) if obs is not None else ():
-        if a is not None:
-            a = np.ascontiguousarray(a)
-            h.update(f"{a.dtype} {a.shape}".encode())
-            h.update(a.tobytes())
-    return h.hexdigest()[:16]
+    return content_digest(list(video.frames), *((obs.segmentation, obs.flow) if obs is not None else ()))
 
 
 def _pair_rows(
@@ -255,13 +242,13 @@ def _pair_rows(
     return rows
 
 
-class SamplingProgress:
+class SamplingProgress(KeptBatches):
     """The batches `build_preferences` has scored, kept in a folder as each one is done, so that an interrupted
     run goes on where it stopped (at most one batch is sampled again) and gives the rows an uninterrupted run gives.
 
     The folder holds `settings.json` (everything the samples depend on: a run with other settings is refused,
-    naming what differs) and one `batch-NNNNNN.pt` per batch, written atomically: its videos' keys and
-    `video_digest`s, its sampling settings, its rows without frames (taken again from the videos), every
+    naming what differs) and one `batch-NNNNNN.pt` per batch (stream "batch"), written atomically: its videos' keys
+    and `video_digest`s, its sampling settings, its rows without frames (taken again from the videos), every
     candidate's score and the random generators' states after it. `aynamics preferences --out OUT` keeps it in
     `OUT.partial` and deletes it once OUT is written.
 
@@ -271,125 +258,11 @@ class SamplingProgress:
         progress.remove()
     """
 
-    SETTINGS = "settings.json"
-    _BATCH = re.compile(r"batch-(\d{6})\.pt")
-    _FIELDS = frozenset({"start", "keys", "digests", "sampling", "rows", "rewards", "scores", "rng"})
+    STREAM = "batch"
 
     def __init__(self, folder: str | Path, settings: dict) -> None:
-        self.folder = Path(folder)
-        self.settings = json.loads(json.dumps(settings))  # as settings.json reads back (tuples as lists)
-
-    @contextlib.contextmanager
-    def opened(self) -> Iterator[SamplingProgress]:
-        """Make the folder (or check the one there was made with these settings) and hold its lock.
-
-        Raises:
-            ValueError: the folder holds other files, other settings, or another process holds its lock.
-        """
-        from aynamics.dataset_store import exclusive
-
-        if self.folder.is_symlink():  # removing a link at the end leaves its batches to be gone on from next time
-            raise ValueError(
-                f"{str(self.folder)!r} is a link (to {os.readlink(self.folder)!r}): the kept batches need a folder of "
-                "their own; remove the link"
-            )
-        if self.folder.exists() and not (self.folder / self.SETTINGS).is_file():
-            other = [p.name for p in self.folder.iterdir() if p.name != ".lock"] if self.folder.is_dir() else []
-            if other or not self.folder.is_dir():
-                raise ValueError(
-                    f"{str(self.folder)!r} exists and is not the kept batches of a preference run (no "
-                    f"{self.SETTINGS}): move it away, or write --out elsewhere"
-                )
-        self.folder.mkdir(parents=True, exist_ok=True)
-        with contextlib.ExitStack() as stack:
-            try:
-                stack.enter_context(exclusive(self.folder / ".lock", wait=False))
-            except BlockingIOError:
-                raise ValueError(
-                    f"another process is sampling into {str(self.folder)!r} (it holds its lock): wait for it, or "
-                    "write --out elsewhere"
-                ) from None
-            self._check_settings()
-            yield self
-
-    def _check_settings(self) -> None:
-        path = self.folder / self.SETTINGS
-        # no batch kept, nothing to go on from: a run that failed before its first one (a mistyped --num-samples,
-        # a first batch too large for the GPU) does not bind the next to its settings
-        if not path.is_file() or not len(self):
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
-            os.replace(tmp, path)
-            return
-        try:
-            kept = json.loads(path.read_text())
-        except ValueError as e:
-            raise ValueError(
-                f"{str(path)!r} cannot be read ({e}): delete {str(self.folder)!r} to sample afresh"
-            ) from None
-        if kept != self.settings:
-            keys = sorted(set(kept) | set(self.settings)) if isinstance(kept, dict) else []
-            diff = [
-                f"{k} {kept.get(k)!r} there, {self.settings.get(k)!r} now"
-                for k in keys
-                if kept.get(k) != self.settings.get(k)
-            ]
-            raise ValueError(
-                f"{str(self.folder)!r} holds the batches of an interrupted run with other settings "
-                f"({'; '.join(diff) or repr(kept)}): run with its settings to go on from it, or delete it to sample "
-                "afresh"
-            )
-
-    def done(self) -> list[dict]:
-        """The kept batches in order (the first `len(...)` batches of the run).
-
-        Raises:
-            ValueError: a batch file that cannot be read, or a gap in their numbers, naming the file.
-        """
-        batches = []
-        for k, path in enumerate(self._files()):
-            if int(self._BATCH.fullmatch(path.name).group(1)) != k:
-                raise ValueError(
-                    f"{str(path)!r}: batch {k} is missing before it; delete it and later ones to sample them again"
-                )
-            try:
-                batch = torch.load(path, weights_only=True)
-            except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as e:  # torch names no file
-                raise ValueError(
-                    f"{str(path)!r} cannot be read ({type(e).__name__}: {e}): delete it to sample it again"
-                ) from None
-            if not isinstance(batch, dict) or not self._FIELDS <= batch.keys():
-                held = sorted(batch) if isinstance(batch, dict) else type(batch).__name__
-                raise ValueError(
-                    f"{str(path)!r} is not a batch this version keeps (it holds {held}, not {sorted(self._FIELDS)}): "
-                    "delete it to sample it again"
-                )
-            batches.append(batch)
-        return batches
-
-    def __len__(self) -> int:
-        """Batches kept (not read)."""
-        return len(self._files())
-
-    def _files(self) -> list[Path]:
-        return sorted(p for p in self.folder.glob("batch-*.pt") if self._BATCH.fullmatch(p.name))
-
-    def save(self, index: int, batch: dict) -> Path:
-        """Keep batch `index` (atomically: a half-written file is never read back)."""
-        path = self.folder / f"batch-{index:06d}.pt"
-        tmp = path.with_suffix(".tmp")
-        torch.save(batch, tmp)
-        os.replace(tmp, path)
-        return path
-
-    def remove(self) -> None:
-        shutil.rmtree(self.folder, ignore_errors=True)
-
-
-def partial_folder(out: str | Path) -> Path:
-    """Where `aynamics preferences --out OUT` keeps its batches while sampling: `OUT.partial`, beside OUT."""
-    out = Path(out).resolve()
-    return out.with_name(out.name + ".partial")
+        fields = frozenset({"start", "keys", "digests", "sampling", "rows", "rewards", "scores", "rng"})
+        super().__init__(folder, settings, run="a preference run", verb="sample", fields={self.STREAM: fields})
 
 
 def stored_clock(path: str | Path) -> dict | None:
@@ -738,18 +611,6 @@ def _sample_and_write(module: Any, videos: Sequence[UnlabeledVideo], progress: S
     return summary
 
 
-def _file_digest(path: Path) -> str | None:
-    """A short hash of a file's bytes (None for no file): a folder names an adapter, not what it holds (one trained
-    again into the same folder samples other candidates)."""
-    if not path.is_file():
-        return None
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
-
-
 def _settings(args, *, model: str, dtype: str, split: str | None, inputs: str) -> dict:
     """What `aynamics preferences`' samples depend on: a kept run is gone on from only with the same (each as it was
     resolved: the same run spelled otherwise, `--split train` or none, `--inputs` an adapter overrides, goes on)."""
@@ -764,7 +625,7 @@ def _settings(args, *, model: str, dtype: str, split: str | None, inputs: str) -
         "model": model if model == "tiny" else path(model),  # the tiny model, whatever folder is named so here
         "dtype": dtype,
         "adapter": path(args.adapter),
-        "adapter_weights": _file_digest(Path(args.adapter) / "adapter_model.safetensors") if args.adapter else None,
+        "adapter_weights": file_digest(Path(args.adapter) / "adapter_model.safetensors") if args.adapter else None,
         "inputs": inputs,
         **{k: getattr(args, k) for k in ("num_samples", "pairs", "temperature", "top_p", "max_new_tokens")},
         **{k: getattr(args, k) for k in ("metric", "span", "batch_size", "seed")},

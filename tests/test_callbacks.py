@@ -373,7 +373,7 @@ def test_evaluate_scores_refines_and_counts_by_hand(truth, monkeypatch):
     records = [{"index": k, "scene_yaml": dump(scene), "scene": scene, "observation": obs} for k in range(2)]
     searched = []
 
-    def fixed(texts, recs, budget, seconds, progress=False):
+    def fixed(texts, recs, budget, seconds, progress=False, **kept):
         searched.append((list(texts), budget, seconds))
         return [dump(scene)] * len(texts), len(searched)
 
@@ -630,6 +630,94 @@ def test_videos_without_a_label_get_the_metrics_that_need_none(truth):
     kept = ("yaml_valid", "sim_valid", "iou_first", "iou_full", "epe_first", "epe_full", "reason")
     assert list(unlabelled) == list(kept) and unlabelled == {k: labelled[k] for k in kept}
     assert set(summarize(unlabelled)) == set(kept) - {"reason"}
+
+
+def test_evaluate_goes_on_after_an_interruption(tmp_path, tmp_path_factory, monkeypatch, capsys):
+    """`aynamics evaluate --out OUT` on the tiny data set's test split (3 scenes, 1 a batch, 6-simulation
+    refinements of the average scene) is interrupted at its second batch of responses, then again at its second
+    refinement: each run does only what was not kept (responses of scenes 1 and 2, then the refinements of scenes
+    1 and 2), other settings are refused naming the one that differs, and the third run writes the predictions and
+    metrics of an uninterrupted run and deletes OUT.partial. Before, an interruption lost every response and
+    refinement (hours on a real model)."""
+    from train_fixtures import tiny_dataset
+
+    import aynamics.refine
+    from aynamics import lm
+    from aynamics.cli import main
+
+    spec = lm.ModelSpec(kind="tiny", lora_rank=8, lora_alpha=16.0, lora_dropout=0.0)
+    prompt = lm.PromptSpec(num_frames=2, min_pixels=3136, max_pixels=3136)
+    adapter = tmp_path / "adapter"
+    lm.save_adapter(lm.build_model(spec), adapter, spec, prompt)
+    data = tiny_dataset(tmp_path_factory)
+    args = ["evaluate", "--adapter", str(adapter), "--data", str(data), "--batch-size", "1", "--quiet"]
+    args += ["--max-new-tokens", "3", "--refine", "6", "--refine-seconds", "60", "--device", "cpu"]
+    assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    generate, refine, calls = lm.greedy_texts, aynamics.refine.refine, []
+
+    def counted(fn, name, stop_at):
+        def call(*a, **k):
+            calls.append(name)
+            if calls.count(name) == stop_at[0]:
+                raise KeyboardInterrupt
+            return fn(*a, **k)
+
+        return call
+
+    stop = {"generate": [2], "refine": [0]}
+    monkeypatch.setattr(lm, "greedy_texts", counted(generate, "generate", stop["generate"]))
+    monkeypatch.setattr(aynamics.refine, "refine", counted(refine, "refine", stop["refine"]))
+    out = tmp_path / "eval"
+    assert main([*args, "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert f"evaluate: 1 batch of responses are kept in {str(tmp_path / 'eval.partial')!r}" in err
+    assert main([*args, "--max-new-tokens", "4", "--out", str(out)]) == 2
+    assert "with other settings (max_new_tokens 3 there, 4 now)" in capsys.readouterr().err
+    calls.clear()
+    stop["generate"][0], stop["refine"][0] = 0, 2
+    assert main([*args, "--out", str(out)]) == 130
+    assert calls == ["generate", "generate", "refine", "refine"]  # scenes 1 and 2 answered; scene 0 refined
+    assert "going on from" in capsys.readouterr().err and not out.exists()
+    calls.clear()
+    stop["refine"][0] = 0
+    assert main([*args, "--out", str(out)]) == 0
+    assert calls == ["refine", "refine"]  # scenes 1 and 2 (the model's responses hold no scene: not refined)
+    # every response kept, and 4 refinements: the model's 3 (no scene: kept as they are) and the average scene's first
+    assert "(3 batches of responses, 4 refinements)" in capsys.readouterr().err
+    assert not (tmp_path / "eval.partial").exists()
+    for name in ("predictions.jsonl", "metrics.json"):
+        whole = (tmp_path / "whole" / name).read_text().replace(str(tmp_path / "whole"), str(out))
+        assert (out / name).read_text() == whole, name
+
+
+def test_kept_responses_of_other_records_or_prompts_are_refused(tmp_path, monkeypatch):
+    """Batches kept for records 0 and 1 (batch size 1) are read back for the same records and prompts, and refused
+    for other records at their place, for another prompt under the same index (a data set made again), and when
+    fewer records make fewer batches than are kept."""
+    from aynamics import evaluate as ev
+    from aynamics import lm
+    from aynamics.kept_batches import KeptBatches
+
+    answered = []
+    monkeypatch.setattr(lm, "greedy_texts", lambda m, p, prompts, n: answered.extend(prompts) or ["t"] * len(prompts))
+
+    def items(indices, value=1):
+        return ([{"index": i, "prompt": {"ids": torch.tensor([i, value])}, "observation": None}] for i in indices)
+
+    def run(indices, value=1):
+        return ev._generate(None, None, items(indices, value), len(indices), 1, 8, "x", False, kept)
+
+    kept = KeptBatches(tmp_path / "k", {}, run="an evaluation", verb="score", fields=ev.KEPT_FIELDS)
+    with kept.opened():
+        records, texts, digests = run([0, 1])
+        assert len(answered) == 2 and texts == ["t", "t"] and len(set(digests)) == 2 and kept.count("responses") == 2
+        assert run([0, 1])[2] == digests and len(answered) == 2  # read back: nothing generated
+        with pytest.raises(ValueError, match=r"batch 1 holds records \[1\], but this run's batch 1 is records \[2\]"):
+            run([0, 2])
+        with pytest.raises(ValueError, match=r"other frames, masks or responses of the records \[0\]"):
+            run([0, 1], value=2)
+        with pytest.raises(ValueError, match="holds 2 batches of responses, but these records make 1"):
+            run([0])
 
 
 def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):

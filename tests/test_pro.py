@@ -1316,7 +1316,7 @@ def test_preferences_are_refused_before_the_model_is_loaded(tmp_path, dataset_di
     args += ["--out", str(tmp_path / "prefs")]
     kept = SamplingProgress(tmp_path / "prefs.partial", {"seed": 5})
     with kept.opened():
-        kept.save(0, {})  # one batch kept: its settings bind
+        kept.save("batch", 0, {})  # one batch kept: its settings bind
     with exclusive(kept.folder / ".lock"):  # another process sampling into it
         assert cli_main(args) == 2
         assert "another process is sampling into" in capsys.readouterr().err
@@ -1342,7 +1342,7 @@ def test_preferences_with_an_adapter_trained_again_into_its_folder_are_refused(t
     kept = SamplingProgress(tmp_path / "prefs.partial", settings())
     assert kept.settings["adapter_weights"] == "ba7816bf8f01cfea"
     with kept.opened():
-        kept.save(0, {})
+        kept.save("batch", 0, {})
     (adapter / "adapter_model.safetensors").write_bytes(b"")  # trained again
     with pytest.raises(ValueError, match="adapter_weights 'ba7816bf8f01cfea' there, 'e3b0c44298fc1c14' now"):
         with SamplingProgress(kept.folder, settings()).opened():

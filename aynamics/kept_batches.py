@@ -1,0 +1,242 @@
+"""Work kept as it is done, so that a long command goes on after an interruption where it stopped.
+
+Sampling preferences (`aynamics preferences`) and scoring a real model (`aynamics evaluate`, with CMA-ES refinement
+a minute a scene) take hours; an interruption lost all of it. Both keep each finished batch in a folder beside
+their output, `OUT.partial` (`partial_folder`), and read the kept batches back when the same command runs again:
+
+    kept = KeptBatches(partial_folder(out), settings, run="an evaluation", verb="generate")
+    with kept.opened():  # made, or checked to hold these settings' batches; locked: a second writer is refused
+        for k, batch in enumerate(batches):
+            done = kept.done("responses")  # (read once, before the loop, in practice)
+            ...
+            kept.save("responses", k, {...})  # atomically: a half-written file is never read back
+        write(out)
+        kept.remove()  # under the lock: no second writer starts on the batches meanwhile
+
+`settings.json` holds everything the batches depend on: a run with other settings is refused, naming what differs
+(a run that kept no batch binds nothing: a mistyped option is not held against the next run). Each batch records
+what it was made from (keys, digests) for its caller to check.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import os
+import pickle
+import re
+import shutil
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def partial_folder(out: str | Path) -> Path:
+    """Where a command writing `out` keeps its batches meanwhile: `OUT.partial`, beside OUT."""
+    out = Path(out).resolve()
+    return out.with_name(out.name + ".partial")
+
+
+def file_digest(path: str | Path) -> str | None:
+    """A short hash of a file's bytes (None for no file): a folder names an adapter, not what it holds (one trained
+    again into the same folder writes other responses)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def content_digest(*values: Any) -> str:
+    """A short hash of what `values` hold: arrays and tensors by dtype, shape and bytes, images by mode, size and
+    pixels, dataclasses, mappings and sequences item by item, numbers and strings by type and value. A key names a
+    record (an index, a folder's name), not what it holds: a data set generated again holds other videos under the
+    same keys, and a kept batch made from them must not be read back as this run's.
+
+    Raises:
+        TypeError: a value of another kind, naming its type.
+    """
+    h = hashlib.sha256()
+    for v in values:
+        _feed(h, v)
+    return h.hexdigest()[:16]
+
+
+def _feed(h, v: Any) -> None:
+    from PIL import Image
+
+    if isinstance(v, torch.Tensor):
+        h.update(f"tensor {v.dtype} {tuple(v.shape)};".encode())
+        h.update(v.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    elif isinstance(v, np.ndarray):
+        h.update(f"array {v.dtype} {v.shape};".encode())
+        h.update(np.ascontiguousarray(v).tobytes())
+    elif isinstance(v, Image.Image):
+        h.update(f"image {v.mode} {v.size};".encode())
+        h.update(v.tobytes())
+    elif dataclasses.is_dataclass(v) and not isinstance(v, type):
+        h.update(f"{type(v).__name__}({len(dataclasses.fields(v))});".encode())
+        for f in dataclasses.fields(v):
+            h.update(f"{f.name}=".encode())
+            _feed(h, getattr(v, f.name))
+    elif isinstance(v, Mapping):
+        h.update(f"mapping {len(v)};".encode())
+        for key in sorted(v, key=str):
+            _feed(h, key)
+            _feed(h, v[key])
+    elif isinstance(v, (list, tuple)):
+        h.update(f"sequence {len(v)};".encode())
+        for item in v:
+            _feed(h, item)
+    elif v is None or isinstance(v, (str, bytes, bool, int, float, np.generic)):
+        h.update(f"{type(v).__name__} {v!r};".encode())
+    else:
+        raise TypeError(f"content_digest: a {type(v).__name__} cannot be hashed by its contents")
+
+
+class KeptBatches:
+    """A folder of numbered batches (`STREAM-NNNNNN.pt`, one series per stream name) and the settings they were
+    made with.
+
+    Args:
+        folder: The folder (`partial_folder(out)`).
+        settings: What the batches depend on, JSON-able (compared as `settings.json` reads it back).
+        run: What made the folder, for messages ("a preference run").
+        verb: What the command does to make a batch ("sample"), for messages.
+        fields: Keys every batch of a stream holds (stream -> keys): a file without them is from another version.
+    """
+
+    SETTINGS = "settings.json"
+
+    def __init__(
+        self,
+        folder: str | Path,
+        settings: dict,
+        *,
+        run: str,
+        verb: str,
+        fields: dict[str, frozenset[str]],
+    ) -> None:
+        self.folder = Path(folder)
+        self.settings = json.loads(json.dumps(settings))  # as settings.json reads back (tuples as lists)
+        self.run, self.verb, self.fields = run, verb, fields
+
+    @contextlib.contextmanager
+    def opened(self) -> Iterator[KeptBatches]:
+        """Make the folder (or check the one there was made with these settings) and hold its lock.
+
+        Raises:
+            ValueError: the folder is a link or holds other files, other settings, or another process holds its lock.
+        """
+        from aynamics.dataset_store import exclusive
+
+        if self.folder.is_symlink():  # removing a link at the end leaves its batches to be gone on from next time
+            raise ValueError(
+                f"{str(self.folder)!r} is a link (to {os.readlink(self.folder)!r}): the kept batches need a folder of "
+                "their own; remove the link"
+            )
+        if self.folder.exists() and not (self.folder / self.SETTINGS).is_file():
+            other = [p.name for p in self.folder.iterdir() if p.name != ".lock"] if self.folder.is_dir() else []
+            if other or not self.folder.is_dir():
+                raise ValueError(
+                    f"{str(self.folder)!r} exists and is not the kept batches of {self.run} (no {self.SETTINGS}): "
+                    "move it away, or write --out elsewhere"
+                )
+        self.folder.mkdir(parents=True, exist_ok=True)
+        with contextlib.ExitStack() as stack:
+            try:
+                stack.enter_context(exclusive(self.folder / ".lock", wait=False))
+            except BlockingIOError:
+                raise ValueError(
+                    f"another process is {self.verb.removesuffix('e')}ing into {str(self.folder)!r} (it holds its "
+                    "lock): wait for it, or write --out elsewhere"
+                ) from None
+            self._check_settings()
+            yield self
+
+    def _check_settings(self) -> None:
+        path = self.folder / self.SETTINGS
+        # no batch kept, nothing to go on from: a run that failed before its first one (a mistyped option, a first
+        # batch too large for the GPU) does not bind the next to its settings
+        if not path.is_file() or not len(self):
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
+            os.replace(tmp, path)
+            return
+        try:
+            kept = json.loads(path.read_text())
+        except ValueError as e:
+            raise ValueError(
+                f"{str(path)!r} cannot be read ({e}): delete {str(self.folder)!r} to {self.verb} afresh"
+            ) from None
+        if kept != self.settings:
+            keys = sorted(set(kept) | set(self.settings)) if isinstance(kept, dict) else []
+            diff = [
+                f"{k} {kept.get(k)!r} there, {self.settings.get(k)!r} now"
+                for k in keys
+                if kept.get(k) != self.settings.get(k)
+            ]
+            raise ValueError(
+                f"{str(self.folder)!r} holds the batches of an interrupted run with other settings "
+                f"({'; '.join(diff) or repr(kept)}): run with its settings to go on from it, or delete it to "
+                f"{self.verb} afresh"
+            )
+
+    def done(self, stream: str) -> list[dict]:
+        """The kept batches of `stream` in order (its first `count(stream)` batches).
+
+        Raises:
+            ValueError: a batch file that cannot be read, or a gap in their numbers, naming the file.
+        """
+        batches = []
+        for k, path in enumerate(self._files(stream)):
+            if int(path.stem.rsplit("-", 1)[1]) != k:
+                raise ValueError(
+                    f"{str(path)!r}: batch {k} is missing before it; delete it and later ones to {self.verb} them again"
+                )
+            try:
+                batch = torch.load(path, weights_only=True)
+            except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as e:  # torch names no file
+                raise ValueError(
+                    f"{str(path)!r} cannot be read ({type(e).__name__}: {e}): delete it to {self.verb} it again"
+                ) from None
+            need = self.fields[stream]
+            if not isinstance(batch, dict) or not need <= batch.keys():
+                held = sorted(batch) if isinstance(batch, dict) else type(batch).__name__
+                raise ValueError(
+                    f"{str(path)!r} is not a batch this version keeps (it holds {held}, not {sorted(need)}): "
+                    f"delete it to {self.verb} it again"
+                )
+            batches.append(batch)
+        return batches
+
+    def __len__(self) -> int:
+        """Batches kept, of every stream (not read)."""
+        return sum(len(self._files(s)) for s in self.fields)
+
+    def count(self, stream: str) -> int:
+        """Batches of `stream` kept (not read)."""
+        return len(self._files(stream))
+
+    def _files(self, stream: str) -> list[Path]:
+        pattern = re.compile(rf"{re.escape(stream)}-(\d{{6}})\.pt")
+        return sorted(p for p in self.folder.glob(f"{stream}-*.pt") if pattern.fullmatch(p.name))
+
+    def save(self, stream: str, index: int, batch: dict) -> Path:
+        """Keep batch `index` of `stream` (atomically: a half-written file is never read back)."""
+        path = self.folder / f"{stream}-{index:06d}.pt"
+        tmp = path.with_suffix(".tmp")
+        torch.save(batch, tmp)
+        os.replace(tmp, path)
+        return path
+
+    def remove(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
