@@ -492,12 +492,26 @@ def collate(
             raise ValueError(f"collate: {key} in {sum(present)} of {len(examples)} examples: images and videos mixed")
         if all(present):
             batch[key] = torch.cat([ex[key] for ex in examples])
+    if "second_per_grid_ts" in batch:
+        batch[SECONDS_BITS] = batch["second_per_grid_ts"].to(torch.float32).view(torch.int32)
     return batch
 
 
+# A video's seconds per temporal patch as the bits of its float32 value: a precision plugin casts every floating
+# tensor of a batch to the model's dtype before the step (`bf16-true`, and DeepSpeed even with bf16-mixed), and
+# in bfloat16 0.6 s reads 0.5977 s, which moves Qwen2.5-VL's temporal positions (floor(t · seconds · tokens per
+# second): 5 for 6 at the sixth patch) away from those generation gives (its inputs are not cast). Integers are
+# not cast; `model_inputs` reads the value back exactly.
+SECONDS_BITS = "second_per_grid_ts_bits"
+
+
 def model_inputs(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The subset of `batch` the model's forward/generate takes (drops labels and extras)."""
-    return {k: v for k, v in batch.items() if k in MODEL_KEYS}
+    """The subset of `batch` the model's forward/generate takes (drops labels and extras), with a collated video's
+    `second_per_grid_ts` as collated, whatever dtype a precision plugin cast it to (`SECONDS_BITS`)."""
+    out = {k: v for k, v in batch.items() if k in MODEL_KEYS}
+    if SECONDS_BITS in batch:
+        out["second_per_grid_ts"] = batch[SECONDS_BITS].view(torch.float32)
+    return out
 
 
 def append_completions(

@@ -185,6 +185,31 @@ def test_collate_pads_left_and_concatenates_pixels(proc, frames):
         collate([a, video], pad)
 
 
+def test_a_videos_seconds_survive_the_precision_plugins_input_cast(proc, frames):
+    """A 30-fps video shown every 8th frame (3.75 fps: `second_per_grid_ts` 2 / 3.75 = 0.5333 s a temporal patch of
+    2 frames): under bf16-true (and DeepSpeed) Lightning casts the batch's floating tensors to bfloat16, where it
+    reads 0.53515625, and Qwen2.5-VL's temporal position of the 15th patch (transformers' `get_vision_position_ids`:
+    (arange(T) · tokens_per_second · seconds).long(), tokens_per_second 2) became 15, against the 14 generation
+    (inputs not cast) gives. `model_inputs` now hands the model the collated float32 value."""
+    from lightning.pytorch.plugins.precision import HalfPrecision
+
+    from aynamics.processor import model_inputs
+
+    ex = build_sft_example(proc, frames, RESPONSE, as_video=True, **PROMPTS)
+    ex["second_per_grid_ts"] = torch.tensor([2 / 3.75])
+    batch = collate([ex], proc.tokenizer.pad_token_id)
+    cast = HalfPrecision("bf16-true").convert_input(batch)
+    assert cast["second_per_grid_ts"].item() == 0.53515625  # what the model read before
+    seconds = model_inputs(cast)["second_per_grid_ts"]
+    assert seconds.dtype == torch.float32 and torch.equal(seconds, torch.tensor([2 / 3.75]))
+    assert torch.equal(model_inputs(batch)["second_per_grid_ts"], seconds)  # no cast: the same
+
+    def positions(s):
+        return (torch.arange(15) * (2 * s[0])).long()[-1].item()
+
+    assert (positions(seconds), positions(cast["second_per_grid_ts"])) == (14, 15)
+
+
 def test_append_completions_keeps_visual_inputs_aligned(proc, frames):
     tok = proc.tokenizer
     pad, im_end = tok.pad_token_id, tok.convert_tokens_to_ids("<|im_end|>")
