@@ -1,13 +1,16 @@
 """Physics editing: change an inferred scene with a plain-English instruction and ask "what if".
 
 A small deterministic instruction language covers the paper's edits and their kin; several clauses can be
-joined with ";" or "then":
+joined with ";", "then" or "and", and "it", "its", "them", "their" name the objects of the clause before:
 
     reduce the x-velocity of box_0 by 80%        decrease gravity by 50%
     increase the y-velocity by 50%  (no object named: every object)
     set the mass of sphere_1 to 2 kg             double the friction of cylinder_0
     move box_0 0.5 m left                        reverse the z-velocity of the sphere
     stop box_0                                   set the velocity of box_0 to [1, 0, 0]
+    make the box twice as heavy                  make sphere_1 slower by 1 m/s
+    moon gravity                                 increase the mass by a factor of 3
+    double the mass of box_0 and halve its friction
 
 Directions are world axes as the default camera sees them: "left" is -x, "right" +x, "forward"/"away" +y
 (the camera looks along +y), "back"/"toward the camera" -y, "up" +z, "down" -z. A percentage or factor on a
@@ -106,6 +109,8 @@ QUANTITIES: tuple[Quantity, ...] = (  # longest phrases first: "angular velocity
     Quantity("fovy", r"field of view|fovy|fov", "camera", ("fovy",), unit="angle"),
 )
 
+_BY_KEY = {q.key: q for q in QUANTITIES}
+
 DIRECTIONS: dict[str, tuple[int, float]] = {  # word -> (axis, sign); see the module docstring
     "left": (0, -1.0),
     "right": (0, 1.0),
@@ -127,10 +132,14 @@ DIRECTIONS: dict[str, tuple[int, float]] = {  # word -> (axis, sign); see the mo
 }
 
 UNDERSTOOD = (
-    "I understand (clauses joined by ';' or 'then'): "
+    "I understand (clauses joined by ';', 'then' or 'and'; 'it', 'its', 'them', 'their' name the objects of the "
+    "clause before): "
     "'increase|raise|decrease|reduce|lower QUANTITY [of TARGETS] by N% | by N UNIT'; "
     "'set|change QUANTITY [of TARGETS] to N [UNIT] | to [x, y, z]'; "
     "'double|triple|halve QUANTITY [of TARGETS]'; 'multiply|scale QUANTITY [of TARGETS] by K'; "
+    "'increase|decrease QUANTITY [of TARGETS] by a factor of K'; "
+    "'make TARGETS twice|half|N times as heavy|fast|bouncy'; 'make TARGETS heavier|lighter|faster|slower|bouncier "
+    "by N% | by N UNIT'; 'moon|mars|earth|jupiter gravity' or 'set the gravity to the moon's'; "
     "'reverse QUANTITY [of TARGETS]'; 'move TARGETS N m DIRECTION' (left -x, right +x, forward/away +y, "
     "back/toward the camera -y, up +z, down -z); 'move TARGETS to [x, y, z]'; 'stop TARGETS'. "
     "QUANTITY: [x-|y-|z-]velocity, [x-|y-|z-]angular velocity (spin), [x-|y-|z-]position, mass, friction, "
@@ -193,8 +202,11 @@ def _quantity(text: str) -> tuple[Quantity, int | None]:
     raise EditError(f"quantity {text!r} not understood. {UNDERSTOOD}")
 
 
-def _targets(text: str | None, scene: Scene) -> list[int]:
-    """Indices of the objects a target phrase names; None or 'all objects' means every object."""
+def _targets(text: str | None, scene: Scene, previous: list[int] | None = None) -> list[int]:
+    """Indices of the objects a target phrase names; None or 'all objects' means every object; 'it' / 'them' the
+    objects of the clause before (`previous`)."""
+    if text is not None and re.fullmatch(r"it|them", text):
+        return _previous(text, previous, scene)
     if text is None or re.fullmatch(r"(?:all|every|each)(?: (?:the )?objects?)?|everything|the objects", text):
         return list(range(len(scene.objects)))
     out: list[int] = []
@@ -219,6 +231,19 @@ def _targets(text: str | None, scene: Scene) -> list[int]:
             raise EditError(f"{part!r} is ambiguous: the scene has {len(idx)} {plural} {names}; name one")
         out.extend(idx)
     return sorted(set(out))
+
+
+def _previous(word: str, previous: list[int] | None, scene: Scene) -> list[int]:
+    """The objects an earlier clause named, for 'it', 'its', 'them', 'their' (alone they meant every object:
+    "double the mass of box_0; halve its friction" halved every object's friction); in a scene of one object,
+    before any clause named one, that object."""
+    if previous is None and len(scene.objects) == 1:
+        return [0]
+    if previous is None:
+        raise EditError(
+            f"{word!r} refers to no object named before it in the instruction; name the object (e.g. box_0)"
+        )
+    return previous
 
 
 def _subject(text: str) -> tuple[str, str | None]:
@@ -378,19 +403,73 @@ def _absolute(q: Quantity, comp: int | None, value: float | list[float], kind: s
 
 
 _VERBS_BY = "|".join((*_UP, *_DOWN))
+# surface gravity, m/s² (NASA planetary fact sheets): "moon gravity", "set the gravity to mars"
+PLANET_GRAVITY = {"earth": 9.81, "moon": 1.62, "mars": 3.71, "jupiter": 24.79}
+_PLANET_NAMES = {"earth": "earth", "moon": "moon", "lunar": "moon", "mars": "mars", "martian": "mars"} | {
+    "jupiter": "jupiter"
+}
+_PLANET = rf"(?:that of )?(?:the )?({'|'.join(_PLANET_NAMES)})(?:'s)?"
+# "make box_0 twice as heavy": adjective -> quantity; "make box_0 heavier by 20%": comparative -> (quantity, sign)
+_AS = {"heavy": "mass", "massive": "mass", "fast": "velocity", "quick": "velocity", "bouncy": "restitution"}
+_ER = {
+    "heavier": ("mass", 1.0),
+    "lighter": ("mass", -1.0),
+    "faster": ("velocity", 1.0),
+    "slower": ("velocity", -1.0),
+    "bouncier": ("restitution", 1.0),
+}
+_TIMES_WORDS = {"twice": 2.0, "thrice": 3.0, "half": 0.5, "a third": 1 / 3, "a quarter": 0.25, "one third": 1 / 3}
+_TIMES_WORDS |= {f"{w} times": k for w, k in (("two", 2.0), ("three", 3.0), ("four", 4.0), ("ten", 10.0))}
+_TIMES = rf"{'|'.join(_TIMES_WORDS)}|{_NUM} times"
+
+
+def _times(text: str) -> float:
+    """The factor of 'twice', 'half', 'three times', '2.5 times' (> 0)."""
+    k = _TIMES_WORDS.get(text)
+    if k is None:
+        k = float(text.removesuffix(" times"))
+    if not (0 < k < math.inf):
+        raise EditError(f"{text!r}: a factor is a number > 0")
+    return k
+
+
 _ITEM_WORDS = {"camera": r"(?:the )?camera", "gravity": r"(?:the )?(?:scene|world)"}  # targets naming the item
 _MOVE = r"(?:move|shift|push|translate)"
 _DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
 
 
-def _clause(clause: str, scene: Scene, items: list[dict]) -> None:
-    """Apply one clause to the items (in place)."""
-    c = clause
-    if m := re.fullmatch(rf"(?P<v>{_VERBS_BY}) (?:the )?(?P<s>.+?) by (?P<a>.+)", c):
+def _clause(clause: str, scene: Scene, items: list[dict], previous: list[int] | None = None) -> list[int] | None:
+    """Apply one clause to the items (in place); the objects it edited (None for the camera or the gravity), which
+    'it', 'its', 'them' and 'their' in the next clause refer to (`previous`: the last clause's)."""
+    c, q_text = clause, ""
+    if m := re.fullmatch(rf"(?:set|change) (?:the )?gravity to {_PLANET}(?: gravity)?", c) or re.fullmatch(
+        rf"(?:use |switch to |apply )?{_PLANET} gravity", c
+    ):
+        q, comp, t_text = _BY_KEY["gravity"], None, None
+        g = PLANET_GRAVITY[_PLANET_NAMES[m.group(1)]]
+        fn = _absolute(q, None, g, "abs", clause)  # the magnitude, along gravity's direction
+    elif m := re.fullmatch(rf"(?P<v>{_VERBS_BY}) (?:the )?(?P<s>.+?) by a factor of (?P<k>{_NUM})", c):
+        q_text, t_text = _subject(m.group("s"))
+        q, comp = _quantity(q_text)
+        k = float(m.group("k"))
+        if not (0 < k < math.inf):
+            raise EditError(f"{clause!r}: a factor is a number > 0, not {m.group('k')}")
+        fn = _scale(q, k if m.group("v") in _UP else 1.0 / k)
+    elif m := re.fullmatch(rf"(?P<v>{_VERBS_BY}) (?:the )?(?P<s>.+?) by (?P<a>.+)", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
         amount, kind = _value(m.group("a"), q)
         sign = 1.0 if m.group("v") in _UP else -1.0
+        fn = _relative(q, comp, sign, amount, kind, clause)
+    elif m := re.fullmatch(
+        rf"make (?P<t>.+?) (?P<f>{_TIMES}) as (?P<adj>{'|'.join(_AS)})(?: as (?:before|now|it is))?", c
+    ):
+        q, comp, t_text = _quantity(_AS[m.group("adj")])[0], None, m.group("t")
+        fn = _scale(q, _times(m.group("f")))
+    elif m := re.fullmatch(rf"make (?P<t>.+?) (?P<adj>{'|'.join(_ER)}) by (?P<a>.+)", c):
+        (q_text, sign), t_text = _ER[m.group("adj")], m.group("t")
+        q, comp = _quantity(q_text)
+        amount, kind = _value(m.group("a"), q)
         fn = _relative(q, comp, sign, amount, kind, clause)
     elif m := re.fullmatch(r"(?:set|change) (?:the )?(?P<s>.+?) (?:to|=) (?P<a>.+)", c):
         q_text, t_text = _subject(m.group("s"))
@@ -425,24 +504,34 @@ def _clause(clause: str, scene: Scene, items: list[dict]) -> None:
             raise EditError(f"{clause!r}: a move takes a distance like '0.5 m', not {m.group('n')!r}")
         fn = _relative(q, comp, sign, amount, "abs", clause)
     elif m := re.fullmatch(r"(?:stop|freeze) (?P<t>.+)", c):
-        idx = _targets(m.group("t"), scene)
+        idx = _targets(m.group("t"), scene, previous)
         for i in idx:
             items[i]["state"]["linear_velocity"] = [0.0, 0.0, 0.0]
             items[i]["state"]["angular_velocity"] = [0.0, 0.0, 0.0]
-        return
+        return idx
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
         t_text = None  # "the field of view of the camera", "the gravity of the scene" name the item itself
-    idx = _targets(t_text, scene)
-    for item in _items_of(q, items, idx, scene, t_text is not None):
+    owner = re.match(r"(its|their) ", q_text) if t_text is None and q.scope == "object" else None
+    idx = _previous(owner.group(1), previous, scene) if owner else _targets(t_text, scene, previous)
+    for item in _items_of(q, items, idx, scene, t_text is not None or owner is not None):
         _edit_field(item, q, comp, fn, repr(clause))
+    return idx if q.scope == "object" else previous
+
+
+# the words a clause starts with: "and" before one of them joins two clauses ("double the mass of box_0 and halve its
+# friction"); elsewhere it joins objects ("box_0 and sphere_1")
+_CLAUSE_START = (
+    rf"(?:{_VERBS_BY}|set|change|double|triple|quadruple|halve|multiply|scale|reverse|negate|flip|stop|freeze|make|"
+    rf"use|switch to|apply|{_MOVE})\b"
+)
 
 
 def _normalise(instruction: str) -> list[str]:
     text = " ".join(instruction.strip().split()).rstrip(".!").lower()
     text = text.replace("per cent", "percent")
-    clauses = [c.strip(" ,") for c in re.split(r";|,? then |,? and then ", text)]
+    clauses = [c.strip(" ,") for c in re.split(rf";|,? then |,? and then |,? and (?={_CLAUSE_START})", text)]
     return [re.sub(r"^(?:please|now) ", "", c) for c in clauses if c.strip(" ,")]
 
 
@@ -462,8 +551,9 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
     if not clauses:  # ";" or "." was an edit that changed nothing (exit 0)
         raise EditError(f"empty instruction {instruction!r}: no clause in it. {UNDERSTOOD}")
     items = copy.deepcopy(to_items(scene))
+    previous = None  # the objects the last clause edited: "its", "it", "their", "them"
     for clause in clauses:
-        _clause(clause, scene, items)
+        previous = _clause(clause, scene, items, previous)
     return finish(scene, items, instruction)
 
 

@@ -74,6 +74,25 @@ CASES = [
         "set the spin of box_0 to [0, 0, 2]; stop box_0",
         {"box_0.state.linear_velocity[0]": 0.0, "box_0.state.linear_velocity[1]": 0.0},
     ),
+    # everyday phrasings (they were "not understood"): a planet's gravity along gravity's direction (-7 -> -1.62),
+    # "N times as ADJ", "ADJ-er by", "by a factor of K", clauses joined by "and", "it" / "its" for the object before
+    ("moon gravity", {"gravity.gravity[2]": -1.62}),
+    ("set the gravity to that of mars", {"gravity.gravity[2]": -3.71}),
+    ("make the box twice as heavy", {"box_0.physics.mass": 2.0}),
+    (
+        "make cylinder_0 half as fast",  # [-0.1, -0.5, 0] × 0.5
+        {"cylinder_0.state.linear_velocity[0]": -0.05, "cylinder_0.state.linear_velocity[1]": -0.25},
+    ),
+    ("make box_0 lighter by 20%", {"box_0.physics.mass": 0.8}),
+    ("increase the mass of box_0 by a factor of 3", {"box_0.physics.mass": 3.0}),
+    ("reduce the mass of cylinder_0 by a factor of 4", {"cylinder_0.physics.mass": 0.25}),
+    ("double the mass of box_0 and halve its friction", {"box_0.physics.mass": 2.0, "box_0.physics.friction[0]": 0.55}),
+    (
+        "set the mass of box_0 to 2 kg and move it 0.5 m left",
+        {"box_0.physics.mass": 2.0, "box_0.state.position[0]": -5.5},
+    ),
+    # "and" between objects still joins objects, not clauses
+    ("increase the mass of box_0 and cylinder_0 by 10%", {"box_0.physics.mass": 1.1, "cylinder_0.physics.mass": 1.1}),
 ]
 
 
@@ -111,6 +130,11 @@ REFUSED = [
     ("", "empty instruction"),
     (" ; .", "empty instruction ' ; .': no clause in it"),  # no clause: it was an edit that changed nothing
     ("increase the x-mass of box_0 by 1 kg", "'x-mass': mass has no x component"),
+    # "its" alone edited every object (both frictions halved); in a scene of two objects it names none
+    ("halve its friction", "'its' refers to no object named before it in the instruction; name the object"),
+    ("make it twice as heavy", "'it' refers to no object named before it"),
+    ("make box_0 0 times as heavy", "'0 times': a factor is a number > 0"),
+    ("increase the mass of box_0 by a factor of 0", "a factor is a number > 0, not 0"),
 ]
 
 
@@ -121,6 +145,15 @@ def test_refused(scene, instruction, message):
         apply_instruction(scene, instruction)
     assert message in str(err.value)
     assert dump(scene) == before
+
+
+def test_its_names_the_only_object_of_a_one_object_scene(scene):
+    """With one object, "its" before any object is named is that object (as a reader takes it); after a clause
+    that edited the gravity, "it" still has no object to refer to in a scene of two."""
+    one = scene.model_copy(update={"objects": scene.objects[:1]})
+    assert {c.path: c.after for c in apply_instruction(one, "halve its mass").changes} == {"box_0.physics.mass": 0.5}
+    with pytest.raises(EditError, match="'it' refers to no object"):
+        apply_instruction(scene, "moon gravity and stop it")
 
 
 def test_what_is_not_a_scene_or_an_instruction_text_is_named(scene):
