@@ -2,7 +2,8 @@
 
 A run of `num` scenes is cut into chunks of `chunk_size` consecutive indices. Shard k of n makes the chunks c with
 c % n == k and writes each one atomically (a temporary folder renamed to `chunks/NNNNNN`), so a killed run started
-again skips finished chunks and redoes the partial one. `generate.json` (the manifest) records the settings that
+again skips finished chunks and redoes the partial one; while it writes it holds its shard's lock, and a second
+process making any of its chunks is refused (`claim_shard`). `generate.json` (the manifest) records the settings that
 decide the records; a folder refuses chunks of a different run. `assemble` concatenates every chunk in index order
 and splits the rows by their `split` column into the DatasetDict that `datasets.load_from_disk` opens.
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -144,7 +146,8 @@ def chunk_dir(out: Path, c: int) -> Path:
 
 
 def remove_partial_chunks(out: Path, chunks: list[int]) -> None:
-    """Delete the temporary folders that a killed run left while writing these chunks."""
+    """Delete the temporary folders that a killed run left while writing these chunks (call it holding their
+    shard's lock, `claim_shard`: then no live process is writing them)."""
     for c in chunks:
         for tmp in (out / "chunks").glob(f".tmp-{c:06d}-*"):
             shutil.rmtree(tmp, ignore_errors=True)
@@ -232,6 +235,60 @@ def write_manifest(out: Path, manifest: dict) -> None:
     os.replace(tmp, path)
 
 
+_SHARD_LOCK = re.compile(r"\.shard-(\d+)-of-(\d+)\.lock")
+
+
+@contextlib.contextmanager
+def claim_shard(out: Path, manifest: dict, shard: int = 0, num_shards: int = 1):
+    """Write or check the manifest (`write_manifest`) and hold shard `shard` of `num_shards` of the run in `out`
+    for the block: no other live process makes any of its chunks meanwhile.
+
+    Shards of one run may write into one folder at once, each holding the lock of its own (`.shard-K-of-N.lock`).
+    Two processes making the same chunks raced: the second redid the first's chunks and stopped with OSError
+    ENOTEMPTY renaming its copy onto one the first had finished (its copy left behind), or deleted the first's
+    half-written chunk as a leftover. So a second writer of any of these chunks (the same shard, or a shard of
+    another count sharing a chunk) is refused here, before anything is rendered. The manifest, the look at the
+    other shards' locks and the taking of this one happen under `.generate.lock`, so that two writers starting
+    together cannot both pass, nor write two manifests. While it is held, the temporary folders of this shard's
+    chunks are leftovers of dead processes (`remove_partial_chunks`).
+
+    Raises:
+        ValueError: the folder holds another run (`write_manifest`), or a live process holds the lock of a shard
+            that shares a chunk with this one (named, with the folder).
+    """
+    num, chunk_size = manifest["num"], manifest["config"]["chunk_size"]
+    mine = set(shard_chunks(num, chunk_size, shard, num_shards))
+    out.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as held:
+        with exclusive(out / ".generate.lock"):
+            write_manifest(out, manifest)
+            for lock in sorted(out.iterdir()):
+                m = _SHARD_LOCK.fullmatch(lock.name)
+                k, n = (int(m[1]), int(m[2])) if m else (shard, num_shards)
+                if (k, n) == (shard, num_shards) or not 0 <= k < n:
+                    continue  # not a shard's lock, or this shard's own (taken below)
+                if not mine & set(shard_chunks(num, chunk_size, k, n)):
+                    continue
+                try:
+                    with exclusive(lock, wait=False):
+                        pass  # its writer is gone
+                except BlockingIOError:
+                    raise ValueError(
+                        f"--out {str(out)!r}: another process is writing shard {k}/{n} of this run into it (it holds "
+                        f"{lock.name}), which makes chunks that shard {shard}/{num_shards} makes too: wait for it to "
+                        "finish, or give shards of one count"
+                    ) from None
+            lock = out / f".shard-{shard}-of-{num_shards}.lock"
+            try:
+                held.enter_context(exclusive(lock, wait=False))
+            except BlockingIOError:
+                raise ValueError(
+                    f"--out {str(out)!r}: another process is writing shard {shard}/{num_shards} of this run into "
+                    f"it (it holds {lock.name}): wait for it to finish, or give another --out"
+                ) from None
+        yield
+
+
 # --------------------------------------------------------------------------------------------
 # Assembly
 # --------------------------------------------------------------------------------------------
@@ -273,21 +330,48 @@ def assemble(out_dir: str | os.PathLike, sources: list[str | os.PathLike] | None
     if sources:
         write_manifest(out, manifest)
     tmp = out / f".assemble-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        with quiet_datasets():
-            dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 file
-    except BaseException:  # a full disk or a kill: no hidden copy of the data set left holding the space
+    with contextlib.ExitStack() as held:
+        with exclusive(out / ".assemble.lock"):
+            remove_dead_assemblies(out)
+            tmp.mkdir()
+            held.enter_context(exclusive(tmp / ".lock", wait=False))  # ours while we live (`remove_dead_assemblies`)
+        try:
+            with quiet_datasets():
+                dd.save_to_disk(str(tmp), num_shards={s: 1 for s in SPLITS if len(dd[s]) == 0})  # empty splits: 1 file
+        except BaseException:  # a full disk or an interrupt: no hidden copy of the data set left holding the space
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        with exclusive(out / ".assemble.lock"):  # shards that finish together move their (equal) splits in turn
+            (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
+            for s in SPLITS:
+                shutil.rmtree(out / s, ignore_errors=True)
+                os.replace(tmp / s, out / s)
+            os.replace(tmp / "dataset_dict.json", out / "dataset_dict.json")
         shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    with exclusive(out / ".assemble.lock"):  # shards that finish together move their (equal) splits in turn
-        (out / "dataset_dict.json").unlink(missing_ok=True)  # the folder is not a data set while splits move
-        for s in SPLITS:
-            shutil.rmtree(out / s, ignore_errors=True)
-            os.replace(tmp / s, out / s)
-        os.replace(tmp / "dataset_dict.json", out / "dataset_dict.json")
-    shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+_ASSEMBLY = re.compile(r"\.assemble-\d+")
+
+
+def remove_dead_assemblies(out: Path) -> None:
+    """Delete the `.assemble-PID` folders in `out` that no live process is writing (call it holding
+    `.assemble.lock`).
+
+    Each is a hidden copy of the whole data set: a run killed (SIGKILL, the OOM killer) while saving it left it
+    holding the space for good, as no later run looked at another process's. Shards finishing together assemble
+    at once, each into its own, so a folder is removed only when the lock its writer holds on its `.lock` (taken
+    under `.assemble.lock`, with the folder made) can be had: its writer is gone. Only folders of that name.
+    """
+    for folder in sorted(out.iterdir()):
+        if not _ASSEMBLY.fullmatch(folder.name) or folder.is_symlink() or not folder.is_dir():
+            continue
+        try:
+            with exclusive(folder / ".lock", wait=False):
+                pass
+        except BlockingIOError:
+            continue  # another shard is assembling into it
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @contextlib.contextmanager

@@ -420,7 +420,13 @@ def refine_texts(
 
 
 def write_evaluation(out: str | Path, result: Evaluation, settings: dict) -> Path:
-    """`predictions.jsonl` and `metrics.json` of `result` in the folder `out` (made if needed)."""
+    """`predictions.jsonl` and `metrics.json` of `result` in the folder `out` (made if needed).
+
+    Each is written to a hidden `.NAME.tmp-PID` beside it and renamed; once both are in place, such files that
+    killed writes left (for good before: each write knew only its own process's name) are deleted. A process
+    writing the same `out` at once could lose its file to this: callers that may run together hold the lock of
+    `partial_folder(out)` (`KeptBatches.opened`), as `aynamics evaluate --out` does.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     per = dict(result.per_item)
@@ -439,6 +445,10 @@ def write_evaluation(out: str | Path, result: Evaluation, settings: dict) -> Pat
     tmp = out / f".metrics.json.tmp-{os.getpid()}"
     tmp.write_text(text)
     os.replace(tmp, out / "metrics.json")
+    for name in ("predictions.jsonl", "metrics.json"):
+        for leftover in out.glob(f".{name}.tmp-*"):
+            if leftover.name.rpartition("-")[2].isdigit() and leftover.is_file() and not leftover.is_symlink():
+                leftover.unlink(missing_ok=True)
     return out
 
 

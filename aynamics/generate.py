@@ -9,10 +9,11 @@ Scene i is drawn from `sampler.scene_seed(seed, i, attempt)` alone, so a record 
 that made it, on the number of workers or on earlier runs. Work is cut into chunks of `chunk_size` consecutive
 indices; shard k of n makes the chunks c with c % n == k and writes each one atomically (a temporary folder
 renamed to `chunks/NNNNNN`), so a killed run started again skips finished chunks and redoes the partial one
-(same records): nothing is lost or duplicated. When every chunk of the run is on disk (from one run or from
-all shards writing into the same folder, or folders joined with `assemble(out, sources)`) the chunks are
-concatenated in index order and split by a hash of (seed, index) into the DatasetDict at `out` (storage:
-`dataset_store.py`).
+(same records): nothing is lost or duplicated. A second process started on chunks a live one is making (the same
+command twice) is refused before it renders anything; shards of one run still write into one folder at once. When
+every chunk of the run is on disk (from one run or from all shards writing into the same folder, or folders joined
+with `assemble(out, sources)`) the chunks are concatenated in index order and split by a hash of (seed, index)
+into the DatasetDict at `out` (storage: `dataset_store.py`).
 
 With `--scenes` (`scene_files`, `generate(scenes=...)`) record i is made from the i-th of your scene files instead
 of a sampled scene (`attempt` 0; the sampler's settings play no part): a file in a folder named train, validation
@@ -73,6 +74,7 @@ from aynamics.dataset_store import (  # noqa: F401 - re-exported: the storage ha
     assemble,
     chunk_dir,
     chunk_ranges,
+    claim_shard,
     features,
     remove_partial_chunks,
     shard_chunks,
@@ -680,32 +682,32 @@ def generate(
         settings.pop("sampler")
         settings["scenes"] = [{"sha256": f.sha256, "split": f.split} for f in scenes]
         manifest["scene_files"] = [f.path for f in scenes]  # for the reader; not compared on a resume
-    write_manifest(out, manifest)
-    (out / "chunks").mkdir(exist_ok=True)
-    ranges = chunk_ranges(num, config.chunk_size)
-    remove_partial_chunks(out, mine)  # leftovers of a killed run of this shard
-    todo = [c for c in mine if not chunk_dir(out, c).exists()]
-    jobs = [(i, seed, None if scenes is None else scenes[i]) for c in todo for i in ranges[c]]
-    bar = tqdm(
-        total=sum(len(ranges[c]) for c in mine),
-        initial=sum(len(ranges[c]) for c in mine) - len(jobs),
-        unit="scene",
-        desc=f"generate shard {shard}/{num_shards}",
-        disable=not progress,
-        smoothing=0.1,
-    )
-    pending: list[dict] = []
-    chunks = iter(todo)
-    current = next(chunks, None)
-    with bar:
-        for record in _records(jobs, config):
-            pending.append(record)
-            bar.update(1)
-            if current is not None and len(pending) == len(ranges[current]):
-                write_chunk(out, current, pending)
-                pending, current = [], next(chunks, None)
-    if all(chunk_dir(out, c).exists() for c in range(len(ranges))):
-        return assemble(out)
+    with claim_shard(out, manifest, shard, num_shards):  # a second writer of these chunks is refused here
+        (out / "chunks").mkdir(exist_ok=True)
+        ranges = chunk_ranges(num, config.chunk_size)
+        remove_partial_chunks(out, mine)  # leftovers of a killed run of this shard
+        todo = [c for c in mine if not chunk_dir(out, c).exists()]
+        jobs = [(i, seed, None if scenes is None else scenes[i]) for c in todo for i in ranges[c]]
+        bar = tqdm(
+            total=sum(len(ranges[c]) for c in mine),
+            initial=sum(len(ranges[c]) for c in mine) - len(jobs),
+            unit="scene",
+            desc=f"generate shard {shard}/{num_shards}",
+            disable=not progress,
+            smoothing=0.1,
+        )
+        pending: list[dict] = []
+        chunks = iter(todo)
+        current = next(chunks, None)
+        with bar:
+            for record in _records(jobs, config):
+                pending.append(record)
+                bar.update(1)
+                if current is not None and len(pending) == len(ranges[current]):
+                    write_chunk(out, current, pending)
+                    pending, current = [], next(chunks, None)
+        if all(chunk_dir(out, c).exists() for c in range(len(ranges))):
+            return assemble(out)
     return None
 
 

@@ -387,23 +387,64 @@ def save_adapter(
     import os
     import shutil
 
+    from aynamics.dataset_store import exclusive
+
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     # written whole beside it, then swapped in: replaced file by file, a kill left one checkpoint's weights with
     # another's aynamics.json (prompt) or adapter_config.json, and such a folder loads without a word
     tmp, old = (out.parent / f".{out.name}.{what}-{os.getpid()}" for what in ("tmp", "old"))
-    for folder in (tmp, old):
-        shutil.rmtree(folder, ignore_errors=True)
-    model.save_pretrained(str(tmp), **({"state_dict": state_dict} if state_dict is not None else {}))
-    (tmp / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
-    if out.is_dir():
-        for p in out.iterdir():  # files of the user's in the folder stay in it
-            if not (tmp / p.name).exists():
-                os.replace(p, tmp / p.name)
-        os.replace(out, old)
-    os.replace(tmp, out)
-    shutil.rmtree(old, ignore_errors=True)
+    with exclusive(out.parent / f".{out.name}.lock"):  # writers of `out` in turn: the leftovers are no one's
+        _recover_adapter_leftovers(out)
+        model.save_pretrained(str(tmp), **({"state_dict": state_dict} if state_dict is not None else {}))
+        (tmp / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
+        if out.is_dir():
+            for p in out.iterdir():  # files of the user's in the folder stay in it
+                if not (tmp / p.name).exists():
+                    os.replace(p, tmp / p.name)
+            os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
     return out
+
+
+def _recover_adapter_leftovers(out: Path) -> None:
+    """Finish or undo what killed `save_adapter`s of `out` left beside it (`.OUT.tmp-PID`, `.OUT.old-PID`), then
+    delete those folders (call it holding `out`'s lock). A kill (SIGKILL, the OOM killer) of another process left
+    them for good, as each write removed only its own process's; and some hold the only copy of something:
+
+    - no `out`, a `.old-PID` and its `.tmp-PID` (killed between the two renames): the new adapter and the user's
+      files are whole in `.tmp-PID`, renamed to `out` as the write meant to; a single `.old-PID` without its
+      `.tmp-PID` is the only copy of `out` and is put back; several such: all stay (which was `out` is unknown).
+    - `out` and a `.tmp-PID` holding `aynamics.json` (killed while moving the user's files into it): the entries
+      whose names `out` lacks (those files) go back into `out`.
+    - the rest is a half-written adapter or one replaced: deleted. Only folders of those two names are touched.
+    """
+    import os
+    import re
+    import shutil
+
+    name = re.compile(rf"\.{re.escape(out.name)}\.(tmp|old)-(\d+)")
+    found: dict[tuple[str, str], Path] = {}
+    for p in out.parent.iterdir():
+        m = name.fullmatch(p.name)
+        if m and p.is_dir() and not p.is_symlink():
+            found[m[1], m[2]] = p
+    olds = [pid for kind, pid in found if kind == "old"]
+    if not os.path.lexists(out):
+        pid = next((pid for pid in olds if ("tmp", pid) in found), None)
+        if pid is not None:
+            os.replace(found.pop(("tmp", pid)), out)
+        elif len(olds) == 1:
+            os.replace(found.pop(("old", olds[0])), out)
+        elif olds:  # several moved aside, none with its new adapter: which one was `out` is unknown, all stay
+            found = {}
+    for (kind, _), folder in sorted(found.items()):
+        if kind == "tmp" and out.is_dir() and (folder / ADAPTER_META).is_file():
+            for p in folder.iterdir():
+                if not os.path.lexists(out / p.name):
+                    os.replace(p, out / p.name)
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def prompt_inputs(processor, prompt: PromptSpec, frames: Sequence[Any]) -> dict[str, torch.Tensor]:

@@ -352,13 +352,36 @@ def check_out(out: str | Path) -> Path:
     return out
 
 
+def _leftovers(out: Path, kind: str) -> list[Path]:
+    """The `OUT.tmp-XXXXXXXX` or `OUT.old-XXXXXXXX` folders (`kind` "tmp" or "old") beside `out` that
+    `write_preferences` made (`tempfile.mkdtemp`'s 8 characters) and that hold nothing but a preference set's files:
+    a folder of the user's named alike, or holding anything else, is none of them."""
+    name = re.compile(re.escape(out.name) + rf"\.{kind}-[a-z0-9_]{{8}}")
+    return [
+        p
+        for p in sorted(out.parent.iterdir())
+        if name.fullmatch(p.name) and p.is_dir() and not p.is_symlink() and _other_file(p) is None
+    ]
+
+
 def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
     """Save the rows as a data set at `out` (atomically: written beside, then renamed) with `summary.json`.
-    A folder already at `out` is replaced only if it is a preference set (`check_out`)."""
+    A folder already at `out` is replaced only if it is a preference set (`check_out`).
+
+    What killed writes of `out` left beside it is tidied: a set moved aside (`OUT.old-*`) with no `out` (a kill
+    between the two renames) is put back first, as the only copy of what `out` held, so that this write failing
+    too still leaves it there; once the new set is in place, the `OUT.tmp-*` and `OUT.old-*` folders of earlier
+    writes (half-written sets, sets it replaces; left for good before) are deleted (`_leftovers`: never another
+    folder). A process writing the same `out` at once could lose its folder to this: callers that may run
+    together hold the lock of `partial_folder(out)` (`SamplingProgress.opened`), as `aynamics preferences` does.
+    """
     from datasets import Dataset
 
     out = Path(out).resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
+    moved_aside = _leftovers(out, "old")
+    if not os.path.lexists(out) and len(moved_aside) == 1:  # several: which was `out` last is unknown, none goes back
+        moved_aside[0].rename(out)
     # a new folder beside: a fixed name (`OUT.tmp`) deleted whatever folder of that name was there
     tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-", dir=out.parent))
     tmp.rmdir()  # save_to_disk makes it
@@ -385,6 +408,8 @@ def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
         raise OSError(f"{e}; the preferences are kept in {str(tmp)!r}") from None
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+    for leftover in [*_leftovers(out, "tmp"), *_leftovers(out, "old")]:  # of earlier writes: this one replaced them
+        shutil.rmtree(leftover, ignore_errors=True)
     return out
 
 

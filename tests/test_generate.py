@@ -652,3 +652,93 @@ def test_a_run_labelled_by_older_code_is_not_resumed(tmp_path):
     (tmp_path / gen.MANIFEST).write_text(json.dumps(old))
     with pytest.raises(ValueError, match="labels"):
         gen.write_manifest(tmp_path, {"format": gen.FORMAT_VERSION, "num": 2, "seed": 0, "config": CFG.to_json()})
+
+
+def test_a_second_writer_of_a_shards_chunks_is_refused_and_other_shards_are_not(tmp_path):
+    """Shards of one run share a folder, each holding `.shard-K-of-N.lock` while it writes. With num = 4 and
+    chunk_size = 2 (chunks 0 and 1), shard 0/2 makes chunk 0, shard 1/2 chunk 1 and shard 0/1 both: while 0/2
+    writes, a second 0/2 and a 0/1 (sharing chunk 0) are refused, naming the folder and the shard; 1/2 is not.
+    Once 0/2 is done its lock file stays but is no one's: 0/1 goes ahead."""
+    from aynamics import dataset_store
+
+    out = tmp_path / "run"
+    manifest = {"format": 1, "num": 4, "seed": 0, "config": {"chunk_size": 2}}
+    with dataset_store.claim_shard(out, manifest, 0, 2):
+        with pytest.raises(ValueError, match=rf"--out '{re.escape(str(out))}': another process is writing shard 0/2"):
+            with dataset_store.claim_shard(out, manifest, 0, 2):
+                pass
+        with pytest.raises(ValueError, match=r"writing shard 0/2 .*\.shard-0-of-2\.lock.*that shard 0/1 makes too"):
+            with dataset_store.claim_shard(out, manifest, 0, 1):
+                pass
+        with dataset_store.claim_shard(out, manifest, 1, 2):
+            pass
+    with dataset_store.claim_shard(out, manifest, 0, 1):
+        pass
+    assert sorted(p.name for p in out.iterdir()) == [
+        ".generate.lock",
+        ".shard-0-of-1.lock",
+        ".shard-0-of-2.lock",
+        ".shard-1-of-2.lock",
+        "generate.json",
+    ]
+
+
+@needs_gl
+def test_two_generates_of_one_shard_into_one_folder(reference, tmp_path, monkeypatch):
+    """Two `aynamics generate --num 40 --out X` started 1.5 s apart (helper-86): the second redid the first's
+    chunks, stopped with OSError ENOTEMPTY renaming its chunk 1 onto the first's and left its copy
+    `chunks/.tmp-000001-PID` behind (or, started while the first saved a chunk, deleted it as a leftover). Now,
+    with shard 0/2 of a run paused in its first scene, a second 0/2 and a 0/1 are refused before they render
+    anything; shard 1/2 then writes beside it, and the folder ends as the one-run data set."""
+    import threading
+
+    out = tmp_path / "run"
+    real, paused, go, made = gen.make_record, threading.Event(), threading.Event(), []
+
+    def pausing(index, seed, config, renderer, given):
+        made.append(index)
+        if threading.current_thread() is not threading.main_thread():
+            paused.set()
+            go.wait(60)
+        return real(index, seed, config, renderer, given)
+
+    monkeypatch.setattr(gen, "make_record", pausing)
+    first = threading.Thread(target=gen.generate, args=(out, NUM, SEED, CFG, 0, 2, False))
+    first.start()
+    try:
+        assert paused.wait(60)
+        refused = rf"--out '{re.escape(str(out))}': another process is writing shard 0/2"
+        for shard, num_shards in ((0, 2), (0, 1)):
+            with pytest.raises(ValueError, match=refused):
+                gen.generate(out, NUM, SEED, CFG, shard, num_shards, progress=False)
+        assert made == [0]  # the first writer's scene only
+    finally:
+        go.set()
+        first.join()
+    assert gen.generate(out, NUM, SEED, CFG, 1, 2, progress=False) == out
+    assert made == [0, 1, 2, 3] and _rows(out) == _rows(reference)
+    assert sorted(p.name for p in (out / "chunks").iterdir()) == ["000000", "000001"]
+
+
+@needs_gl
+def test_an_assembly_killed_while_saved_is_removed_by_the_next(reference, tmp_path):
+    """`kill -9` of `aynamics generate --assemble` while it saved left `.assemble-PID` (a hidden copy of the data
+    set, here with its train/ started) that no later run removed. The next assembly removes such folders whose
+    `.lock` no one holds; one another shard holds (assembling at once) and other names stay."""
+    from aynamics.dataset_store import exclusive
+
+    out = tmp_path / "copy"
+    shutil.copytree(reference, out)
+    (out / ".assemble-999999" / "train").mkdir(parents=True)  # killed: old code made no .lock
+    (out / ".assemble-999998").mkdir()
+    (out / ".assemble-999998" / ".lock").touch()  # killed: its lock went with its process
+    (out / ".assemble-999997").mkdir()
+    (out / ".assemble-notes").mkdir()
+    with exclusive(out / ".assemble-999997" / ".lock"):  # alive
+        gen.assemble(out)
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".assemble")) == [
+        ".assemble-999997",
+        ".assemble-notes",
+        ".assemble.lock",
+    ]
+    assert _rows(out) == _rows(reference)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import json
 import sys
+from pathlib import Path
 
 import lightning as L
 import pytest
@@ -119,7 +120,7 @@ def test_an_adapter_folder_is_replaced_whole(tmp_path, monkeypatch):
     assert (out / "notes.txt").read_text() == "mine" and (out / "adapter_model.safetensors").read_bytes() != before[
         "adapter_model.safetensors"
     ]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["adapter"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".adapter.lock", "adapter"]
 
 
 def _evaluation(index: int):
@@ -194,3 +195,134 @@ def test_an_evaluation_stopped_after_its_predictions_or_inside_its_metrics_leave
         ev.write_evaluation(out, _evaluation(4), {"split": "validation"})
     monkeypatch.undo()
     assert not (out / "metrics.json").exists()
+
+
+def _preference_rows(key: str) -> list[dict]:
+    from PIL import Image
+
+    return [
+        {
+            "key": key,
+            "frames": [Image.new("RGB", (2, 2))],
+            "completions": ["a", "b"],
+            "completion_ids": [[1], [2]],
+            "rewards": [1.0, 0.0],
+            "reasons": [None, None],
+            "case_rewards": [1.0, 0.0],
+        }
+    ]
+
+
+def test_a_preference_set_killed_between_its_renames_is_put_back_and_leftovers_go(tmp_path, monkeypatch):
+    """`write_preferences` moves the earlier set to `OUT.old-*`, then renames its new one (`OUT.tmp-*`) to OUT: a
+    kill between the two left no OUT, the earlier set only under its hidden name, and both folders for good (the
+    next write made OUT anew beside them). The next write now puts the earlier set back first (so that, failing
+    on a full disk here, it leaves OUT as it was), and once its own set is in place deletes the `OUT.tmp-*` and
+    `OUT.old-*` folders of earlier writes; a folder of the user's named alike (other characters, or holding
+    other files) and another OUT's stay."""
+    import datasets
+
+    from aynamics.preference_data import load_preferences, write_preferences
+
+    out = tmp_path / "prefs"
+    write_preferences(_preference_rows("v1"), {"v": 1}, out)
+    real_rename = Path.rename
+
+    def killed(self, target):  # SIGKILL after OUT was moved aside, before the new set took its place
+        if ".tmp-" in self.name:
+            raise KeyboardInterrupt
+        return real_rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", killed)
+    with pytest.raises(KeyboardInterrupt):
+        write_preferences(_preference_rows("v2"), {"v": 2}, out)
+    monkeypatch.undo()
+    assert not out.exists() and len(list(tmp_path.glob("prefs.old-*"))) == len(list(tmp_path.glob("prefs.tmp-*"))) == 1
+
+    def full(self, path, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(datasets.Dataset, "save_to_disk", full)
+    with pytest.raises(OSError, match="No space left"):
+        write_preferences(_preference_rows("v3"), {"v": 3}, out)
+    monkeypatch.undo()
+    assert load_preferences(out)["key"] == ["v1"] and json.loads((out / "summary.json").read_text()) == {"v": 1}
+
+    for name in ("prefs.tmp-mine", "prefs.old-abcd1234", "other.tmp-abcd1234"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "notes.txt").write_text("mine")
+    (tmp_path / "prefs.old-abcd1234" / "state.json").write_text("{}")
+    write_preferences(_preference_rows("v3"), {"v": 3}, out)
+    assert load_preferences(out)["key"] == ["v3"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "other.tmp-abcd1234",
+        "prefs",
+        "prefs.old-abcd1234",
+        "prefs.tmp-mine",
+    ]
+
+
+def test_an_adapter_write_killed_midway_is_finished_by_the_next(tmp_path, monkeypatch):
+    """`save_adapter` writes `.adapter.tmp-PID`, moves the user's files into it, moves `adapter` aside to
+    `.adapter.old-PID` and renames the new one in; each write removed only its own process's leftovers. Killed
+    between the renames (here: renamed as another process's), the next write left no `adapter` until it ended,
+    and deleted nothing: the user's notes.txt stayed hidden in the new adapter's folder. Now the next write first
+    finishes that swap (failing at once here, it leaves the killed write's adapter, notes.txt in it). Killed
+    while moving the user's files (a `.tmp-PID` with aynamics.json and notes.txt), the next write moves them back.
+    Folders of other names stay; the one lock file is left beside."""
+    import os
+    import shutil
+
+    spec = lm.ModelSpec(kind="tiny")
+    model = lm.build_model(spec)
+    out = tmp_path / "adapter"
+    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
+    (out / "notes.txt").write_text("mine")
+    real_replace = os.replace
+
+    def killed(src, dst):  # SIGKILL after the earlier adapter was moved aside
+        if Path(src).name.startswith(".adapter.tmp-"):
+            raise KeyboardInterrupt
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
+    monkeypatch.undo()
+    for kind in ("tmp", "old"):  # as another process left them
+        (tmp_path / f".adapter.{kind}-{os.getpid()}").rename(tmp_path / f".adapter.{kind}-999999")
+    (tmp_path / ".adapter.tmp-mine").mkdir()
+    assert not out.exists() and (tmp_path / ".adapter.tmp-999999" / "notes.txt").is_file()
+
+    def dying(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(type(model), "save_pretrained", dying)
+    with pytest.raises(KeyboardInterrupt):
+        lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=8))
+    monkeypatch.undo()
+    assert json.loads((out / lm.ADAPTER_META).read_text())["prompt"]["num_frames"] == 4
+    assert (out / "notes.txt").read_text() == "mine"
+
+    moving = tmp_path / ".adapter.tmp-888888"  # killed while moving the user's files into its new adapter
+    shutil.copytree(out, moving)
+    (out / "notes.txt").rename(moving / "notes.txt")
+    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=8))
+    assert json.loads((out / lm.ADAPTER_META).read_text())["prompt"]["num_frames"] == 8
+    assert (out / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".adapter.lock", ".adapter.tmp-mine", "adapter"]
+
+
+def test_an_evaluations_temporary_files_left_by_a_kill_are_removed_by_the_next(tmp_path):
+    """A kill while `write_evaluation` wrote left `.predictions.jsonl.tmp-PID` (or `.metrics.json.tmp-PID`) in the
+    folder, which no later write removed (each knew only its own process's name). The next write removes them
+    once its pair is in place; files of other names stay."""
+    from aynamics import evaluate as ev
+
+    out = tmp_path / "eval"
+    out.mkdir()
+    for name in (".predictions.jsonl.tmp-999999", ".metrics.json.tmp-999998", ".metrics.json.tmp-mine", "a.tmp-1"):
+        (out / name).write_text("half")
+    ev.write_evaluation(out, _evaluation(1), {"split": "test"})
+    kept = [".metrics.json.tmp-mine", "a.tmp-1", "metrics.json", "predictions.jsonl"]
+    assert sorted(p.name for p in out.iterdir()) == kept
