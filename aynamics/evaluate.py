@@ -525,10 +525,11 @@ def run_evaluate(args) -> int:
         "refine_seconds": args.refine_seconds,
         "progress": not args.quiet,
     }
-    common["kept"] = kept = (
-        None if args.out is None else evaluation_progress(args.out, settings | {"baseline": not args.no_baseline})
-    )
     try:
+        kept = (
+            None if args.out is None else evaluation_progress(args.out, settings | {"baseline": not args.no_baseline})
+        )
+        common["kept"] = kept
         with contextlib.ExitStack() as stack:
             if kept is not None:  # other settings or a second writer are refused before the model loads
                 stack.enter_context(kept.opened())
@@ -542,9 +543,9 @@ def run_evaluate(args) -> int:
                     else:
                         result = evaluate_videos(args.adapter, args.videos, **common)
             except KeyboardInterrupt:
-                if kept is not None:
+                if kept is not None and len(kept):  # (a folder without a batch is deleted)
                     print(
-                        f"evaluate: {_kept_line(kept)} are kept in {str(kept.folder)!r}: the same command goes on "
+                        f"evaluate: kept in {str(kept.folder)!r} ({_kept_line(kept)}): the same command goes on "
                         "from them",
                         file=sys.stderr,
                     )
@@ -575,8 +576,10 @@ def evaluation_progress(out: str | Path, settings: dict) -> KeptBatches:
     """Where `aynamics evaluate --out OUT` keeps each batch of responses and each refinement as it is done
     (`OUT.partial`, deleted once OUT is written): run the same command again after an interruption and it goes on
     from them, with the table an uninterrupted run prints. `settings` are the command's; the adapter and the data
-    are kept by absolute path, and the adapter's weights by their digest (one trained again into its folder writes
-    other responses)."""
+    are kept by absolute path, the adapter's weights by their digest (one trained again into its folder writes
+    other responses) and, with refinement, the physics (`simulate.PHYSICS_VERSION`: a scene refined by other
+    physics is not the one this run's search finds)."""
+    from aynamics import simulate
 
     def path(p: str | None) -> str | None:
         return None if p is None else os.path.abspath(p)
@@ -587,6 +590,7 @@ def evaluation_progress(out: str | Path, settings: dict) -> KeptBatches:
         "adapter_weights": file_digest(Path(adapter) / "adapter_model.safetensors"),
         "data": path(settings.get("data")),
         "videos": path(settings.get("videos")),
+        "physics": simulate.PHYSICS_VERSION if settings.get("refine") else None,
     }
     return KeptBatches(partial_folder(out), resolved, run="an evaluation", verb="score", fields=KEPT_FIELDS)
 

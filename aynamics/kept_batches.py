@@ -115,6 +115,7 @@ class KeptBatches:
     """
 
     SETTINGS = "settings.json"
+    _SETTINGS_TMP = "settings.tmp"  # settings.json as it is written
 
     def __init__(
         self,
@@ -133,6 +134,9 @@ class KeptBatches:
     def opened(self) -> Iterator[KeptBatches]:
         """Make the folder (or check the one there was made with these settings) and hold its lock.
 
+        A folder that holds no batch when the block ends (an option refused, a failure before the first batch) is
+        deleted.
+
         Raises:
             ValueError: the folder is a link or holds other files, other settings, or another process holds its lock.
         """
@@ -144,7 +148,9 @@ class KeptBatches:
                 "their own; remove the link"
             )
         if self.folder.exists() and not (self.folder / self.SETTINGS).is_file():
-            other = [p.name for p in self.folder.iterdir() if p.name != ".lock"] if self.folder.is_dir() else []
+            # (a run killed while writing its first settings.json left settings.tmp: no batch, nothing to lose)
+            there = self.folder.iterdir() if self.folder.is_dir() else ()
+            other = [p.name for p in there if p.name not in (".lock", self._SETTINGS_TMP)]
             if other or not self.folder.is_dir():
                 raise ValueError(
                     f"{str(self.folder)!r} exists and is not the kept batches of {self.run} (no {self.SETTINGS}): "
@@ -159,8 +165,33 @@ class KeptBatches:
                     f"another process is {self.verb.removesuffix('e')}ing into {str(self.folder)!r} (it holds its "
                     "lock): wait for it, or write --out elsewhere"
                 ) from None
+            self._check_theirs()
             self._check_settings()
-            yield self
+            try:
+                yield self
+            finally:  # a run that kept no batch (refused, failed or interrupted before one) leaves no folder behind
+                if self.folder.is_dir() and not len(self):
+                    self.remove()
+
+    def _check_theirs(self) -> None:
+        """Refuse a folder holding files this run does not keep: another command's batches kept under the same OUT
+        (an interrupted `aynamics preferences --out OUT`, then `aynamics evaluate --out OUT`) counted as no batch,
+        so its settings were overwritten and the folder deleted at the end, with that command's hours of work."""
+        streams = "|".join(re.escape(s) for s in self.fields)
+        ours = re.compile(rf"(?:{streams})-\d{{6}}\.(?:pt|tmp)")  # (.tmp: a save a crash cut short)
+        other = sorted(
+            p.name
+            for p in self.folder.iterdir()
+            if p.name not in (self.SETTINGS, self._SETTINGS_TMP)
+            and not p.name.startswith(".")
+            and not ours.fullmatch(p.name)
+        )
+        if other:
+            more = f" and {len(other) - 1} more files" if len(other) > 1 else ""
+            raise ValueError(
+                f"{str(self.folder)!r} holds {other[0]!r}{more}, which {self.run} does not keep (another command's "
+                "work kept for the same OUT?): finish that command, or move the folder away, or write --out elsewhere"
+            )
 
     def _check_settings(self) -> None:
         path = self.folder / self.SETTINGS

@@ -618,6 +618,8 @@ def _sample_and_write(module: Any, videos: Sequence[UnlabeledVideo], progress: S
             progress=progress,
         )
     except KeyboardInterrupt:
+        if not len(progress):  # (a folder without a batch is deleted)
+            raise
         print(
             f"preferences: {len(progress)} batches are kept in {str(progress.folder)!r}: the same command goes on "
             "from them",

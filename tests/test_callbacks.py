@@ -670,7 +670,7 @@ def test_evaluate_goes_on_after_an_interruption(tmp_path, tmp_path_factory, monk
     out = tmp_path / "eval"
     assert main([*args, "--out", str(out)]) == 130
     err = capsys.readouterr().err
-    assert f"evaluate: 1 batch of responses are kept in {str(tmp_path / 'eval.partial')!r}" in err
+    assert f"evaluate: kept in {str(tmp_path / 'eval.partial')!r} (1 batch of responses): the same command" in err
     assert main([*args, "--max-new-tokens", "4", "--out", str(out)]) == 2
     assert "with other settings (max_new_tokens 3 there, 4 now)" in capsys.readouterr().err
     calls.clear()
@@ -718,6 +718,33 @@ def test_kept_responses_of_other_records_or_prompts_are_refused(tmp_path, monkey
             run([0, 1], value=2)
         with pytest.raises(ValueError, match="holds 2 batches of responses, but these records make 1"):
             run([0])
+
+
+def test_evaluate_refused_or_interrupted_before_a_batch_leaves_no_partial_folder(
+    tmp_path, tmp_path_factory, capsys, monkeypatch
+):
+    """`aynamics evaluate --out OUT` refused after OUT.partial was opened (--num 0: exit 2), or interrupted before
+    its first batch of responses (exit 130), leaves no OUT.partial and says nothing is kept. Both left OUT.partial
+    (settings.json and .lock, no batch) beside OUT, and the interruption said "nothing are kept in 'OUT.partial':
+    the same command goes on from them"."""
+    from train_fixtures import tiny_dataset
+
+    from aynamics import evaluate as ev
+    from aynamics.cli import main
+
+    (tmp_path / "adapter").mkdir()
+    data = tiny_dataset(tmp_path_factory)
+    base = ["evaluate", "--adapter", str(tmp_path / "adapter"), "--data", str(data), "--quiet"]
+    assert main([*base, "--num", "0", "--out", str(tmp_path / "a")]) == 2
+    assert "--num = 0: must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "a.partial").exists()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ev, "evaluate_adapter", interrupted)
+    assert main([*base, "--out", str(tmp_path / "b")]) == 130
+    assert "kept in" not in capsys.readouterr().err and not (tmp_path / "b.partial").exists()
 
 
 def test_evaluate_cli_errors_are_clear(tmp_path, capsys, tmp_path_factory):

@@ -75,3 +75,81 @@ def test_kept_batches_keep_streams_apart_and_bind_settings_once_a_batch_is_kept(
     assert partial_folder(tmp_path / "out") == (tmp_path / "out.partial").resolve()
     (tmp_path / "f").write_bytes(b"abc")
     assert file_digest(tmp_path / "f") == "ba7816bf8f01cfea" and file_digest(tmp_path / "none") is None
+
+
+def test_kept_batches_of_another_command_are_refused_not_taken_over(tmp_path):
+    """An interrupted `aynamics preferences --out OUT` kept batch-000000.pt in OUT.partial; `aynamics evaluate --out
+    OUT` (streams responses, refined, average-refined) is refused, naming it, and the folder is left as it was, and
+    the reverse. Each counted the other's batches as none kept: it wrote its own settings.json over the other's and
+    deleted the folder, with the other command's batches, once its OUT was written."""
+    from aynamics.evaluate import KEPT_FIELDS
+    from aynamics.preference_data import SamplingProgress
+
+    prefs = SamplingProgress(tmp_path / "a.partial", {"seed": 0})
+    with prefs.opened():
+        prefs.save(prefs.STREAM, 0, {"v": 1})
+    before = {p.name: p.read_bytes() for p in prefs.folder.iterdir()}
+    evaluation = KeptBatches(prefs.folder, {"num": 3}, run="an evaluation", verb="score", fields=KEPT_FIELDS)
+    with pytest.raises(ValueError, match=r"a\.partial' holds 'batch-000000\.pt', which an evaluation does not keep"):
+        with evaluation.opened():
+            pass
+    assert {p.name: p.read_bytes() for p in prefs.folder.iterdir()} == before
+    evaluation = KeptBatches(tmp_path / "b.partial", {"num": 3}, run="an evaluation", verb="score", fields=KEPT_FIELDS)
+    with evaluation.opened():
+        evaluation.save("responses", 0, {"v": 1})
+        evaluation.save("average-refined", 0, {"v": 1})
+    with pytest.raises(ValueError, match=r"'average-refined-000000\.pt' and 1 more files, which a preference run"):
+        with SamplingProgress(evaluation.folder, {"seed": 0}).opened():
+            pass
+    with evaluation.opened():  # its own batches, and a save a crash cut short, are its own
+        (evaluation.folder / "refined-000000.tmp").write_bytes(b"")
+        assert len(evaluation) == 2
+
+
+def test_a_run_killed_writing_its_first_settings_is_gone_on_from(tmp_path):
+    """A run killed between writing settings.tmp and renaming it settings.json (before any batch) left the folder
+    with .lock and settings.tmp: the same command starts afresh. It was refused as "not the kept batches (no
+    settings.json): move it away"."""
+    folder = tmp_path / "out.partial"
+    folder.mkdir()
+    (folder / ".lock").write_text("")
+    (folder / "settings.tmp").write_text('{"n": ')
+    kept = KeptBatches(folder, {"n": 1}, run="a test run", verb="score", fields={"a": frozenset({"v"})})
+    with kept.opened():
+        assert len(kept) == 0 and (folder / "settings.json").read_text() == '{\n "n": 1\n}\n'
+
+
+def test_a_run_that_kept_no_batch_leaves_no_folder(tmp_path):
+    """A run refused or failing before its first batch (`aynamics evaluate --num 0 --out OUT`, a data set it cannot
+    read) deleted nothing of its own: OUT.partial stayed beside OUT with settings.json and .lock alone. It goes now;
+    one that kept a batch (and a stale settings.json an old failure left) stays for the next run to go on from."""
+    fields = {"a": frozenset({"v"})}
+    kept = KeptBatches(tmp_path / "out.partial", {"n": 1}, run="a test run", verb="score", fields=fields)
+    with pytest.raises(ValueError, match="refused"), kept.opened():
+        assert (kept.folder / "settings.json").is_file()
+        raise ValueError("refused")
+    assert not kept.folder.exists()
+    with pytest.raises(KeyboardInterrupt), kept.opened():
+        kept.save("a", 0, {"v": 1})
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in kept.folder.iterdir()) == [".lock", "a-000000.pt", "settings.json"]
+
+
+def test_kept_refinements_of_other_physics_are_refused(tmp_path, monkeypatch):
+    """A refinement kept by `aynamics evaluate --refine 6 --out OUT` under physics 2 is not gone on from once the
+    code simulates otherwise (PHYSICS_VERSION raised, as `generate` refuses such a resume): the setting that
+    differs is named. Without --refine nothing kept depends on the physics: it binds nothing. The physics was not
+    among the settings, and the refined scenes of two physics were mixed in one table."""
+    from aynamics import simulate
+    from aynamics.evaluate import evaluation_progress
+
+    (tmp_path / "adapter").mkdir()
+    settings = {"adapter": str(tmp_path / "adapter"), "data": "d", "num": 1, "refine": 6}
+    kept = evaluation_progress(tmp_path / "out", settings)
+    with kept.opened():
+        kept.save("refined", 0, {"keys": [0], "digests": ["x"], "texts": ["y"], "timed_out": 0})
+    monkeypatch.setattr(simulate, "PHYSICS_VERSION", simulate.PHYSICS_VERSION + 1)
+    with pytest.raises(ValueError, match=rf"other settings \(physics {simulate.PHYSICS_VERSION - 1} there, "):
+        with evaluation_progress(tmp_path / "out", settings).opened():
+            pass
+    assert evaluation_progress(tmp_path / "out", settings | {"refine": 0}).settings["physics"] is None
