@@ -159,8 +159,9 @@ def _generate(
     made = -(-len(records) // batch_size)
     if len(done) > made:
         raise ValueError(
-            f"{str(kept.folder)!r} holds {len(done)} batches of responses, but these records make {made}: the data "
-            "changed since it was written; delete it to score afresh"
+            f"{str(kept.folder)!r} holds {len(done)} batches of responses, but these records make {made} (a smaller "
+            "--num than the kept run's, or the data changed since): give its --num to go on from it, or delete it to "
+            "score afresh"
         )
     return records, texts, digests
 
@@ -393,8 +394,9 @@ def refine_texts(
     done = kept.done(stream) if kept is not None else []
     if len(done) > len(texts):
         raise ValueError(
-            f"{str(kept.folder)!r} holds {len(done)} {stream} scenes, but there are {len(texts)} to refine: the data "
-            "changed since it was written; delete it to score afresh"
+            f"{str(kept.folder)!r} holds {len(done)} {stream} scenes, but there are {len(texts)} to refine (a smaller "
+            "--num than the kept run's, or the data changed since): give its --num to go on from it, or delete it to "
+            "score afresh"
         )
     out, timed_out = [], 0
     pairs = list(zip(texts, records, strict=True))
@@ -578,7 +580,9 @@ def evaluation_progress(out: str | Path, settings: dict) -> KeptBatches:
     from them, with the table an uninterrupted run prints. `settings` are the command's; the adapter and the data
     are kept by absolute path, the adapter's weights by their digest (one trained again into its folder writes
     other responses) and, with refinement, the physics (`simulate.PHYSICS_VERSION`: a scene refined by other
-    physics is not the one this run's search finds)."""
+    physics is not the one this run's search finds). `--num` is not among them: the batches and refinements of a
+    run of fewer scenes are those of a run of more (each is checked by its records' keys and contents), so a larger
+    --num goes on from them."""
     from aynamics import simulate
 
     def path(p: str | None) -> str | None:
@@ -592,6 +596,7 @@ def evaluation_progress(out: str | Path, settings: dict) -> KeptBatches:
         "videos": path(settings.get("videos")),
         "physics": simulate.PHYSICS_VERSION if settings.get("refine") else None,
     }
+    resolved.pop("num", None)
     return KeptBatches(partial_folder(out), resolved, run="an evaluation", verb="score", fields=KEPT_FIELDS)
 
 

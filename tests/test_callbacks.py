@@ -634,10 +634,11 @@ def test_videos_without_a_label_get_the_metrics_that_need_none(truth):
 
 def test_evaluate_goes_on_after_an_interruption(tmp_path, tmp_path_factory, monkeypatch, capsys):
     """`aynamics evaluate --out OUT` on the tiny data set's test split (3 scenes, 1 a batch, 6-simulation
-    refinements of the average scene) is interrupted at its second batch of responses, then again at its second
-    refinement: each run does only what was not kept (responses of scenes 1 and 2, then the refinements of scenes
-    1 and 2), other settings are refused naming the one that differs, and the third run writes the predictions and
-    metrics of an uninterrupted run and deletes OUT.partial. Before, an interruption lost every response and
+    refinements of the average scene) is interrupted at its second batch of responses (with --num 2), then again at
+    its second refinement (the whole split): each run does only what was not kept (responses of scenes 1 and 2,
+    then the refinements of scenes 1 and 2), other settings and a --num of fewer scenes than were kept are refused
+    naming the difference, and the third run writes the predictions and metrics of an uninterrupted run and deletes
+    OUT.partial. Before, an interruption lost every response and
     refinement (hours on a real model)."""
     from train_fixtures import tiny_dataset
 
@@ -668,7 +669,7 @@ def test_evaluate_goes_on_after_an_interruption(tmp_path, tmp_path_factory, monk
     monkeypatch.setattr(lm, "greedy_texts", counted(generate, "generate", stop["generate"]))
     monkeypatch.setattr(aynamics.refine, "refine", counted(refine, "refine", stop["refine"]))
     out = tmp_path / "eval"
-    assert main([*args, "--out", str(out)]) == 130
+    assert main([*args, "--num", "2", "--out", str(out)]) == 130  # a larger --num goes on from it (below)
     err = capsys.readouterr().err
     assert f"evaluate: kept in {str(tmp_path / 'eval.partial')!r} (1 batch of responses): the same command" in err
     assert main([*args, "--max-new-tokens", "4", "--out", str(out)]) == 2
@@ -678,6 +679,8 @@ def test_evaluate_goes_on_after_an_interruption(tmp_path, tmp_path_factory, monk
     assert main([*args, "--out", str(out)]) == 130
     assert calls == ["generate", "generate", "refine", "refine"]  # scenes 1 and 2 answered; scene 0 refined
     assert "going on from" in capsys.readouterr().err and not out.exists()
+    assert main([*args, "--num", "2", "--out", str(out)]) == 2
+    assert "holds 3 batches of responses, but these records make 2 (a smaller --num" in capsys.readouterr().err
     calls.clear()
     stop["refine"][0] = 0
     assert main([*args, "--out", str(out)]) == 0
