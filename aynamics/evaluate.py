@@ -118,10 +118,12 @@ def _generate(
 ) -> tuple[list[dict], list[str], list[str]]:
     """Greedy responses for the records of `items` (per source item, a list of 0 or 1 scorable records with a
     `prompt`), `batch_size` scorable records at a time (the training evaluation's batches); the records are
-    returned without their prompts, with each one's `content_digest` of prompt and observation.
+    returned without their prompts, with each one's `content_digest` of prompt and observation (what a refinement
+    depends on).
 
     With `kept`, each batch's responses are kept as they are generated, and batches it holds are read back rather
-    than generated again (greedy: the responses an uninterrupted run gives, batched the same way).
+    than generated again (greedy: the responses an uninterrupted run gives, batched the same way), checked by the
+    digests of their prompts (masks made again leave the responses valid; their refinements are checked apart).
 
     Raises:
         ValueError: a kept batch of other records or other prompts than these (the data changed since).
@@ -139,13 +141,14 @@ def _generate(
     def answer(batch: list[dict]) -> list[str]:
         k = len(records) // batch_size  # every batch but the last is full
         keys = [r["index"] for r in batch]
-        digests.extend(content_digest(r["prompt"], r["observation"]) for r in batch)
+        prompts = [content_digest(r["prompt"]) for r in batch] if kept is not None else []
+        digests.extend(content_digest(p, r["observation"]) for p, r in zip(prompts, batch, strict=False))
         if k < len(done):
-            _check_kept(kept, RESPONSES, k, done[k], keys, digests[-len(batch) :])
+            _check_kept(kept, RESPONSES, k, done[k], keys, prompts)
             return list(done[k]["texts"])
         out = lm.greedy_texts(model, processor, [r["prompt"] for r in batch], max_new_tokens)
         if kept is not None:
-            kept.save(RESPONSES, k, {"keys": keys, "digests": digests[-len(batch) :], "texts": out})
+            kept.save(RESPONSES, k, {"keys": keys, "digests": prompts, "texts": out})
         return out
 
     with tqdm(total=n, unit="scene", desc=desc, disable=not progress) as bar:
@@ -176,9 +179,10 @@ def _check_kept(kept: KeptBatches, stream: str, k: int, batch: dict, keys: list,
         )
     changed = [key for key, d, d_kept in zip(keys, digests, batch["digests"], strict=True) if d != d_kept]
     if changed:
+        what = "prompts (frames)" if stream == RESPONSES else "frames, masks or starting scenes"
         raise ValueError(
-            f"{str(kept.folder)!r}: its {stream} batch {k} was made from other frames, masks or responses of the "
-            f"records {changed} than this run's: the data changed since it was written; delete it to score afresh"
+            f"{str(kept.folder)!r}: its {stream} batch {k} was made from other {what} of the records {changed} than "
+            "this run's: the data changed since it was written; delete it to score afresh"
         )
 
 

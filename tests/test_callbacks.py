@@ -704,20 +704,22 @@ def test_kept_responses_of_other_records_or_prompts_are_refused(tmp_path, monkey
     answered = []
     monkeypatch.setattr(lm, "greedy_texts", lambda m, p, prompts, n: answered.extend(prompts) or ["t"] * len(prompts))
 
-    def items(indices, value=1):
-        return ([{"index": i, "prompt": {"ids": torch.tensor([i, value])}, "observation": None}] for i in indices)
+    def items(indices, value=1, seen=None):
+        return ([{"index": i, "prompt": {"ids": torch.tensor([i, value])}, "observation": seen}] for i in indices)
 
-    def run(indices, value=1):
-        return ev._generate(None, None, items(indices, value), len(indices), 1, 8, "x", False, kept)
+    def run(indices, value=1, seen=None):
+        return ev._generate(None, None, items(indices, value, seen), len(indices), 1, 8, "x", False, kept)
 
     kept = KeptBatches(tmp_path / "k", {}, run="an evaluation", verb="score", fields=ev.KEPT_FIELDS)
     with kept.opened():
         records, texts, digests = run([0, 1])
         assert len(answered) == 2 and texts == ["t", "t"] and len(set(digests)) == 2 and kept.count("responses") == 2
         assert run([0, 1])[2] == digests and len(answered) == 2  # read back: nothing generated
+        # other masks: the responses stand (they see the frames only); the record digests refinements check change
+        assert run([0, 1], seen=np.ones(2))[2] != digests and len(answered) == 2
         with pytest.raises(ValueError, match=r"batch 1 holds records \[1\], but this run's batch 1 is records \[2\]"):
             run([0, 2])
-        with pytest.raises(ValueError, match=r"other frames, masks or responses of the records \[0\]"):
+        with pytest.raises(ValueError, match=r"other prompts \(frames\) of the records \[0\]"):
             run([0, 1], value=2)
         with pytest.raises(ValueError, match="holds 2 batches of responses, but these records make 1"):
             run([0])

@@ -65,6 +65,9 @@ def test_kept_batches_keep_streams_apart_and_bind_settings_once_a_batch_is_kept(
     with pytest.raises(ValueError, match=r"with other settings \(n 1 there, 2 now\)"):
         with KeptBatches(kept.folder, {"n": 2}, run="a test run", verb="score", fields=fields).opened():
             pass
+    (kept.folder / "b-000000.pt").write_bytes(b"PK\x03\x04 not a batch")  # a disk's garbage: named, no traceback
+    with kept.opened(), pytest.raises(ValueError, match=r"b-000000.pt' cannot be read \("):
+        kept.done("b")
     (kept.folder / "a-000000.pt").unlink()
     with kept.opened(), pytest.raises(ValueError, match="a-000001.pt': batch 0 is missing before it"):
         kept.done("a")
