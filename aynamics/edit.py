@@ -204,13 +204,13 @@ def _quantity(text: str) -> tuple[Quantity, int | None]:
 
 def _targets(text: str | None, scene: Scene, previous: list[int] | None = None) -> list[int]:
     """Indices of the objects a target phrase names; None or 'all objects' means every object; 'it' / 'them' the
-    objects of the clause before (`previous`)."""
-    if text is not None and re.fullmatch(r"it|them", text):
+    objects of the clause before (`previous`), unless an object has that name ("stop it" stops an object named it)."""
+    lower = {n.lower(): i for i, n in enumerate(scene.names)}
+    if text is not None and re.fullmatch(r"it|them", text) and text not in lower:
         return _previous(text, previous, scene)
     if text is None or re.fullmatch(r"(?:all|every|each)(?: (?:the )?objects?)?|everything|the objects", text):
         return list(range(len(scene.objects)))
     out: list[int] = []
-    lower = {n.lower(): i for i, n in enumerate(scene.names)}
     for part in re.split(r"\s*,\s*(?:and\s+)?|\s+and\s+", text.strip()):
         part = part.strip()
         bare = re.sub(r"^the ", "", part)  # "the crate" for an object named crate
@@ -233,15 +233,21 @@ def _targets(text: str | None, scene: Scene, previous: list[int] | None = None) 
     return sorted(set(out))
 
 
-def _previous(word: str, previous: list[int] | None, scene: Scene) -> list[int]:
+def _previous(word: str, previous: list[int] | str | None, scene: Scene) -> list[int]:
     """The objects an earlier clause named, for 'it', 'its', 'them', 'their' (alone they meant every object:
     "double the mass of box_0; halve its friction" halved every object's friction); in a scene of one object,
-    before any clause named one, that object."""
+    before any clause named one, that object. After a clause that edited the camera (`previous` is its text) the
+    word could mean the camera: "set the fov to 60 and move it 1 m back" moved the object."""
+    if isinstance(previous, str):
+        raise EditError(
+            f"{word!r} follows {previous!r}, which edited the camera, so it could mean the camera; name the object "
+            f"(e.g. {scene.names[0]})"
+        )
     if previous is None and len(scene.objects) == 1:
         return [0]
     if previous is None:
         raise EditError(
-            f"{word!r} refers to no object named before it in the instruction; name the object (e.g. box_0)"
+            f"{word!r} refers to no object named before it in the instruction; name the object (e.g. {scene.names[0]})"
         )
     return previous
 
@@ -438,9 +444,12 @@ _MOVE = r"(?:move|shift|push|translate)"
 _DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
 
 
-def _clause(clause: str, scene: Scene, items: list[dict], previous: list[int] | None = None) -> list[int] | None:
-    """Apply one clause to the items (in place); the objects it edited (None for the camera or the gravity), which
-    'it', 'its', 'them' and 'their' in the next clause refer to (`previous`: the last clause's)."""
+def _clause(
+    clause: str, scene: Scene, items: list[dict], previous: list[int] | str | None = None
+) -> list[int] | str | None:
+    """Apply one clause to the items (in place); the objects it edited, which 'it', 'its', 'them' and 'their' in the
+    next clause refer to (`previous`: the last clause's). A clause that edited the gravity passes `previous` on; one
+    that edited the camera gives its own text, which a pronoun after it is refused with."""
     c, q_text = clause, ""
     if m := re.fullmatch(rf"(?:set|change) (?:the )?gravity to {_PLANET}(?: gravity)?", c) or re.fullmatch(
         rf"(?:use |switch to |apply )?{_PLANET} gravity", c
@@ -454,7 +463,13 @@ def _clause(clause: str, scene: Scene, items: list[dict], previous: list[int] | 
         k = float(m.group("k"))
         if not (0 < k < math.inf):
             raise EditError(f"{clause!r}: a factor is a number > 0, not {m.group('k')}")
-        fn = _scale(q, k if m.group("v") in _UP else 1.0 / k)
+        up = m.group("v") in _UP
+        if k < 1:  # "reduce the mass by a factor of 0.5" doubled it, "increase ... by a factor of 0.5" halved it
+            raise EditError(
+                f"{clause!r}: a factor of {k:g} < 1 would {'decrease' if up else 'increase'} it; "
+                f"'{m.group('v')} ... by a factor of K' takes K >= 1 (or 'multiply ... by {k:g}')"
+            )
+        fn = _scale(q, k if up else 1.0 / k)
     elif m := re.fullmatch(rf"(?P<v>{_VERBS_BY}) (?:the )?(?P<s>.+?) by (?P<a>.+)", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
@@ -517,7 +532,7 @@ def _clause(clause: str, scene: Scene, items: list[dict], previous: list[int] | 
     idx = _previous(owner.group(1), previous, scene) if owner else _targets(t_text, scene, previous)
     for item in _items_of(q, items, idx, scene, t_text is not None or owner is not None):
         _edit_field(item, q, comp, fn, repr(clause))
-    return idx if q.scope == "object" else previous
+    return idx if q.scope == "object" else clause if q.scope == "camera" else previous
 
 
 # the words a clause starts with: "and" before one of them joins two clauses ("double the mass of box_0 and halve its
@@ -528,10 +543,13 @@ _CLAUSE_START = (
 )
 
 
-def _normalise(instruction: str) -> list[str]:
+def _normalise(instruction: str, names: tuple[str, ...] = ()) -> list[str]:
+    """The clauses of an instruction, lower-cased; "and" before an object's name joins objects even where the name is
+    a clause verb ("stop box_0 and scale" for an object named scale was refused as the clause "scale")."""
     text = " ".join(instruction.strip().split()).rstrip(".!").lower()
     text = text.replace("per cent", "percent")
-    clauses = [c.strip(" ,") for c in re.split(rf";|,? then |,? and then |,? and (?={_CLAUSE_START})", text)]
+    not_name = rf"(?!(?:{'|'.join(re.escape(n.lower()) for n in names)})\b)" if names else ""
+    clauses = [c.strip(" ,") for c in re.split(rf";|,? then |,? and then |,? and {not_name}(?={_CLAUSE_START})", text)]
     return [re.sub(r"^(?:please|now) ", "", c) for c in clauses if c.strip(" ,")]
 
 
@@ -547,11 +565,11 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
         raise TypeError(f"apply_instruction: instruction is a {type(instruction).__name__}, not a str")
     if not instruction.strip():
         raise EditError(f"empty instruction. {UNDERSTOOD}")
-    clauses = _normalise(instruction)
+    clauses = _normalise(instruction, scene.names)
     if not clauses:  # ";" or "." was an edit that changed nothing (exit 0)
         raise EditError(f"empty instruction {instruction!r}: no clause in it. {UNDERSTOOD}")
     items = copy.deepcopy(to_items(scene))
-    previous = None  # the objects the last clause edited: "its", "it", "their", "them"
+    previous = None  # the objects the last clause edited ("its", "it", "their", "them"), or a camera clause
     for clause in clauses:
         previous = _clause(clause, scene, items, previous)
     return finish(scene, items, instruction)
@@ -634,7 +652,7 @@ def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
 # Words a free-form instruction uses for a quantity without naming it (for `named_fields` only: the deterministic
 # language above names quantities)
 DESCRIBED: tuple[tuple[str, tuple[str, ...]], ...] = (
-    (r"heav(?:y|ier|iest)|light(?:er|est)?|weigh(?:s|t)?", ("physics.mass",)),
+    (r"heav(?:y|ier|iest)|light(?:er|est)?|weigh(?:s|t)?|massive", ("physics.mass",)),
     (r"fast(?:er|est)?|slow(?:er|est)?|quick(?:er|ly)?|rapid(?:ly)?", ("state.linear_velocity",)),
     (r"spin(?:s|ning)?|rotat(?:e|es|ing|ion)|roll(?:s|ing)?", ("state.angular_velocity",)),
     (r"bounc(?:e|es|y|ier|iest|ing)|elastic", ("physics.restitution",)),

@@ -93,6 +93,8 @@ CASES = [
     ),
     # "and" between objects still joins objects, not clauses
     ("increase the mass of box_0 and cylinder_0 by 10%", {"box_0.physics.mass": 1.1, "cylinder_0.physics.mass": 1.1}),
+    # "massive" names the mass for the LLM editor's check too (named_fields gave none: the mass was "outside")
+    ("make box_0 twice as massive", {"box_0.physics.mass": 2.0}),
 ]
 
 
@@ -135,6 +137,14 @@ REFUSED = [
     ("make it twice as heavy", "'it' refers to no object named before it"),
     ("make box_0 0 times as heavy", "'0 times': a factor is a number > 0"),
     ("increase the mass of box_0 by a factor of 0", "a factor is a number > 0, not 0"),
+    # a factor below 1 turned the verb around: "reduce" by 1/0.5 doubled the mass (1 -> 2), "increase" halved it
+    ("reduce the mass of box_0 by a factor of 0.5", "a factor of 0.5 < 1 would increase it"),
+    ("increase the mass of box_0 by a factor of 0.5", "a factor of 0.5 < 1 would decrease it"),
+    # after a camera clause "it" could be the camera: it moved box_0 (position[1] -0.3 -> -1.3) as the object before
+    (
+        "double the mass of box_0; set the fov to 60 and move it 1 m back",
+        "'it' follows 'set the fov to 60', which edited the camera, so it could mean the camera",
+    ),
 ]
 
 
@@ -154,6 +164,59 @@ def test_its_names_the_only_object_of_a_one_object_scene(scene):
     assert {c.path: c.after for c in apply_instruction(one, "halve its mass").changes} == {"box_0.physics.mass": 0.5}
     with pytest.raises(EditError, match="'it' refers to no object"):
         apply_instruction(scene, "moon gravity and stop it")
+    # "it" after a camera clause could be the camera: the only object was moved 1 m back (-0.3 -> -1.3)
+    with pytest.raises(EditError, match="'it' follows 'set the fov to 60', which edited the camera"):
+        apply_instruction(one, "set the fov to 60 and move it 1 m back")
+
+
+def _renamed(scene, names):
+    """The scene with its objects renamed (names are letters, digits and _: "it" and "scale" are names)."""
+    objects = tuple(o.model_copy(update={"name": n}) for o, n in zip(scene.objects, names, strict=True))
+    return scene.model_copy(update={"objects": objects})
+
+
+def _check(scene, cases):
+    for instruction, expected in cases.items():
+        result = apply_instruction(scene, instruction)
+        assert {c.path: c.after for c in result.changes} == pytest.approx(expected), instruction
+        assert not outside(result.changes, named_fields(instruction, scene)), instruction
+
+
+def test_an_object_named_it_keeps_its_name(scene):
+    """Before pronouns, "stop it" stopped the object named it; it was refused ("'it' refers to no object named
+    before it"). box_0 is renamed it: velocity [4.3, 2.5, 0], friction 1.1."""
+    _check(
+        _renamed(scene, ("it", "cylinder_0")),
+        {
+            "stop it": {"it.state.linear_velocity[0]": 0.0, "it.state.linear_velocity[1]": 0.0},
+            "stop it and halve its friction": {  # "its": the objects of the clause before, the object it
+                "it.state.linear_velocity[0]": 0.0,
+                "it.state.linear_velocity[1]": 0.0,
+                "it.physics.friction[0]": 0.55,
+            },
+        },
+    )
+
+
+def test_and_before_an_object_named_like_a_verb_joins_objects(scene):
+    """Before "and" joined clauses, "double the mass of box_0 and scale" doubled both masses (1 -> 2); it was
+    refused as the clause "scale". A clause verb that is no object's name still starts a clause."""
+    _check(
+        _renamed(scene, ("box_0", "scale")),
+        {
+            "double the mass of box_0 and scale": {"box_0.physics.mass": 2.0, "scale.physics.mass": 2.0},
+            "stop box_0 and scale": {
+                "box_0.state.linear_velocity[0]": 0.0,
+                "box_0.state.linear_velocity[1]": 0.0,
+                "scale.state.linear_velocity[0]": 0.0,
+                "scale.state.linear_velocity[1]": 0.0,
+            },
+            "double the mass of box_0 and halve its friction": {
+                "box_0.physics.mass": 2.0,
+                "box_0.physics.friction[0]": 0.55,
+            },
+        },
+    )
 
 
 def test_what_is_not_a_scene_or_an_instruction_text_is_named(scene):
