@@ -384,6 +384,8 @@ def save_adapter(
 
     `state_dict`: the weights to write instead of the model's own (sharded models: `sharding.trainable_state`).
     """
+    import contextlib
+    import errno
     import os
     import shutil
 
@@ -394,8 +396,19 @@ def save_adapter(
     # written whole beside it, then swapped in: replaced file by file, a kill left one checkpoint's weights with
     # another's aynamics.json (prompt) or adapter_config.json, and such a folder loads without a word
     tmp, old = (out.parent / f".{out.name}.{what}-{os.getpid()}" for what in ("tmp", "old"))
-    with exclusive(out.parent / f".{out.name}.lock"):  # writers of `out` in turn: the leftovers are no one's
-        _recover_adapter_leftovers(out)
+    with contextlib.ExitStack() as held:
+        try:
+            held.enter_context(exclusive(out.parent / f".{out.name}.lock"))  # writers of `out` in turn
+        except OSError as e:
+            # a file system without locks (Lustre mounted noflock: ENOSYS; NFS without its lock daemon: ENOLCK)
+            # failed training at its first checkpoint: written unlocked, as before the lock, whose leftovers of
+            # other processes may be a live writer's, so only this process's own are removed
+            if e.errno not in (errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP):
+                raise
+            for folder in (tmp, old):
+                shutil.rmtree(folder, ignore_errors=True)
+        else:
+            _recover_adapter_leftovers(out)  # under the lock: the leftovers are no one's
         model.save_pretrained(str(tmp), **({"state_dict": state_dict} if state_dict is not None else {}))
         (tmp / ADAPTER_META).write_text(json.dumps(adapter_meta(spec, prompt), indent=2))
         if out.is_dir():

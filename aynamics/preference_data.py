@@ -353,10 +353,11 @@ def check_out(out: str | Path) -> Path:
 
 
 def _leftovers(out: Path, kind: str) -> list[Path]:
-    """The `OUT.tmp-XXXXXXXX` or `OUT.old-XXXXXXXX` folders (`kind` "tmp" or "old") beside `out` that
+    """The hidden `.OUT.tmp-XXXXXXXX` or `.OUT.old-XXXXXXXX` folders (`kind` "tmp" or "old") beside `out` that
     `write_preferences` made (`tempfile.mkdtemp`'s 8 characters) and that hold nothing but a preference set's files:
-    a folder of the user's named alike, or holding anything else, is none of them."""
-    name = re.compile(re.escape(out.name) + rf"\.{kind}-[a-z0-9_]{{8}}")
+    a folder of the user's named alike, or holding anything else, is none of them. Hidden, as the other writers'
+    (`.adapter.tmp-PID`): a visible `OUT.old-20240101` is what a user names a copy of the set."""
+    name = re.compile(rf"\.{re.escape(out.name)}\.{kind}-[a-z0-9_]{{8}}")
     return [
         p
         for p in sorted(out.parent.iterdir())
@@ -368,9 +369,9 @@ def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
     """Save the rows as a data set at `out` (atomically: written beside, then renamed) with `summary.json`.
     A folder already at `out` is replaced only if it is a preference set (`check_out`).
 
-    What killed writes of `out` left beside it is tidied: a set moved aside (`OUT.old-*`) with no `out` (a kill
+    What killed writes of `out` left beside it is tidied: a set moved aside (`.OUT.old-*`) with no `out` (a kill
     between the two renames) is put back first, as the only copy of what `out` held, so that this write failing
-    too still leaves it there; once the new set is in place, the `OUT.tmp-*` and `OUT.old-*` folders of earlier
+    too still leaves it there; once the new set is in place, the `.OUT.tmp-*` and `.OUT.old-*` folders of earlier
     writes (half-written sets, sets it replaces; left for good before) are deleted (`_leftovers`: never another
     folder). A process writing the same `out` at once could lose its folder to this: callers that may run
     together hold the lock of `partial_folder(out)` (`SamplingProgress.opened`), as `aynamics preferences` does.
@@ -383,7 +384,7 @@ def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
     if not os.path.lexists(out) and len(moved_aside) == 1:  # several: which was `out` last is unknown, none goes back
         moved_aside[0].rename(out)
     # a new folder beside: a fixed name (`OUT.tmp`) deleted whatever folder of that name was there
-    tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-", dir=out.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     tmp.rmdir()  # save_to_disk makes it
     columns = {c: [row[c] for row in rows] for c in COLUMNS}  # from_dict keeps the columns of 0 rows too
     Dataset.from_dict(columns, features=features()).save_to_disk(str(tmp))
@@ -394,7 +395,7 @@ def write_preferences(rows: list[dict], summary: dict, out: str | Path) -> Path:
         raise ValueError(f"{e}; the preferences are kept in {str(tmp)!r}") from None
     # the earlier set is moved aside, not deleted, until the new one is in place: deleting it first (seconds for a
     # large set) left, if interrupted, half of it at `out` and the new set under a temporary name nobody was told
-    old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-", dir=out.parent))
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
     old.rmdir()
     try:
         out.rename(old)

@@ -214,11 +214,11 @@ def _preference_rows(key: str) -> list[dict]:
 
 
 def test_a_preference_set_killed_between_its_renames_is_put_back_and_leftovers_go(tmp_path, monkeypatch):
-    """`write_preferences` moves the earlier set to `OUT.old-*`, then renames its new one (`OUT.tmp-*`) to OUT: a
+    """`write_preferences` moves the earlier set to `.OUT.old-*`, then renames its new one (`.OUT.tmp-*`) to OUT: a
     kill between the two left no OUT, the earlier set only under its hidden name, and both folders for good (the
     next write made OUT anew beside them). The next write now puts the earlier set back first (so that, failing
-    on a full disk here, it leaves OUT as it was), and once its own set is in place deletes the `OUT.tmp-*` and
-    `OUT.old-*` folders of earlier writes; a folder of the user's named alike (other characters, or holding
+    on a full disk here, it leaves OUT as it was), and once its own set is in place deletes the `.OUT.tmp-*` and
+    `.OUT.old-*` folders of earlier writes; a folder of the user's named alike (other characters, or holding
     other files) and another OUT's stay."""
     import datasets
 
@@ -237,7 +237,8 @@ def test_a_preference_set_killed_between_its_renames_is_put_back_and_leftovers_g
     with pytest.raises(KeyboardInterrupt):
         write_preferences(_preference_rows("v2"), {"v": 2}, out)
     monkeypatch.undo()
-    assert not out.exists() and len(list(tmp_path.glob("prefs.old-*"))) == len(list(tmp_path.glob("prefs.tmp-*"))) == 1
+    assert not out.exists()
+    assert len(list(tmp_path.glob(".prefs.old-*"))) == len(list(tmp_path.glob(".prefs.tmp-*"))) == 1
 
     def full(self, path, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
@@ -248,18 +249,43 @@ def test_a_preference_set_killed_between_its_renames_is_put_back_and_leftovers_g
     monkeypatch.undo()
     assert load_preferences(out)["key"] == ["v1"] and json.loads((out / "summary.json").read_text()) == {"v": 1}
 
-    for name in ("prefs.tmp-mine", "prefs.old-abcd1234", "other.tmp-abcd1234"):
+    for name in (".prefs.tmp-mine", ".prefs.old-abcd1234", ".other.tmp-abcd1234"):
         (tmp_path / name).mkdir()
         (tmp_path / name / "notes.txt").write_text("mine")
-    (tmp_path / "prefs.old-abcd1234" / "state.json").write_text("{}")
+    (tmp_path / ".prefs.old-abcd1234" / "state.json").write_text("{}")
     write_preferences(_preference_rows("v3"), {"v": 3}, out)
     assert load_preferences(out)["key"] == ["v3"]
     assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "other.tmp-abcd1234",
+        ".other.tmp-abcd1234",
+        ".prefs.old-abcd1234",
+        ".prefs.tmp-mine",
         "prefs",
-        "prefs.old-abcd1234",
-        "prefs.tmp-mine",
     ]
+
+
+def test_a_users_copies_of_a_preference_set_beside_it_stay(tmp_path):
+    """A user's copies of the set `prefs`, named `prefs.old-20240101` and `prefs.tmp-backup01` (8 characters after
+    the dash, as `tempfile.mkdtemp` draws, and nothing but a preference set's files), were taken for leftovers of
+    killed writes: the next write deleted both, and with `prefs` gone it first renamed the copy to `prefs` and
+    then replaced it. The writes' own folders are hidden now (`.prefs.tmp-*`, `.prefs.old-*`); the copies stay,
+    each still holding its set (v1), and `prefs` holds the new one (v2, then v3)."""
+    import shutil
+
+    from aynamics.preference_data import load_preferences, write_preferences
+
+    out = tmp_path / "prefs"
+    write_preferences(_preference_rows("v1"), {"v": 1}, out)
+    copies = [tmp_path / "prefs.old-20240101", tmp_path / "prefs.tmp-backup01"]
+    for copy in copies:
+        shutil.copytree(out, copy)
+    write_preferences(_preference_rows("v2"), {"v": 2}, out)
+    assert load_preferences(out)["key"] == ["v2"]
+    assert [load_preferences(copy)["key"] for copy in copies] == [["v1"], ["v1"]]
+    shutil.rmtree(out)
+    write_preferences(_preference_rows("v3"), {"v": 3}, out)
+    assert load_preferences(out)["key"] == ["v3"]
+    assert [load_preferences(copy)["key"] for copy in copies] == [["v1"], ["v1"]]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["prefs", "prefs.old-20240101", "prefs.tmp-backup01"]
 
 
 def test_an_adapter_write_killed_midway_is_finished_by_the_next(tmp_path, monkeypatch):
@@ -311,6 +337,31 @@ def test_an_adapter_write_killed_midway_is_finished_by_the_next(tmp_path, monkey
     assert json.loads((out / lm.ADAPTER_META).read_text())["prompt"]["num_frames"] == 8
     assert (out / "notes.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == [".adapter.lock", ".adapter.tmp-mine", "adapter"]
+
+
+def test_an_adapter_is_written_on_a_file_system_without_locks(tmp_path, monkeypatch):
+    """`save_adapter` takes a lock beside the folder (`.adapter.lock`); where the file system has none (`flock`
+    fails with ENOLCK: NFS without its lock daemon; ENOSYS: Lustre mounted noflock) every checkpoint of a training
+    run failed with OSError, where before the lock it wrote. It writes unlocked there, as before: the adapter is
+    replaced (num_frames 2, then 4), the user's notes.txt stays in it, and another process's `.adapter.tmp-PID`
+    (perhaps a live writer's: nothing says otherwise without the lock) is left alone."""
+    import fcntl
+    import os
+
+    def no_locks(*args):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    spec = lm.ModelSpec(kind="tiny")
+    model = lm.build_model(spec)
+    out = tmp_path / "adapter"
+    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
+    (out / "notes.txt").write_text("mine")
+    (tmp_path / ".adapter.tmp-999999").mkdir()
+    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
+    assert json.loads((out / lm.ADAPTER_META).read_text())["prompt"]["num_frames"] == 4
+    assert (out / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".adapter.lock", ".adapter.tmp-999999", "adapter"]
 
 
 def test_an_evaluations_temporary_files_left_by_a_kill_are_removed_by_the_next(tmp_path):

@@ -420,7 +420,7 @@ def test_preferences_never_replace_another_folder(tmp_path, dataset_dir, capsys)
     with pytest.raises(ValueError, match="preferences are kept in") as err:
         _handmade_preferences(dataset_dir, mine)
     assert (mine / "notes.txt").read_text() == "keep"
-    (kept,) = tmp_path.glob("mine.tmp-*")
+    (kept,) = tmp_path.glob(".mine.tmp-*")
     assert str(kept) in str(err.value) and (kept / "summary.json").is_file()
 
 
