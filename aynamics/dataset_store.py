@@ -371,6 +371,8 @@ def remove_dead_assemblies(out: Path) -> None:
                 pass
         except BlockingIOError:
             continue  # another shard is assembling into it
+        except FileNotFoundError:  # its writer, done, deleted it meanwhile (after giving `.assemble.lock` back)
+            continue
         shutil.rmtree(folder, ignore_errors=True)
 
 

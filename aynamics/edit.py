@@ -202,7 +202,7 @@ def _quantity(text: str) -> tuple[Quantity, int | None]:
     raise EditError(f"quantity {text!r} not understood. {UNDERSTOOD}")
 
 
-def _targets(text: str | None, scene: Scene, previous: list[int] | None = None) -> list[int]:
+def _targets(text: str | None, scene: Scene, previous: list[int] | str | None = None) -> list[int]:
     """Indices of the objects a target phrase names; None or 'all objects' means every object; 'it' / 'them' the
     objects of the clause before (`previous`), unless an object has that name ("stop it" stops an object named it)."""
     lower = {n.lower(): i for i, n in enumerate(scene.names)}
@@ -411,9 +411,7 @@ def _absolute(q: Quantity, comp: int | None, value: float | list[float], kind: s
 _VERBS_BY = "|".join((*_UP, *_DOWN))
 # surface gravity, m/s² (NASA planetary fact sheets): "moon gravity", "set the gravity to mars"
 PLANET_GRAVITY = {"earth": 9.81, "moon": 1.62, "mars": 3.71, "jupiter": 24.79}
-_PLANET_NAMES = {"earth": "earth", "moon": "moon", "lunar": "moon", "mars": "mars", "martian": "mars"} | {
-    "jupiter": "jupiter"
-}
+_PLANET_NAMES = {name: name for name in PLANET_GRAVITY} | {"lunar": "moon", "martian": "mars"}
 _PLANET = rf"(?:that of )?(?:the )?({'|'.join(_PLANET_NAMES)})(?:'s)?"
 # "make box_0 twice as heavy": adjective -> quantity; "make box_0 heavier by 20%": comparative -> (quantity, sign)
 _AS = {"heavy": "mass", "massive": "mass", "fast": "velocity", "quick": "velocity", "bouncy": "restitution"}
@@ -435,7 +433,7 @@ def _times(text: str) -> float:
     if k is None:
         k = float(text.removesuffix(" times"))
     if not (0 < k < math.inf):
-        raise EditError(f"{text!r}: a factor is a number > 0")
+        raise EditError(f"{text!r}: a factor is a finite number > 0, not {k:g}")
     return k
 
 
@@ -462,7 +460,7 @@ def _clause(
         q, comp = _quantity(q_text)
         k = float(m.group("k"))
         if not (0 < k < math.inf):
-            raise EditError(f"{clause!r}: a factor is a number > 0, not {m.group('k')}")
+            raise EditError(f"{clause!r}: a factor is a finite number > 0, not {m.group('k')}")
         up = m.group("v") in _UP
         if k < 1:  # "reduce the mass by a factor of 0.5" doubled it, "increase ... by a factor of 0.5" halved it
             raise EditError(

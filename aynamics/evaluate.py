@@ -124,9 +124,12 @@ def _generate(
     With `kept`, each batch's responses are kept as they are generated, and batches it holds are read back rather
     than generated again (greedy: the responses an uninterrupted run gives, batched the same way), checked by the
     digests of their prompts (masks made again leave the responses valid; their refinements are checked apart).
+    A kept last batch shorter than this run's (of a smaller --num) is answered again whole, as an uninterrupted run
+    batches it; if its responses come out otherwise, the refinements kept from its first record on are dropped.
 
     Raises:
-        ValueError: a kept batch of other records or other prompts than these (the data changed since).
+        ValueError: a kept batch of other records or other prompts than these (the data changed since), or kept
+            responses of more records than these.
     """
     from tqdm.auto import tqdm
 
@@ -143,12 +146,20 @@ def _generate(
         keys = [r["index"] for r in batch]
         prompts = [content_digest(r["prompt"]) for r in batch] if kept is not None else []
         digests.extend(content_digest(p, r["observation"]) for p, r in zip(prompts, batch, strict=False))
-        if k < len(done):
+        held = done[k]["keys"] if k < len(done) else []
+        if len(keys) < len(held) and held[: len(keys)] == keys:  # this run's last batch is shorter
+            raise ValueError(_fewer_records(kept, len(done)))
+        tail = k == len(done) - 1 and len(held) < len(keys) and keys[: len(held)] == held
+        if k < len(done) and not tail:
             _check_kept(kept, RESPONSES, k, done[k], keys, prompts)
             return list(done[k]["texts"])
+        if tail:  # the last, shorter batch of a smaller --num: answered again whole, as an uninterrupted run batches it
+            _check_kept(kept, RESPONSES, k, done[k], held, prompts[: len(held)])
         out = lm.greedy_texts(model, processor, [r["prompt"] for r in batch], max_new_tokens)
         if kept is not None:
             kept.save(RESPONSES, k, {"keys": keys, "digests": prompts, "texts": out})
+        if tail and out[: len(held)] != list(done[k]["texts"]):  # batched otherwise, a response came out otherwise:
+            kept.drop(REFINED_KEPT, len(records))  # the refinements of this batch's responses start from other scenes
         return out
 
     with tqdm(total=n, unit="scene", desc=desc, disable=not progress) as bar:
@@ -161,12 +172,17 @@ def _generate(
             bar.update(1)
     made = -(-len(records) // batch_size)
     if len(done) > made:
-        raise ValueError(
-            f"{str(kept.folder)!r} holds {len(done)} batches of responses, but these records make {made} (a smaller "
-            "--num than the kept run's, or the data changed since): give its --num to go on from it, or delete it to "
-            "score afresh"
-        )
+        raise ValueError(_fewer_records(kept, len(done), made))
     return records, texts, digests
+
+
+def _fewer_records(kept: KeptBatches, held: int, made: int | None = None) -> str:
+    """The refusal of kept responses of more records than this run has."""
+    these = f"these records make {made}" if made is not None else "this run's last batch holds fewer records"
+    return (
+        f"{str(kept.folder)!r} holds {held} batches of responses, but {these} (a smaller --num than the kept run's, "
+        "or the data changed since): give its --num to go on from it, or delete it to score afresh"
+    )
 
 
 def _check_kept(kept: KeptBatches, stream: str, k: int, batch: dict, keys: list, digests: list[str]) -> None:
@@ -373,7 +389,7 @@ def refine_texts(
     progress: bool = False,
     *,
     kept: KeptBatches | None = None,
-    stream: str = "refined",
+    stream: str = REFINED_KEPT,
     digests: list[str] | None = None,
 ) -> tuple[list[str], int]:
     """Each response's scene refined by CMA-ES against its record's observation (`aynamics.refine`, seed 0: the

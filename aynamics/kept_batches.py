@@ -4,10 +4,13 @@ Sampling preferences (`aynamics preferences`) and scoring a real model (`aynamic
 a minute a scene) take hours; an interruption lost all of it. Both keep each finished batch in a folder beside
 their output, `OUT.partial` (`partial_folder`), and read the kept batches back when the same command runs again:
 
-    kept = KeptBatches(partial_folder(out), settings, run="an evaluation", verb="generate")
+    kept = KeptBatches(partial_folder(out), settings, run="an evaluation", verb="score", fields={"responses": keys})
     with kept.opened():  # made, or checked to hold these settings' batches; locked: a second writer is refused
+        done = kept.done("responses")
         for k, batch in enumerate(batches):
-            done = kept.done("responses")  # (read once, before the loop, in practice)
+            if k < len(done):
+                ...  # checked against `batch` and used, not made again
+                continue
             ...
             kept.save("responses", k, {...})  # atomically: a half-written file is never read back
         write(out)
@@ -267,6 +270,12 @@ class KeptBatches:
         torch.save(batch, tmp)
         os.replace(tmp, path)
         return path
+
+    def drop(self, stream: str, start: int) -> None:
+        """Forget the kept batches of `stream` numbered `start` and on (made from what has changed since)."""
+        for path in self._files(stream):
+            if int(path.stem.rsplit("-", 1)[1]) >= start:
+                path.unlink()
 
     def remove(self) -> None:
         shutil.rmtree(self.folder, ignore_errors=True)

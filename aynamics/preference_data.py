@@ -255,7 +255,8 @@ class SamplingProgress(KeptBatches):
         progress = SamplingProgress("prefs.partial", {"seed": 0, "num_samples": 32, ...})
         with progress.opened():  # made or checked, and locked: a second writer is refused
             rows, summary = build_preferences(module, videos, progress=progress, ...)
-        progress.remove()
+            write_preferences(rows, summary, out)
+            progress.remove()  # under the lock: no second writer starts on the batches meanwhile
     """
 
     STREAM = "batch"

@@ -499,8 +499,8 @@ def collate(
 
 # A video's seconds per temporal patch as the bits of its float32 value: a precision plugin casts every floating
 # tensor of a batch to the model's dtype before the step (`bf16-true`, and DeepSpeed even with bf16-mixed), and
-# in bfloat16 0.6 s reads 0.5977 s, which moves Qwen2.5-VL's temporal positions (floor(t · seconds · tokens per
-# second): 5 for 6 at the sixth patch) away from those generation gives (its inputs are not cast). Integers are
+# in bfloat16 2 / 3.75 s reads 0.5352 s, which moves Qwen2.5-VL's temporal positions (floor(t · seconds · tokens per
+# second): 15 for 14 at the 15th patch) away from those generation gives (its inputs are not cast). Integers are
 # not cast; `model_inputs` reads the value back exactly.
 SECONDS_BITS = "second_per_grid_ts_bits"
 

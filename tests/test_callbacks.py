@@ -725,6 +725,44 @@ def test_kept_responses_of_other_records_or_prompts_are_refused(tmp_path, monkey
             run([0])
 
 
+def test_a_larger_num_goes_on_from_the_short_last_batch_of_a_smaller_one(tmp_path, monkeypatch):
+    """Kept with batch size 2 and 3 records (batches [0, 1], [2], and refinements of records 0-2), 4 records answer
+    batch [2, 3] again whole (as an uninterrupted run batches them): the kept [0, 1] is read back, nothing refused.
+    When the batch answers record 2 otherwise, its refinement (the third) is dropped, the first two stay. Then 3
+    records are refused as fewer than the kept batch [2, 3] holds. Before, the larger --num was refused: "its
+    responses batch 1 holds records [2], but this run's batch 1 is records [2, 3]: the data changed since"."""
+    from aynamics import evaluate as ev
+    from aynamics import lm
+    from aynamics.kept_batches import KeptBatches
+
+    answered, word = [], ["t"]
+
+    def greedy(model, processor, prompts, n):
+        answered.append(len(prompts))
+        return word * len(prompts)
+
+    monkeypatch.setattr(lm, "greedy_texts", greedy)
+
+    def run(indices):
+        items = ([{"index": i, "prompt": {"ids": torch.tensor([i])}, "observation": None}] for i in indices)
+        return ev._generate(None, None, items, len(indices), 2, 8, "x", False, kept)
+
+    kept = KeptBatches(tmp_path / "k", {}, run="an evaluation", verb="score", fields=ev.KEPT_FIELDS)
+    with kept.opened():
+        run([0, 1, 2])
+        for k in range(3):
+            kept.save(ev.REFINED_KEPT, k, {"keys": [k], "digests": [], "texts": [], "timed_out": 0})
+        assert answered == [2, 1]
+        assert run([0, 1, 2, 3])[1] == ["t"] * 4 and answered == [2, 1, 2]
+        assert kept.count(ev.REFINED_KEPT) == 3  # record 2's response is the same: its refinement stands
+        word[0] = "u"
+        kept.save(ev.RESPONSES, 1, {"keys": [2], "digests": kept.done(ev.RESPONSES)[1]["digests"][:1], "texts": ["t"]})
+        assert run([0, 1, 2, 3])[1] == ["t", "t", "u", "u"] and answered == [2, 1, 2, 2]
+        assert kept.count(ev.REFINED_KEPT) == 2
+        with pytest.raises(ValueError, match="holds 2 batches of responses, but this run's last batch holds fewer"):
+            run([0, 1, 2])
+
+
 def test_evaluate_refused_or_interrupted_before_a_batch_leaves_no_partial_folder(
     tmp_path, tmp_path_factory, capsys, monkeypatch
 ):

@@ -135,8 +135,11 @@ REFUSED = [
     # "its" alone edited every object (both frictions halved); in a scene of two objects it names none
     ("halve its friction", "'its' refers to no object named before it in the instruction; name the object"),
     ("make it twice as heavy", "'it' refers to no object named before it"),
-    ("make box_0 0 times as heavy", "'0 times': a factor is a number > 0"),
-    ("increase the mass of box_0 by a factor of 0", "a factor is a number > 0, not 0"),
+    ("make box_0 0 times as heavy", "'0 times': a factor is a finite number > 0, not 0"),
+    ("increase the mass of box_0 by a factor of 0", "a factor is a finite number > 0, not 0"),
+    # 1e400 reads inf: it was refused as "a number > 0", which it is
+    ("increase the mass of box_0 by a factor of 1e400", "a factor is a finite number > 0, not 1e400"),
+    ("make box_0 1e400 times as heavy", "'1e400 times': a factor is a finite number > 0, not inf"),
     # a factor below 1 turned the verb around: "reduce" by 1/0.5 doubled the mass (1 -> 2), "increase" halved it
     ("reduce the mass of box_0 by a factor of 0.5", "a factor of 0.5 < 1 would increase it"),
     ("increase the mass of box_0 by a factor of 0.5", "a factor of 0.5 < 1 would decrease it"),

@@ -742,3 +742,23 @@ def test_an_assembly_killed_while_saved_is_removed_by_the_next(reference, tmp_pa
         ".assemble.lock",
     ]
     assert _rows(out) == _rows(reference)
+
+
+def test_an_assembly_deleted_by_its_writer_while_looked_at_is_passed_over(tmp_path, monkeypatch):
+    """A finished assembly deletes its `.assemble-PID` after giving `.assemble.lock` back, so the next one may find
+    the folder and see it gone before it opens its `.lock`: that one's assembly stopped with FileNotFoundError
+    (`open(.assemble-PID/.lock, "a")`). It is passed over; a dead one beside it is still removed."""
+    from aynamics import dataset_store
+
+    (tmp_path / ".assemble-101").mkdir()
+    (tmp_path / ".assemble-102").mkdir()
+    real = dataset_store.exclusive
+
+    def finishing(path, **kwargs):
+        if path.parent.name == ".assemble-101":  # its writer's rmtree, between the look and the open
+            shutil.rmtree(path.parent)
+        return real(path, **kwargs)
+
+    monkeypatch.setattr(dataset_store, "exclusive", finishing)
+    dataset_store.remove_dead_assemblies(tmp_path)
+    assert not any(p.name.startswith(".assemble-") for p in tmp_path.iterdir())
