@@ -604,11 +604,15 @@ def run_preferences(args) -> int:
     return 0
 
 
+def _batches(n: int) -> str:
+    return f"{n} batch" if n == 1 else f"{n} batches"
+
+
 def _sample_and_write(module: Any, videos: Sequence[UnlabeledVideo], progress: SamplingProgress, args) -> dict:
     """`build_preferences` going on from the kept batches, then the set written to --out; its summary. An
     interruption, or a set that cannot be written, says where the batches are kept."""
     if len(progress):
-        print(f"preferences: going on from {str(progress.folder)!r} ({len(progress)} batches kept)", file=sys.stderr)
+        print(f"preferences: going on from {str(progress.folder)!r} ({_batches(len(progress))} kept)", file=sys.stderr)
     try:
         rows, summary = build_preferences(
             module,
@@ -623,7 +627,7 @@ def _sample_and_write(module: Any, videos: Sequence[UnlabeledVideo], progress: S
         if not len(progress):  # (a folder without a batch is deleted)
             raise
         print(
-            f"preferences: {len(progress)} batches are kept in {str(progress.folder)!r}: the same command goes on "
+            f"preferences: {_batches(len(progress))} kept in {str(progress.folder)!r}: the same command goes on "
             "from them",
             file=sys.stderr,
         )

@@ -1106,7 +1106,7 @@ def test_preferences_go_on_after_an_interruption(tmp_path, dataset_dir, monkeypa
     assert cli_main([*args, "--out", str(part)]) == 130
     kept = tmp_path / "part.partial"
     assert sorted(p.name for p in kept.glob("batch-*")) == ["batch-000000.pt", "batch-000001.pt"]
-    assert not part.exists() and "2 batches are kept in" in capsys.readouterr().err
+    assert not part.exists() and "2 batches kept in" in capsys.readouterr().err
 
     assert cli_main([*args, "--out", str(part), "--seed", "1"]) == 2  # other settings: refused, nothing sampled
     assert "with other settings (seed 0 there, 1 now)" in capsys.readouterr().err
