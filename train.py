@@ -144,6 +144,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         metrics = {k: v for k, v in metrics.items() if math.isfinite(v) or k.startswith("val/")}
     if trainer.is_global_zero:
         join_csv_logs(csv_logs, resumed)
+        save_run_config(cfg)  # the settings of these results (a resume's), beside them
         overrides = OmegaConf.to_container(cfg, resolve=False) if cfg.get("save_config", True) else {}
         record = {"metrics": metrics, "global_step": trainer.global_step, "config": overrides}
         if evaluation is not None and evaluation.step is not None:
@@ -190,6 +191,29 @@ def check_whole_numbers(cfg: DictConfig) -> None:
             continue
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise ValueError(f"{key} = {value!r}: must be >= {least} (a whole number{', or null' * nullable})")
+
+
+def save_run_config(cfg: DictConfig) -> None:
+    """Write `OUT/.hydra/` (config.yaml, hydra.yaml, overrides.yaml) as Hydra does, which conf/config.yaml turns
+    off (`hydra.output_subdir: null`): `main` writes it into a folder without an earlier run, and `train` when it
+    writes the run's results, so a run refused because the folder holds another run (a fresh one, or another run's
+    checkpoint) leaves that run's settings there (`aynamics collect` reads its overrides.yaml). Nothing outside
+    Hydra (`train(cfg)` called directly), nor in a process of local rank > 0."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized() or int(os.environ.get("LOCAL_RANK") or 0) != 0:
+        return
+    hydra_cfg = HydraConfig.instance().cfg
+    folder = Path(hydra_cfg.hydra.runtime.output_dir) / ".hydra"
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, node in (
+        ("config.yaml", cfg),
+        ("hydra.yaml", hydra_cfg),
+        ("overrides.yaml", hydra_cfg.hydra.overrides.task),
+    ):
+        tmp = folder / f".{name}.tmp-{os.getpid()}"
+        tmp.write_text(OmegaConf.to_yaml(node))
+        os.replace(tmp, folder / name)
 
 
 def earlier_run(out: Path, checkpoints: str | None) -> str | None:
@@ -395,6 +419,9 @@ def main(cfg: DictConfig) -> float | None:
     from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
     one_log_stream()
+    checkpoints = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("dirpath")
+    if earlier_run(Path(HydraConfig.get().runtime.output_dir), checkpoints) is None:
+        save_run_config(cfg)  # a new folder: a run that fails still shows its overrides (collect: "failed")
     try:
         metrics = train(cfg)
     except SIGTERMException as stop:  # Lightning stopped after the step under way (a SystemExit of status 0)

@@ -721,9 +721,17 @@ def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
 
     Raises:
         FileNotFoundError: no such checkpoint.
-        ValueError: not an aynamics training checkpoint, or its weights do not fit the model its spec builds.
+        ValueError: a folder, not an aynamics training checkpoint, or its weights do not fit the model its spec
+            builds.
     """
     checkpoint = Path(checkpoint)
+    if checkpoint.is_dir():  # OUT/checkpoints itself was "no such checkpoint", though the folder is there
+        found = sorted(p.name for p in checkpoint.glob("*.ckpt"))
+        pick = "last.ckpt" if "last.ckpt" in found else found[-1] if found else None
+        raise ValueError(
+            f"{str(checkpoint)!r} is a folder, not a checkpoint: give a .ckpt file"
+            + (f", e.g. {checkpoint / pick}" if pick else " (OUT/checkpoints/stepNNNNNN.ckpt or last.ckpt)")
+        )
     if not checkpoint.is_file():
         raise FileNotFoundError(2, "no such checkpoint", str(checkpoint))
     try:

@@ -328,6 +328,23 @@ def test_export_adapter_refuses_a_folder_that_is_not_an_adapter(tmp_path, capsys
     assert not (tmp_path / "new").exists()
 
 
+def test_export_adapter_names_a_checkpoints_folder(tmp_path, capsys):
+    """OUT/checkpoints given instead of a .ckpt in it: exit 2 naming the folder and the file to give (it said "no
+    such checkpoint" of a folder that is there); nothing written."""
+    from aynamics.cli import main
+
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    assert main(["export-adapter", str(folder), "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "is a folder, not a checkpoint: give a .ckpt file" in err and "no such" not in err, err
+    (folder / "step000004.ckpt").write_bytes(b"")
+    (folder / "last.ckpt").write_bytes(b"")
+    assert main(["export-adapter", str(folder), "--out", str(tmp_path / "a")]) == 2
+    assert f"e.g. {folder / 'last.ckpt'}" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+
+
 def test_predict_reads_the_response_and_exits_by_its_validity(tmp_path, monkeypatch, capsys):
     """`aynamics predict` with the model swapped for fixed responses (the adapter's files are not read past
     aynamics.json). "<think> why </think><answer>SCENE</answer>": reasoning "why" (stripped), the canonical YAML of

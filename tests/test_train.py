@@ -1587,3 +1587,32 @@ def test_optimizer_and_clipping_values_that_cannot_work_are_named(tmp_path, data
     for overrides, message in cases:
         with pytest.raises((ValueError, InstantiationException), match=message):
             train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", *overrides))
+
+
+def test_a_refused_run_leaves_the_earlier_runs_hydra_record(tmp_path):
+    """A fresh run into a folder holding an earlier run is refused, and that run's `.hydra/` (its settings, whose
+    overrides.yaml `aynamics collect` shows as the run's columns) is left as it was: Hydra wrote the refused
+    command's settings over it before train.py could refuse. A run that fails in a new folder still gets its
+    `.hydra/overrides.yaml`, as Hydra wrote it (collect lists it as failed, with its overrides)."""
+    from aynamics.collect import collect
+
+    out = tmp_path / "run"
+    (out / ".hydra").mkdir(parents=True)
+    (out / "metrics.json").write_text(json.dumps({"metrics": {}, "global_step": 4, "config": {}}))
+    record = "- trainer.max_steps=4\n"
+    (out / ".hydra" / "overrides.yaml").write_text(record)
+    cmd = [sys.executable, "train.py", "data.modality=flow", "trainer.max_steps=8", f"hydra.run.dir={out}"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=_one_thread())
+    assert done.returncode == 2 and "holds an earlier run" in done.stderr, done.stderr[-3000:]
+    assert (out / ".hydra" / "overrides.yaml").read_text() == record
+    assert sorted(p.name for p in (out / ".hydra").iterdir()) == ["overrides.yaml"]
+    assert collect(out)[0]["trainer.max_steps"] == "4"
+
+    new = tmp_path / "new"
+    cmd = [sys.executable, "train.py", "trainer.max_steps=0", f"hydra.run.dir={new}"]
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300, env=_one_thread())
+    assert done.returncode == 2 and "trainer.max_steps = 0" in done.stderr, done.stderr[-3000:]
+    assert sorted(p.name for p in (new / ".hydra").iterdir()) == ["config.yaml", "hydra.yaml", "overrides.yaml"]
+    assert (new / ".hydra" / "overrides.yaml").read_text() == "- trainer.max_steps=0\n"
+    assert "max_steps: 0" in (new / ".hydra" / "config.yaml").read_text()
+    assert collect(new)[0]["status"] == "failed (train.log)"
