@@ -555,6 +555,12 @@ def run_evaluate(args) -> int:
         with contextlib.ExitStack() as stack:
             if kept is not None:  # other settings or a second writer are refused before the model loads
                 stack.enter_context(kept.opened())
+                if kept.redone is not None:
+                    changed, _ = kept.redone
+                    print(
+                        f"evaluate: {'; '.join(changed)}: the kept refinements are done again, the kept responses used",
+                        file=sys.stderr,
+                    )
                 if len(kept):
                     print(f"evaluate: going on from {str(kept.folder)!r} ({_kept_line(kept)})", file=sys.stderr)
             try:
@@ -600,9 +606,10 @@ def evaluation_progress(out: str | Path, settings: dict) -> KeptBatches:
     from them, with the table an uninterrupted run prints. `settings` are the command's; the adapter and the data
     are kept by absolute path, the adapter's weights by their digest (one trained again into its folder writes
     other responses) and, with refinement, the physics (`simulate.PHYSICS_VERSION`: a scene refined by other
-    physics is not the one this run's search finds). `--num` is not among them: the batches and refinements of a
-    run of fewer scenes are those of a run of more (each is checked by its records' keys and contents), so a larger
-    --num goes on from them."""
+    physics is not the one this run's search finds). Another refinement budget, time limit, physics or baseline
+    choice keeps the responses (hours of generation on a real model) and does the refinements again. `--num` is
+    not among them: the batches and refinements of a run of fewer scenes are those of a run of more (each is checked
+    by its records' keys and contents), so a larger --num goes on from them."""
     from aynamics import simulate
 
     def path(p: str | None) -> str | None:
@@ -617,7 +624,12 @@ def evaluation_progress(out: str | Path, settings: dict) -> KeptBatches:
         "physics": simulate.PHYSICS_VERSION if settings.get("refine") else None,
     }
     resolved.pop("num", None)
-    return KeptBatches(partial_folder(out), resolved, run="an evaluation", verb="score", fields=KEPT_FIELDS)
+    refinements = (REFINED_KEPT, AVERAGE_REFINED_KEPT)
+    redone_on = {"refine": refinements, "refine_seconds": refinements, "physics": refinements}
+    redone_on["baseline"] = (AVERAGE_REFINED_KEPT,)  # the model's responses and refinements stand
+    return KeptBatches(
+        partial_folder(out), resolved, run="an evaluation", verb="score", fields=KEPT_FIELDS, redone_on=redone_on
+    )
 
 
 def _kept_line(kept: KeptBatches) -> str:

@@ -114,6 +114,9 @@ class KeptBatches:
         run: What made the folder, for messages ("a preference run").
         verb: What the command does to make a batch ("sample"), for messages.
         fields: Keys every batch of a stream holds (stream -> keys): a file without them is from another version.
+        redone_on: Settings that only some streams depend on (setting -> those streams). Kept batches made with
+            other values of these alone are not refused: those streams are forgotten and done again (`redone` says
+            which), the rest gone on from. Any other difference refuses the folder.
     """
 
     SETTINGS = "settings.json"
@@ -127,10 +130,13 @@ class KeptBatches:
         run: str,
         verb: str,
         fields: dict[str, frozenset[str]],
+        redone_on: dict[str, tuple[str, ...]] | None = None,
     ) -> None:
         self.folder = Path(folder)
         self.settings = json.loads(json.dumps(settings))  # as settings.json reads back (tuples as lists)
         self.run, self.verb, self.fields = run, verb, fields
+        self.redone_on = redone_on or {}
+        self.redone: tuple[list[str], list[str]] | None = None  # `opened` dropped: (the differences, the streams)
 
     @contextlib.contextmanager
     def opened(self) -> Iterator[KeptBatches]:
@@ -212,16 +218,28 @@ class KeptBatches:
             ) from None
         if kept != self.settings:
             keys = sorted(set(kept) | set(self.settings)) if isinstance(kept, dict) else []
-            diff = [
-                f"{k} {kept.get(k)!r} there, {self.settings.get(k)!r} now"
-                for k in keys
-                if kept.get(k) != self.settings.get(k)
-            ]
+            changed = [k for k in keys if kept.get(k) != self.settings.get(k)]
+            diff = [f"{k} {kept.get(k)!r} there, {self.settings.get(k)!r} now" for k in changed]
+            if changed and all(k in self.redone_on for k in changed):
+                # settings only some streams depend on (a refinement's budget): those streams are done again, the
+                # rest (hours of responses) kept; any other difference refuses all, as a mistyped option may
+                self.redone = diff, self._drop_for(changed)
+                tmp = path.with_suffix(".tmp")
+                tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
+                os.replace(tmp, path)
+                return
             raise ValueError(
                 f"{str(self.folder)!r} holds the batches of an interrupted run with other settings "
                 f"({'; '.join(diff) or repr(kept)}): run with its settings to go on from it, or delete it to "
                 f"{self.verb} afresh"
             )
+
+    def _drop_for(self, changed: list[str]) -> list[str]:
+        """Forget every batch of the streams that the settings `changed` are redone on; their names."""
+        streams = sorted({s for k in changed for s in self.redone_on[k]})
+        for stream in streams:
+            self.drop(stream, 0)
+        return streams
 
     def done(self, stream: str) -> list[dict]:
         """The kept batches of `stream` in order (its first `count(stream)` batches).

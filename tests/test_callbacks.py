@@ -710,6 +710,45 @@ def test_evaluate_goes_on_after_an_interruption(tmp_path, tmp_path_factory, monk
         assert (out / name).read_text() == whole, name
 
 
+def test_evaluate_with_another_refinement_budget_keeps_the_responses(tmp_path, tmp_path_factory, monkeypatch, capsys):
+    """Interrupted in its refinements (3 responses kept, the average scene refined for 1 scene), `aynamics evaluate`
+    run again with another --refine-seconds generates nothing and refines the average scene for all 3 scenes again,
+    saying so; it was refused ("other settings (refine_seconds ...)"), and only deleting the kept folder, with its
+    responses (hours on a real model), went on."""
+    from train_fixtures import tiny_dataset
+
+    import aynamics.refine
+    from aynamics import lm
+    from aynamics.cli import main
+
+    spec = lm.ModelSpec(kind="tiny", lora_rank=8, lora_alpha=16.0, lora_dropout=0.0)
+    adapter = tmp_path / "adapter"
+    lm.save_adapter(lm.build_model(spec), adapter, spec, lm.PromptSpec(num_frames=2, min_pixels=3136, max_pixels=3136))
+    args = ["evaluate", "--adapter", str(adapter), "--data", str(tiny_dataset(tmp_path_factory)), "--batch-size", "1"]
+    args += ["--quiet", "--max-new-tokens", "3", "--refine", "6", "--device", "cpu", "--out", str(tmp_path / "eval")]
+    generate, refine, calls = lm.greedy_texts, aynamics.refine.refine, []
+
+    def counted(fn, name, stop_at=None):
+        def call(*a, **k):
+            calls.append(name)
+            if calls.count(name) == stop_at:
+                raise KeyboardInterrupt
+            return fn(*a, **k)
+
+        return call
+
+    monkeypatch.setattr(lm, "greedy_texts", counted(generate, "generate"))
+    monkeypatch.setattr(aynamics.refine, "refine", counted(refine, "refine", stop_at=2))
+    assert main([*args, "--refine-seconds", "60"]) == 130
+    assert calls == ["generate"] * 3 + ["refine"] * 2
+    calls.clear()
+    monkeypatch.setattr(aynamics.refine, "refine", counted(refine, "refine"))
+    assert main([*args, "--refine-seconds", "30"]) == 0
+    assert calls == ["refine"] * 3  # no response generated again; every refinement of the average scene done again
+    err = capsys.readouterr().err
+    assert "refine_seconds 60.0 there, 30.0 now: the kept refinements are done again, the kept responses used" in err
+
+
 def test_kept_responses_of_other_records_or_prompts_are_refused(tmp_path, monkeypatch):
     """Batches kept for records 0 and 1 (batch size 1) are read back for the same records and prompts, and refused
     for other records at their place, for another prompt under the same index (a data set made again), and when

@@ -138,11 +138,12 @@ def test_a_run_that_kept_no_batch_leaves_no_folder(tmp_path):
     assert sorted(p.name for p in kept.folder.iterdir()) == [".lock", "a-000000.pt", "settings.json"]
 
 
-def test_kept_refinements_of_other_physics_are_refused(tmp_path, monkeypatch):
+def test_kept_refinements_of_other_physics_are_done_again(tmp_path, monkeypatch):
     """A refinement kept by `aynamics evaluate --refine 6 --out OUT` under physics 2 is not gone on from once the
-    code simulates otherwise (PHYSICS_VERSION raised, as `generate` refuses such a resume): the setting that
-    differs is named. Without --refine nothing kept depends on the physics: it binds nothing. The physics was not
-    among the settings, and the refined scenes of two physics were mixed in one table."""
+    code simulates otherwise (PHYSICS_VERSION raised, as `generate` refuses such a resume): it is forgotten, to be
+    done again, naming the setting, and the kept responses (which do not simulate) stay. Without --refine nothing
+    kept depends on the physics: it binds nothing. The physics was not among the settings, and the refined scenes of
+    two physics were mixed in one table."""
     from aynamics import simulate
     from aynamics.evaluate import evaluation_progress
 
@@ -150,9 +151,38 @@ def test_kept_refinements_of_other_physics_are_refused(tmp_path, monkeypatch):
     settings = {"adapter": str(tmp_path / "adapter"), "data": "d", "num": 1, "refine": 6}
     kept = evaluation_progress(tmp_path / "out", settings)
     with kept.opened():
+        kept.save("responses", 0, {"keys": [0], "digests": ["x"], "texts": ["y"]})
         kept.save("refined", 0, {"keys": [0], "digests": ["x"], "texts": ["y"], "timed_out": 0})
     monkeypatch.setattr(simulate, "PHYSICS_VERSION", simulate.PHYSICS_VERSION + 1)
-    with pytest.raises(ValueError, match=rf"other settings \(physics {simulate.PHYSICS_VERSION - 1} there, "):
-        with evaluation_progress(tmp_path / "out", settings).opened():
-            pass
+    with evaluation_progress(tmp_path / "out", settings).opened() as again:
+        v = simulate.PHYSICS_VERSION
+        assert again.redone == ([f"physics {v - 1} there, {v} now"], ["average-refined", "refined"])
+        assert again.count("refined") == 0 and again.count("responses") == 1
     assert evaluation_progress(tmp_path / "out", settings | {"refine": 0}).settings["physics"] is None
+
+
+def test_settings_only_some_streams_depend_on_redo_those_streams(tmp_path):
+    """Stream "b" depends on setting x (a refinement's budget), stream "a" does not: reopened with another x, the
+    batches of b are forgotten and a's kept, the new settings recorded; another value of a setting both depend on
+    is refused, and nothing is dropped."""
+    fields = {"a": frozenset({"v"}), "b": frozenset({"v"})}
+
+    def opened(**settings):
+        return KeptBatches(
+            tmp_path / "p", settings, run="a test run", verb="score", fields=fields, redone_on={"x": ("b",)}
+        )
+
+    kept = opened(n=1, x=1)
+    with kept.opened():
+        kept.save("a", 0, {"v": 1})
+        kept.save("b", 0, {"v": 2})
+    again = opened(n=1, x=2)
+    with again.opened():
+        assert again.redone == (["x 1 there, 2 now"], ["b"])
+        assert again.done("a") == [{"v": 1}] and again.count("b") == 0
+        again.save("b", 0, {"v": 3})
+    with pytest.raises(ValueError, match=r"other settings \(n 1 there, 2 now; x 2 there, 3 now\)"):
+        with opened(n=2, x=3).opened():
+            pass
+    with opened(n=1, x=2).opened() as same:
+        assert same.redone is None and same.done("b") == [{"v": 3}]
