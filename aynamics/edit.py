@@ -219,6 +219,12 @@ def _targets(text: str | None, scene: Scene, previous: list[int] | str | None = 
             continue
         m = re.fullmatch(r"(?:(all|every|each|the) )?(box|boxes|sphere|spheres|cylinder|cylinders)", part)
         if m is None:
+            if _is_quantity(part):  # "double the mass of box_0 and the friction": a second quantity, not an object
+                raise EditError(
+                    f"{part!r} is a quantity, not an object of the scene {list(scene.names)}: one clause changes one "
+                    f"quantity; repeat a verb before {part!r} (e.g. 'double the mass of {scene.names[0]} and halve "
+                    "its friction')"
+                )
             raise EditError(f"object {part!r} not found; the scene has {list(scene.names)}. {UNDERSTOOD}")
         kind = {"boxes": "box", "spheres": "sphere", "cylinders": "cylinder"}.get(m.group(2), m.group(2))
         idx = [i for i, o in enumerate(scene.objects) if o.type == kind]
@@ -231,6 +237,14 @@ def _targets(text: str | None, scene: Scene, previous: list[int] | str | None = 
             raise EditError(f"{part!r} is ambiguous: the scene has {len(idx)} {plural} {names}; name one")
         out.extend(idx)
     return sorted(set(out))
+
+
+def _is_quantity(text: str) -> bool:
+    try:
+        _quantity(text)
+    except EditError:
+        return False
+    return True
 
 
 def _previous(word: str, previous: list[int] | str | None, scene: Scene) -> list[int]:

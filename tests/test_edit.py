@@ -135,6 +135,8 @@ REFUSED = [
     # "its" alone edited every object (both frictions halved); in a scene of two objects it names none
     ("halve its friction", "'its' refers to no object named before it in the instruction; name the object"),
     ("make it twice as heavy", "'it' refers to no object named before it"),
+    # a second quantity after "and" read as an object: "object 'the friction' not found"
+    ("double the mass of box_0 and the friction", "'the friction' is a quantity, not an object of the scene"),
     ("make box_0 0 times as heavy", "'0 times': a factor is a finite number > 0, not 0"),
     ("increase the mass of box_0 by a factor of 0", "a factor is a finite number > 0, not 0"),
     # 1e400 reads inf: it was refused as "a number > 0", which it is
