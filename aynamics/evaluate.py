@@ -148,7 +148,9 @@ def _generate(
         digests.extend(content_digest(p, r["observation"]) for p, r in zip(prompts, batch, strict=False))
         held = done[k]["keys"] if k < len(done) else []
         if len(keys) < len(held) and held[: len(keys)] == keys:  # this run's last batch is shorter
-            raise ValueError(_fewer_records(kept, len(done)))
+            raise ValueError(
+                _fewer_records(kept, f"{len(done)} batches of responses", "this run's last batch holds fewer records")
+            )
         tail = k == len(done) - 1 and len(held) < len(keys) and keys[: len(held)] == held
         if k < len(done) and not tail:
             _check_kept(kept, RESPONSES, k, done[k], keys, prompts)
@@ -172,16 +174,15 @@ def _generate(
             bar.update(1)
     made = -(-len(records) // batch_size)
     if len(done) > made:
-        raise ValueError(_fewer_records(kept, len(done), made))
+        raise ValueError(_fewer_records(kept, f"{len(done)} batches of responses", f"these records make {made}"))
     return records, texts, digests
 
 
-def _fewer_records(kept: KeptBatches, held: int, made: int | None = None) -> str:
-    """The refusal of kept responses of more records than this run has."""
-    these = f"these records make {made}" if made is not None else "this run's last batch holds fewer records"
+def _fewer_records(kept: KeptBatches, holds: str, but: str) -> str:
+    """The refusal of kept work of more records than this run has ("holds {holds}, but {but}")."""
     return (
-        f"{str(kept.folder)!r} holds {held} batches of responses, but {these} (a smaller --num than the kept run's, "
-        "or the data changed since): give its --num to go on from it, or delete it to score afresh"
+        f"{str(kept.folder)!r} holds {holds}, but {but} (a smaller --num than the kept run's, or the data changed "
+        "since): give its --num to go on from it, or delete it to score afresh"
     )
 
 
@@ -413,11 +414,7 @@ def refine_texts(
 
     done = kept.done(stream) if kept is not None else []
     if len(done) > len(texts):
-        raise ValueError(
-            f"{str(kept.folder)!r} holds {len(done)} {stream} scenes, but there are {len(texts)} to refine (a smaller "
-            "--num than the kept run's, or the data changed since): give its --num to go on from it, or delete it to "
-            "score afresh"
-        )
+        raise ValueError(_fewer_records(kept, f"{len(done)} {stream} scenes", f"there are {len(texts)} to refine"))
     out, timed_out = [], 0
     pairs = list(zip(texts, records, strict=True))
     for k, (text, r) in enumerate(tqdm(pairs, unit="scene", desc="refine", disable=not progress)):

@@ -104,6 +104,21 @@ def _feed(h, v: Any) -> None:
         raise TypeError(f"content_digest: a {type(v).__name__} cannot be hashed by its contents")
 
 
+def differences(there: dict, now: dict, keys: list[str] | None = None) -> list[str]:
+    """ "k X there, Y now" for each of `keys` (default: `now`'s) whose value differs: what a refusal of kept work
+    made with other settings names."""
+    return [
+        f"{k} {there.get(k)!r} there, {now.get(k)!r} now"
+        for k in (now if keys is None else keys)
+        if there.get(k) != now.get(k)
+    ]
+
+
+def _index(path: Path) -> int:
+    """The number of a batch file `STREAM-NNNNNN.pt`."""
+    return int(path.stem.rsplit("-", 1)[1])
+
+
 class KeptBatches:
     """A folder of numbered batches (`STREAM-NNNNNN.pt`, one series per stream name) and the settings they were
     made with.
@@ -206,9 +221,7 @@ class KeptBatches:
         # no batch kept, nothing to go on from: a run that failed before its first one (a mistyped option, a first
         # batch too large for the GPU) does not bind the next to its settings
         if not path.is_file() or not len(self):
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
-            os.replace(tmp, path)
+            self._write_settings()
             return
         try:
             kept = json.loads(path.read_text())
@@ -219,20 +232,23 @@ class KeptBatches:
         if kept != self.settings:
             keys = sorted(set(kept) | set(self.settings)) if isinstance(kept, dict) else []
             changed = [k for k in keys if kept.get(k) != self.settings.get(k)]
-            diff = [f"{k} {kept.get(k)!r} there, {self.settings.get(k)!r} now" for k in changed]
+            diff = differences(kept, self.settings, changed) if changed else []
             if changed and all(k in self.redone_on for k in changed):
                 # settings only some streams depend on (a refinement's budget): those streams are done again, the
                 # rest (hours of responses) kept; any other difference refuses all, as a mistyped option may
                 self.redone = diff, self._drop_for(changed)
-                tmp = path.with_suffix(".tmp")
-                tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
-                os.replace(tmp, path)
+                self._write_settings()
                 return
             raise ValueError(
                 f"{str(self.folder)!r} holds the batches of an interrupted run with other settings "
                 f"({'; '.join(diff) or repr(kept)}): run with its settings to go on from it, or delete it to "
                 f"{self.verb} afresh"
             )
+
+    def _write_settings(self) -> None:
+        tmp = self.folder / self._SETTINGS_TMP
+        tmp.write_text(json.dumps(self.settings, indent=1, sort_keys=True) + "\n")
+        os.replace(tmp, self.folder / self.SETTINGS)
 
     def _drop_for(self, changed: list[str]) -> list[str]:
         """Forget every batch of the streams that the settings `changed` are redone on; their names."""
@@ -249,7 +265,7 @@ class KeptBatches:
         """
         batches = []
         for k, path in enumerate(self._files(stream)):
-            if int(path.stem.rsplit("-", 1)[1]) != k:
+            if _index(path) != k:
                 raise ValueError(
                     f"{str(path)!r}: batch {k} is missing before it; delete it and later ones to {self.verb} them again"
                 )
@@ -271,7 +287,7 @@ class KeptBatches:
 
     def __len__(self) -> int:
         """Batches kept, of every stream (not read)."""
-        return sum(len(self._files(s)) for s in self.fields)
+        return sum(self.count(s) for s in self.fields)
 
     def count(self, stream: str) -> int:
         """Batches of `stream` kept (not read)."""
@@ -292,7 +308,7 @@ class KeptBatches:
     def drop(self, stream: str, start: int) -> None:
         """Forget the kept batches of `stream` numbered `start` and on (made from what has changed since)."""
         for path in self._files(stream):
-            if int(path.stem.rsplit("-", 1)[1]) >= start:
+            if _index(path) >= start:
                 path.unlink()
 
     def remove(self) -> None:

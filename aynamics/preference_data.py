@@ -38,7 +38,7 @@ import torch
 
 from aynamics import lm, rng
 from aynamics import reward as rw
-from aynamics.kept_batches import KeptBatches, content_digest, file_digest, partial_folder
+from aynamics.kept_batches import KeptBatches, content_digest, differences, file_digest, partial_folder
 from aynamics.scorer import Score
 from aynamics.unlabeled import UnlabeledVideo
 
@@ -183,7 +183,7 @@ def build_preferences(
 def _kept_mismatch(batch: dict, chunk: Sequence[UnlabeledVideo], sampling: dict) -> str | None:
     """Why a kept batch is not what these settings would sample from these videos now, or None."""
     kept = batch["sampling"]
-    differ = [f"{k} {kept.get(k)!r} there, {v!r} now" for k, v in sampling.items() if kept.get(k) != v]
+    differ = differences(kept, sampling)
     if differ:
         return (
             f"was sampled with other settings ({'; '.join(differ)}): run with its settings to go on from it, or "
