@@ -40,7 +40,13 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the stage described by `cfg` and return the final metrics (also written to `OUT/metrics.json`)."""
     import lightning as L
 
-    from aynamics.callbacks import SceneEvaluation, format_table, json_safe, use_atomic_checkpoints
+    from aynamics.callbacks import (
+        SceneEvaluation,
+        format_table,
+        json_safe,
+        progress_bar,
+        use_atomic_checkpoints,
+    )
     from aynamics.lm import TARGETS
     from aynamics.sharding import model_init_context
 
@@ -94,6 +100,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             )
     out.mkdir(parents=True, exist_ok=True)
     callbacks = _instantiate_group(cfg.get("callbacks"))
+    callbacks += progress_bar(callbacks, enabled=bool(cfg.trainer.get("enable_progress_bar", True)))
     loggers = _instantiate_group(cfg.get("logger"))
     # Lightning's CSV logger deletes the metrics.csv it finds when it starts: a resume keeps its rows aside and
     # puts them back in front of the resumed ones
@@ -101,6 +108,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     # val_check_interval counts steps, as checkpoints do: Lightning counts batches, accumulation times as many
     accumulate = int(cfg.trainer.get("accumulate_grad_batches") or 1)
     batches = {} if interval is None else {"val_check_interval": interval * accumulate}
+    log_every = cfg.trainer.get("log_every_n_steps")
+    if isinstance(log_every, int) and 0 < steps < log_every:  # a run shorter than the logging interval logged
+        batches["log_every_n_steps"] = steps  # no training metrics (csv/metrics.csv held its header only)
     # before the model: a strategy or precision this machine lacks (deepspeed not installed) fails in seconds
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, **batches)
     use_atomic_checkpoints(trainer)  # a kill or a full disk mid-save never leaves a partial last.ckpt

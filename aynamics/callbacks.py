@@ -30,7 +30,8 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar
+from lightning.pytorch.callbacks.progress.rich_progress import _RICH_AVAILABLE
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
@@ -245,6 +246,28 @@ class AtomicCheckpointIO(TorchCheckpointIO):
             os.replace(tmp, path)  # atomic: the file at `path` is the old checkpoint or the new one, whole
         finally:
             tmp.unlink(missing_ok=True)
+
+
+class StepsProgressBar(RichProgressBar):
+    """Lightning's rich progress bar without the epoch total it shows when epochs are unlimited: a run limited by
+    `trainer.max_steps` has `max_epochs = -1`, which Lightning 2.6 prints as "Epoch 3/-2" (Lightning issue 21925,
+    fixed in its later releases)."""
+
+    def _get_train_description(self, current_epoch: int) -> str:
+        text = f"Epoch {current_epoch}"
+        if self.trainer.max_epochs is not None and self.trainer.max_epochs >= 0:
+            text += f"/{self.trainer.max_epochs - 1}"
+        return f"{text:{len(self.validation_description)}}"  # padded as Lightning's: no flicker beside Validation
+
+
+def progress_bar(callbacks: Sequence[L.Callback], enabled: bool) -> list[L.Callback]:
+    """The progress bar to add to `callbacks`: `StepsProgressBar` where Lightning would add its rich one (enabled,
+    rich installed, none given); none otherwise (Lightning then adds its own tqdm bar, or none)."""
+    from lightning.pytorch.callbacks.progress import ProgressBar
+
+    if not enabled or not _RICH_AVAILABLE or any(isinstance(c, ProgressBar) for c in callbacks):
+        return []
+    return [StepsProgressBar()]
 
 
 def use_atomic_checkpoints(trainer: L.Trainer) -> None:

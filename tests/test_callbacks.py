@@ -1011,3 +1011,29 @@ def test_collect_out_replaces_only_a_table_it_wrote(tmp_path, capsys):
     assert main(["collect", str(runs)]) == 0 and main(["collect", str(runs)]) == 0
     assert (runs / "summary.csv").read_text() == table.read_text()
     assert (runs / "0" / "metrics.json").read_text() == record
+
+
+@pytest.mark.parametrize(("max_epochs", "described"), [(-1, "Epoch 0"), (3, "Epoch 0/2")])
+def test_progress_bar_names_an_epoch_total_only_when_there_is_one(max_epochs, described):
+    """A run limited by max_steps (max_epochs -1, every run of train.py) reads "Epoch 0", not Lightning 2.6's
+    "Epoch 0/-2"; with an epoch limit the bar keeps its "Epoch 0/2". train.py adds the bar only where Lightning
+    would add a rich one: enabled, and no progress bar given."""
+    import lightning as L
+    from lightning.pytorch.callbacks import TQDMProgressBar
+    from lightning.pytorch.demos.boring_classes import BoringModel
+
+    from aynamics.callbacks import StepsProgressBar, progress_bar
+
+    assert progress_bar([], enabled=False) == [] and progress_bar([TQDMProgressBar()], enabled=True) == []
+    (bar,) = progress_bar([], enabled=True)
+    seen = []
+
+    class Look(L.Callback):
+        def on_train_batch_end(self, trainer, *args):
+            seen.append(bar._get_train_description(trainer.current_epoch).rstrip())
+
+    trainer = L.Trainer(
+        max_steps=2, max_epochs=max_epochs, callbacks=[bar, Look()], logger=False, enable_checkpointing=False
+    )
+    trainer.fit(BoringModel())
+    assert isinstance(bar, StepsProgressBar) and seen == [described, described]

@@ -1616,3 +1616,17 @@ def test_a_refused_run_leaves_the_earlier_runs_hydra_record(tmp_path):
     assert (new / ".hydra" / "overrides.yaml").read_text() == "- trainer.max_steps=0\n"
     assert "max_steps: 0" in (new / ".hydra" / "config.yaml").read_text()
     assert collect(new)[0]["status"] == "failed (train.log)"
+
+
+def test_a_run_shorter_than_the_logging_interval_logs_its_last_step(tmp_path, dataset_dir):
+    """3 steps under the default `trainer.log_every_n_steps` of 5 log step 3's training metrics (csv/metrics.csv
+    held its header only: Lightning logs every 5th step); a longer run keeps the configured interval."""
+    out = tmp_path / "run"
+    train(_cfg(out, f"data.dir={dataset_dir}", "trainer.max_steps=3", "logger=csv", "callbacks.evaluation=null"))
+    with open(out / "csv" / "metrics.csv") as f:
+        rows = [row for row in csv.DictReader(f) if row.get("train/loss")]
+    assert [int(row["step"]) for row in rows] == [2] and math.isfinite(float(rows[0]["train/loss"]))
+    out = tmp_path / "longer"
+    train(_cfg(out, f"data.dir={dataset_dir}", "trainer.max_steps=6", "logger=csv", "callbacks.evaluation=null"))
+    with open(out / "csv" / "metrics.csv") as f:
+        assert [int(row["step"]) for row in csv.DictReader(f) if row.get("train/loss")] == [4]
