@@ -114,6 +114,86 @@ def tiny_config(
     )
 
 
+# The published architectures (the checkpoints' config.json): the language model's width, layers, attention and
+# key/value heads, MLP width, vocabulary and tied embeddings. Both share one vision tower: 32 blocks 1280 wide, 16
+# heads, MLP 3420, full attention in blocks 7, 15, 23 and 31 (windows of 112 px elsewhere).
+QWEN_ARCHITECTURES = {
+    "3b": {"hidden_size": 2048, "num_layers": 36, "num_heads": 16, "num_kv_heads": 2, "intermediate_size": 11008,
+           "vocab_size": 151936, "tie_word_embeddings": True},
+    "7b": {"hidden_size": 3584, "num_layers": 28, "num_heads": 28, "num_kv_heads": 4, "intermediate_size": 18944,
+           "vocab_size": 152064, "tie_word_embeddings": False},
+}  # fmt: skip
+QWEN_VISION = {"vision_hidden_size": 1280, "vision_depth": 32, "vision_heads": 16, "vision_intermediate_size": 3420}
+QWEN_FULL_ATTENTION_BLOCKS = (7, 15, 23, 31)
+
+
+def qwen_architecture_config(
+    size: str,
+    tokenizer: PreTrainedTokenizerBase,
+    *,
+    text_layers: int | None = None,
+    vision_depth: int | None = None,
+) -> Qwen2_5_VLConfig:
+    """The config of the published Qwen2.5-VL-3B or -7B (`size` "3b" / "7b"), with `tokenizer`'s special-token ids
+    (the repo's tokenizer has Qwen's tokens, at other ids) and optionally fewer layers or vision blocks: every
+    width, head count, the vocabulary, M-RoPE sections [16, 24, 24] and the window layout are the real ones.
+
+    Raises:
+        ValueError: an unknown size, or a layer count < 1 (named).
+    """
+    if size not in QWEN_ARCHITECTURES:
+        raise ValueError(f"size = {size!r}: must be one of {sorted(QWEN_ARCHITECTURES)}")
+    arch = {**QWEN_ARCHITECTURES[size], **QWEN_VISION}
+    vocab_size = arch.pop("vocab_size")
+    for name, value in (("text_layers", text_layers), ("vision_depth", vision_depth)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{name} = {value!r}: must be a whole number >= 1 (or None: the published count)")
+    arch["num_layers"] = text_layers or arch["num_layers"]
+    arch["vision_depth"] = depth = vision_depth or arch["vision_depth"]
+    config = tiny_config(tokenizer, **arch)
+    config.text_config.vocab_size = vocab_size
+    config.text_config.max_position_embeddings = 128000
+    full = [i for i in QWEN_FULL_ATTENTION_BLOCKS if i < depth]
+    config.vision_config.fullatt_block_indexes = full or [depth - 1]
+    return config
+
+
+def random_checkpoint(
+    folder: str | Path,
+    size: str = "3b",
+    *,
+    text_layers: int | None = None,
+    vision_depth: int | None = None,
+    seed: int = 0,
+) -> Path:
+    """Write a checkpoint folder of the published Qwen2.5-VL architecture (`qwen_architecture_config`) with random
+    bfloat16 weights, the repo's tokenizer and chat template, and Qwen's image processor settings (min / max pixels
+    3136 / 12845056): `model=qwen2_5_vl_3b model.path=FOLDER` then runs every command at the real model's size
+    without its weights (none can be downloaded here). For memory, speed and shape checks; it writes no scene.
+
+    The 3B folder holds 3.75 B parameters, 7.5 GB; the 7B one 8.3 B, 16.6 GB (and as much memory to build it).
+    """
+    import json
+    import shutil
+
+    from transformers import AutoTokenizer
+
+    folder = Path(folder)
+    tokenizer = AutoTokenizer.from_pretrained(str(TINY_ASSET_DIR))
+    config = qwen_architecture_config(size, tokenizer, text_layers=text_layers, vision_depth=vision_depth)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        model = Qwen2_5_VLForConditionalGeneration._from_config(config, dtype=torch.bfloat16)
+    _set_generation_ids(model, tokenizer)
+    model.save_pretrained(folder)
+    tokenizer.save_pretrained(folder)
+    shutil.copy(TINY_ASSET_DIR / "chat_template.jinja", folder / "chat_template.jinja")
+    image = json.loads((TINY_ASSET_DIR / "preprocessor_config.json").read_text())
+    image |= {"min_pixels": 3136, "max_pixels": 12845056, "size": {"shortest_edge": 3136, "longest_edge": 12845056}}
+    (folder / "preprocessor_config.json").write_text(json.dumps(image, indent=2) + "\n")
+    return folder
+
+
 def build_tiny_model(
     tokenizer_dir: str | Path = TINY_ASSET_DIR,
     *,

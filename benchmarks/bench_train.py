@@ -3,6 +3,7 @@ checkpointing off vs on.
 
     python benchmarks/bench_train.py [--data DIR] [--steps 6] [--batch-size B] [--frames F] [OVERRIDE ...]
     python benchmarks/bench_train.py experiment=make_train      # the model and targets `make train` trains
+    python benchmarks/bench_train.py --only "images + checkpointing" --only video model=qwen2_5_vl_3b model.path=DIR
 
 The model, the LoRA setting and the data options are `train.py`'s, composed from `conf/` with the Hydra overrides
 given (default: `model=tiny` as configured); --frames and --batch-size set data.num_frames / data.batch_size.
@@ -22,6 +23,8 @@ import os
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -120,6 +123,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=6, help="optimizer steps per configuration (first untimed)")
     p.add_argument("--batch-size", type=int, help="data.batch_size (default: the config's)")
     p.add_argument("--frames", type=int, help="data.num_frames (default: the config's)")
+    p.add_argument(
+        "--only",
+        action="append",
+        choices=[name for name, _, _ in CONFIGS],
+        metavar="CONFIG",
+        help=f"measure only this configuration, one of {[name for name, _, _ in CONFIGS]}; repeat for more "
+        "(default: all)",
+    )
     p.add_argument("overrides", nargs="*", help="train.py overrides, e.g. experiment=make_train model.lora_rank=8")
     args = p.parse_args(argv)
     if args.steps < 2:
@@ -138,10 +149,14 @@ def main(argv: list[str] | None = None) -> None:
         f"{torch.get_num_threads()}, data {data}"
     )
     results = {}
-    ctx = mp.get_context("spawn")
-    for name, as_video, ckpt in CONFIGS:
-        with ctx.Pool(1) as pool:
-            r = pool.apply(_measure, ((overrides, data, as_video, ckpt, args.steps),))
+    for name, as_video, ckpt in [c for c in CONFIGS if not args.only or c[0] in args.only]:
+        # a pool of its own for each: a worker killed (out of memory) breaks only its pool, and is named
+        with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
+            try:
+                r = pool.submit(_measure, (overrides, data, as_video, ckpt, args.steps)).result()
+            except BrokenProcessPool:
+                print(f"  {name:<24} the measuring process died (killed: out of memory?)", flush=True)
+                continue
         results[name] = r
         print(
             f"  {name:<24} {r['samples_per_s']:7.2f} samples/s  {r['step_s'] * 1000:8.0f} ms/step  "
@@ -149,12 +164,15 @@ def main(argv: list[str] | None = None) -> None:
             f"(+{r['train_rss_mb']:.0f} MB in training{'' if r['exact_peak'] else ', peak since start'})",
             flush=True,
         )
-    img, vid = results["images"], results["video"]
-    print(
-        f"video / images throughput: {vid['samples_per_s'] / img['samples_per_s']:.2f}x, "
-        f"tokens per batch {vid['tokens'] / img['tokens']:.2f}x"
-    )
+    if "images" in results and "video" in results:
+        img, vid = results["images"], results["video"]
+        print(
+            f"video / images throughput: {vid['samples_per_s'] / img['samples_per_s']:.2f}x, "
+            f"tokens per batch {vid['tokens'] / img['tokens']:.2f}x"
+        )
     for kind in ("images", "video"):
+        if kind not in results or f"{kind} + checkpointing" not in results:
+            continue
         on, off = results[f"{kind} + checkpointing"], results[kind]
         print(
             f"checkpointing on / off ({kind}): throughput {on['samples_per_s'] / off['samples_per_s']:.2f}x, "

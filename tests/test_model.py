@@ -534,3 +534,30 @@ def test_an_adapters_prompt_spec_of_the_wrong_type_is_named(key, value, message)
         ValueError, match=re.escape(f"'a/aynamics.json': not the model and prompt specs training writes: {message}")
     ):
         lm.specs_of_meta(written, where="'a/aynamics.json'")
+
+
+def test_the_published_architectures_have_their_published_sizes():
+    """`qwen_architecture_config` builds Qwen2.5-VL-3B and -7B as their model cards count them (3,754,622,976 and
+    8,292,166,656 parameters; built on the meta device, nothing allocated), with Qwen's M-RoPE sections, windowed
+    vision blocks but 7, 15, 23, 31, and the 3B's tied embeddings; shallower copies keep every width."""
+    from transformers import AutoTokenizer, Qwen2_5_VLForConditionalGeneration
+
+    from aynamics.model import qwen_architecture_config
+
+    tokenizer = AutoTokenizer.from_pretrained(str(TINY_ASSET_DIR))
+    for size, count, tied in (("3b", 3_754_622_976, True), ("7b", 8_292_166_656, False)):
+        config = qwen_architecture_config(size, tokenizer)
+        with torch.device("meta"):
+            model = Qwen2_5_VLForConditionalGeneration._from_config(config, dtype=torch.bfloat16)
+        assert sum(p.numel() for p in model.parameters()) == count
+        assert (model.lm_head.weight is model.get_input_embeddings().weight) == tied
+        assert config.text_config.rope_parameters["mrope_section"] == [16, 24, 24]
+        assert config.vision_config.fullatt_block_indexes == [7, 15, 23, 31]
+        assert config.image_token_id == tokenizer.convert_tokens_to_ids("<|image_pad|>")
+    short = qwen_architecture_config("3b", tokenizer, text_layers=1, vision_depth=4)
+    assert (short.text_config.num_hidden_layers, short.vision_config.depth) == (1, 4)
+    assert short.vision_config.fullatt_block_indexes == [3] and short.text_config.hidden_size == 2048
+    with pytest.raises(ValueError, match="size = '13b'"):
+        qwen_architecture_config("13b", tokenizer)
+    with pytest.raises(ValueError, match="text_layers = 0"):
+        qwen_architecture_config("3b", tokenizer, text_layers=0)
