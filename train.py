@@ -100,7 +100,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
             )
     out.mkdir(parents=True, exist_ok=True)
     callbacks = _instantiate_group(cfg.get("callbacks"))
-    callbacks += progress_bar(callbacks, enabled=bool(cfg.trainer.get("enable_progress_bar", True)))
+    shown = cfg.trainer.get("enable_progress_bar")  # null: Lightning's default, a bar (none under barebones)
+    callbacks += progress_bar(callbacks, enabled=(shown is None or bool(shown)) and not cfg.trainer.get("barebones"))
     loggers = _instantiate_group(cfg.get("logger"))
     # Lightning's CSV logger deletes the metrics.csv it finds when it starts: a resume keeps its rows aside and
     # puts them back in front of the resumed ones
@@ -108,11 +109,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     # val_check_interval counts steps, as checkpoints do: Lightning counts batches, accumulation times as many
     accumulate = int(cfg.trainer.get("accumulate_grad_batches") or 1)
     batches = {} if interval is None else {"val_check_interval": interval * accumulate}
-    log_every = cfg.trainer.get("log_every_n_steps")
-    if isinstance(log_every, int) and 0 < steps < log_every:  # a run shorter than the logging interval logged
-        batches["log_every_n_steps"] = steps  # no training metrics (csv/metrics.csv held its header only)
     # before the model: a strategy or precision this machine lacks (deepspeed not installed) fails in seconds
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, **batches)
+    if 0 < steps < trainer.log_every_n_steps:  # a run shorter than the logging interval (null: Lightning's 50)
+        trainer.log_every_n_steps = steps  # logged no training metrics (csv/metrics.csv held its header only)
     use_atomic_checkpoints(trainer)  # a kill or a full disk mid-save never leaves a partial last.ckpt
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # the model's random draws as before the trainer
     spec = hydra.utils.instantiate(cfg.model)

@@ -115,8 +115,9 @@ def tiny_config(
 
 
 # The published architectures (the checkpoints' config.json): the language model's width, layers, attention and
-# key/value heads, MLP width, vocabulary and tied embeddings. Both share one vision tower: 32 blocks 1280 wide, 16
-# heads, MLP 3420, full attention in blocks 7, 15, 23 and 31 (windows of 112 px elsewhere).
+# key/value heads, MLP width, vocabulary and tied embeddings (both: RMSNorm eps 1e-6, RoPE theta 1e6). Both share
+# one vision tower: 32 blocks 1280 wide, 16 heads, MLP 3420, full attention in blocks 7, 15, 23 and 31 (windows of
+# 112 px elsewhere).
 QWEN_ARCHITECTURES = {
     "3b": {"hidden_size": 2048, "num_layers": 36, "num_heads": 16, "num_kv_heads": 2, "intermediate_size": 11008,
            "vocab_size": 151936, "tie_word_embeddings": True},
@@ -153,6 +154,7 @@ def qwen_architecture_config(
     config = tiny_config(tokenizer, **arch)
     config.text_config.vocab_size = vocab_size
     config.text_config.max_position_embeddings = 128000
+    config.text_config.rms_norm_eps = 1e-6  # the checkpoints' (transformers' default is 1e-5)
     full = [i for i in QWEN_FULL_ATTENTION_BLOCKS if i < depth]
     config.vision_config.fullatt_block_indexes = full or [depth - 1]
     return config

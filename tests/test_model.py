@@ -561,3 +561,30 @@ def test_the_published_architectures_have_their_published_sizes():
         qwen_architecture_config("13b", tokenizer)
     with pytest.raises(ValueError, match="text_layers = 0"):
         qwen_architecture_config("3b", tokenizer, text_layers=0)
+
+
+# The published checkpoints' config.json fields that change what the model computes, besides the sizes above
+# (Qwen/Qwen2.5-VL-3B-Instruct and -7B-Instruct: the same values in both)
+PUBLISHED_TEXT = {"rms_norm_eps": 1e-6, "hidden_act": "silu", "max_position_embeddings": 128000}
+PUBLISHED_VISION = {
+    "hidden_act": "silu", "patch_size": 14, "spatial_merge_size": 2, "temporal_patch_size": 2, "window_size": 112,
+    "tokens_per_second": 2, "in_channels": 3,
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("size", ["3b", "7b"])
+def test_the_published_architectures_compute_as_published(size):
+    """Beyond the widths: the language model's RMSNorm eps is the checkpoints' 1e-6 in every norm (transformers'
+    default is 1e-5), RoPE theta 1e6, SiLU, and the vision tower's patching, windows and video time step."""
+    from transformers import AutoTokenizer, Qwen2_5_VLForConditionalGeneration
+
+    from aynamics.model import qwen_architecture_config
+
+    config = qwen_architecture_config(size, AutoTokenizer.from_pretrained(str(TINY_ASSET_DIR)), text_layers=1)
+    assert {k: getattr(config.text_config, k) for k in PUBLISHED_TEXT} == PUBLISHED_TEXT
+    assert {k: getattr(config.vision_config, k) for k in PUBLISHED_VISION} == PUBLISHED_VISION
+    assert config.text_config.rope_parameters["rope_theta"] == 1_000_000.0
+    with torch.device("meta"):
+        model = Qwen2_5_VLForConditionalGeneration._from_config(config, dtype=torch.bfloat16)
+    text_norms = [m for n, m in model.named_modules() if "language_model" in n and hasattr(m, "variance_epsilon")]
+    assert len(text_norms) == 3 and {m.variance_epsilon for m in text_norms} == {1e-6}  # 2 in the layer, the last

@@ -1681,3 +1681,25 @@ def test_a_run_shorter_than_the_logging_interval_logs_its_last_step(tmp_path, da
     train(_cfg(out, f"data.dir={dataset_dir}", "trainer.max_steps=6", "logger=csv", "callbacks.evaluation=null"))
     with open(out / "csv" / "metrics.csv") as f:
         assert [int(row["step"]) for row in csv.DictReader(f) if row.get("train/loss")] == [4]
+
+
+def test_train_shows_the_steps_bar_and_logs_a_short_run_with_lightnings_defaults(tmp_path, dataset_dir, monkeypatch):
+    """train.py puts `StepsProgressBar` on the trainer ("Epoch 0", not "Epoch 0/-2") also where
+    `trainer.enable_progress_bar` is null (Lightning's default: a bar), and a run shorter than a null
+    `trainer.log_every_n_steps` (Lightning's 50) logs its last step's training metrics."""
+    from lightning.pytorch.callbacks import RichProgressBar
+
+    seen = []
+    start = RichProgressBar.on_train_epoch_start
+
+    def look(self, trainer, *args):
+        seen.append((type(self).__name__, self._get_train_description(trainer.current_epoch).rstrip()))
+        return start(self, trainer, *args)
+
+    monkeypatch.setattr(RichProgressBar, "on_train_epoch_start", look)
+    out = tmp_path / "run"
+    overrides = ["trainer.max_steps=2", "logger=csv", "callbacks.evaluation=null", "trainer.enable_progress_bar=null"]
+    train(_cfg(out, f"data.dir={dataset_dir}", *overrides, "trainer.log_every_n_steps=null"))
+    assert seen == [("StepsProgressBar", "Epoch 0")]
+    with open(out / "csv" / "metrics.csv") as f:
+        assert [int(row["step"]) for row in csv.DictReader(f) if row.get("train/loss")] == [1]
