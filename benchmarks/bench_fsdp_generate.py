@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import socket
+import tempfile
 
 import torch
 import torch.distributed as dist
@@ -20,9 +20,10 @@ import torch.multiprocessing as mp
 from timing import timed
 
 
-def _worker(rank: int, port: int, tokens: int, repeats: int, out: dict) -> None:
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
-    dist.init_process_group("gloo", rank=rank, world_size=2)
+def _worker(rank: int, rendezvous: str, tokens: int, repeats: int, out: dict) -> None:
+    # a file, not a free port found beforehand, which another job may take meanwhile (a run beside other
+    # distributed tests aborted once with SIGABRT; a taken port is the likely cause, not proven)
+    dist.init_process_group("gloo", init_method=f"file://{rendezvous}", rank=rank, world_size=2)
     torch.set_num_threads(1)
     from torch.distributed.device_mesh import init_device_mesh
 
@@ -56,12 +57,9 @@ def main() -> None:
     ap.add_argument("--tokens", type=int, default=128)
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    with mp.Manager() as manager:
+    with tempfile.TemporaryDirectory() as folder, mp.Manager() as manager:
         out = manager.dict()
-        mp.spawn(_worker, args=(port, args.tokens, args.repeats, out), nprocs=2)
+        mp.spawn(_worker, args=(os.path.join(folder, "rendezvous"), args.tokens, args.repeats, out), nprocs=2)
         r = dict(out)
     print(f"{args.tokens} greedy tokens, tiny model, 2 CPU processes (median of {args.repeats}):")
     print(f"  gathered per token  {r['per_token']:.3f} s")
