@@ -35,6 +35,7 @@ DEFAULT_METRICS = (
     "val/loss",
     "val/type_acc",
     "val/baseline/iou_full",
+    "train/loss",  # the last step's: a run that never validated still shows how far it trained
 )
 
 

@@ -177,7 +177,8 @@ def test_collect_multirun_folder(tmp_path):
         (run / "metrics.json").write_text(json.dumps(record))
     (tmp_path / "2" / ".hydra").mkdir(parents=True)
     (tmp_path / "2" / ".hydra" / "overrides.yaml").write_text("- data.modality=rgb\n")
-    for k, text in [(3, "[1, 2]"), (4, "{not json"), (5, '{"global_step": 3}')]:  # other metrics.json files
+    never_validated = '{"global_step": 3, "metrics": {"train/loss": 2.5}}'
+    for k, text in [(3, "[1, 2]"), (4, "{not json"), (5, never_validated)]:  # other metrics.json files
         (tmp_path / str(k)).mkdir()
         (tmp_path / str(k) / "metrics.json").write_text(text)
     (tmp_path / "0" / "test").mkdir()  # `aynamics evaluate --out OUT/test`'s metrics.json is no run (helper-43)
@@ -191,6 +192,7 @@ def test_collect_multirun_folder(tmp_path):
     assert [r["status"] for r in rows] == statuses
     assert rows[0]["val_step"] == 20  # a record without val_step but with val/ metrics: its final step
     assert (rows[5]["step"], rows[5]["val_step"]) == (3, None)  # no val/ metrics: the run never validated
+    assert [r["train/loss"] for r in rows] == [None] * 5 + [2.5]  # its training loss is still a column
     assert "| 1 | flow | answer | done | 20 |" in to_markdown(rows)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         collect(tmp_path / "nope")
@@ -1006,7 +1008,7 @@ def test_collect_out_replaces_only_a_table_it_wrote(tmp_path, capsys):
         assert main(["collect", str(runs), "--out", str(out)]) == 0
         assert out.read_text().splitlines()[:2] == [
             "run,status,step,val_step," + ",".join(DEFAULT_METRICS),
-            "0,done,5,5,,,,,,0.5" + "," * 7,
+            "0,done,5,5,,,,,,0.5" + "," * 8,
         ]
     assert main(["collect", str(runs)]) == 0 and main(["collect", str(runs)]) == 0
     assert (runs / "summary.csv").read_text() == table.read_text()
