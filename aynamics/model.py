@@ -176,7 +176,6 @@ def random_checkpoint(
     The 3B folder holds 3.75 B parameters, 7.5 GB; the 7B one 8.3 B, 16.6 GB (and as much memory to build it).
     """
     import json
-    import shutil
 
     from transformers import AutoTokenizer
 
@@ -188,8 +187,7 @@ def random_checkpoint(
         model = Qwen2_5_VLForConditionalGeneration._from_config(config, dtype=torch.bfloat16)
     _set_generation_ids(model, tokenizer)
     model.save_pretrained(folder)
-    tokenizer.save_pretrained(folder)
-    shutil.copy(TINY_ASSET_DIR / "chat_template.jinja", folder / "chat_template.jinja")
+    tokenizer.save_pretrained(folder)  # with its chat template (chat_template.jinja)
     image = json.loads((TINY_ASSET_DIR / "preprocessor_config.json").read_text())
     image |= {"min_pixels": 3136, "max_pixels": 12845056, "size": {"shortest_edge": 3136, "longest_edge": 12845056}}
     (folder / "preprocessor_config.json").write_text(json.dumps(image, indent=2) + "\n")
