@@ -11,6 +11,7 @@ joined with ";", "then" or "and", and "it", "its", "them", "their" name the obje
     make the box twice as heavy                  make sphere_1 slower by 1 m/s
     moon gravity                                 increase the mass by a factor of 3
     double the mass of box_0 and halve its friction
+    make the sphere 3 times faster               remove box_0
 
 Directions are world axes as the default camera sees them: "left" is -x, "right" +x, "forward"/"away" +y
 (the camera looks along +y), "back"/"toward the camera" -y, "up" +z, "down" -z. A percentage or factor on a
@@ -22,7 +23,7 @@ to -9 (stronger), where "by 50%" scales the component's size (-1 to -0.5: "reduc
 the rate (a plain number sets the log10 value).
 
     result = apply_instruction(scene, "reduce the x-velocity of box_0 by 80%")
-    result.scene, result.changes   # the validated edited scene; every leaf that changed
+    result.scene, result.changes   # the validated edited scene; every leaf that changed, every object removed
 
 `aynamics edit SCENE.yaml "INSTRUCTION" [--out EDITED.yaml] [--render DIR] [--llm MODEL]` runs it; the optional
 language-model editor lives in `aynamics.edit_llm`, rendering of the what-if in `aynamics.whatif`.
@@ -139,9 +140,11 @@ UNDERSTOOD = (
     "'double|triple|halve QUANTITY [of TARGETS]'; 'multiply|scale QUANTITY [of TARGETS] by K'; "
     "'increase|decrease QUANTITY [of TARGETS] by a factor of K'; "
     "'make TARGETS twice|half|N times as heavy|fast|bouncy'; 'make TARGETS heavier|lighter|faster|slower|bouncier "
-    "by N% | by N UNIT'; 'moon|mars|earth|jupiter gravity' or 'set the gravity to the moon's'; "
+    "by N% | by N UNIT'; 'make TARGETS twice|N times heavier|lighter|faster|slower|bouncier'; "
+    "'moon|mars|earth|jupiter gravity' or 'set the gravity to the moon's'; "
     "'reverse QUANTITY [of TARGETS]'; 'move TARGETS N m DIRECTION' (left -x, right +x, forward/away +y, "
-    "back/toward the camera -y, up +z, down -z); 'move TARGETS to [x, y, z]'; 'stop TARGETS'. "
+    "back/toward the camera -y, up +z, down -z); 'move TARGETS to [x, y, z]'; 'stop TARGETS'; "
+    "'remove|delete TARGETS'. "
     "QUANTITY: [x-|y-|z-]velocity, [x-|y-|z-]angular velocity (spin), [x-|y-|z-]position, mass, friction, "
     "rolling resistance, damping, restitution, radius, height, size, [x-|y-|z-]gravity, field of view. "
     "TARGETS: object names (box_0, sphere_1 and cylinder_0), 'the box', 'all spheres', 'all objects'; "
@@ -164,13 +167,20 @@ class _FieldError(EditError):
 
 @dataclass(frozen=True)
 class Change:
-    """One leaf of the scene that an edit changed. `path` uses object names: `box_0.state.position[0]`."""
+    """One leaf of the scene that an edit changed. `path` uses object names: `box_0.state.position[0]`. An object
+    the edit removed is one change: its name as the path, its type before, None after."""
 
     path: str
     before: Any
     after: Any
 
+    @property
+    def removed(self) -> bool:
+        return self.after is None and "." not in self.path and self.before in ("box", "sphere", "cylinder")
+
     def __str__(self) -> str:
+        if self.removed:
+            return f"{self.path}: removed ({self.before})"
         return f"{self.path}: {self.before} -> {self.after}"
 
 
@@ -339,6 +349,8 @@ def _edit_field(item: dict, q: Quantity, comp: int | None, fn, label: str) -> No
     for k in parents:
         holder = holder[k]
     name = item.get("name", q.scope)
+    if item.get(_REMOVED):
+        raise EditError(f"{label}: {name} was removed by an earlier clause")
     at = q.index if q.index is not None else comp
     field = f"{name}.{'.'.join(q.path)}" + ("" if at is None else f"[{at}]")  # as `diff` names it
     try:  # the refusal names the object and field (it named the clause: "'set the spin ... to 2' is zero")
@@ -436,9 +448,24 @@ _ER = {
     "slower": ("velocity", -1.0),
     "bouncier": ("restitution", 1.0),
 }
+_AS_OF = {"mass": "heavy", "velocity": "fast", "restitution": "bouncy"}  # the "as ADJ" word of a quantity
 _TIMES_WORDS = {"twice": 2.0, "thrice": 3.0, "half": 0.5, "a third": 1 / 3, "a quarter": 0.25, "one third": 1 / 3}
 _TIMES_WORDS |= {f"{w} times": k for w, k in (("two", 2.0), ("three", 3.0), ("four", 4.0), ("ten", 10.0))}
 _TIMES = rf"{'|'.join(_TIMES_WORDS)}|{_NUM} times"
+# "by a factor of three": the number words a factor is written with
+_FACTOR_WORDS = {"two": 2.0, "three": 3.0, "four": 4.0, "five": 5.0, "ten": 10.0, "a hundred": 100.0}
+_FACTOR = rf"{_NUM}|{'|'.join(_FACTOR_WORDS)}"
+
+
+def _factor(text: str, clause: str, positive: bool = True) -> float:
+    """The K of 'by a factor of K' or 'multiply ... by K' (a number or a number word): finite, and > 0 when
+    `positive` ("multiply the x-velocity by -1" reverses it)."""
+    k = _FACTOR_WORDS.get(text)
+    if k is None:
+        k = float(text)
+    if not math.isfinite(k) or (positive and k <= 0):
+        raise EditError(f"{clause!r}: a factor is a finite number{' > 0' if positive else ''}, not {text}")
+    return k
 
 
 def _times(text: str) -> float:
@@ -469,12 +496,10 @@ def _clause(
         q, comp, t_text = _BY_KEY["gravity"], None, None
         g = PLANET_GRAVITY[_PLANET_NAMES[m.group(1)]]
         fn = _absolute(q, None, g, "abs", clause)  # the magnitude, along gravity's direction
-    elif m := re.fullmatch(rf"(?P<v>{_VERBS_BY}) (?:the )?(?P<s>.+?) by a factor of (?P<k>{_NUM})", c):
+    elif m := re.fullmatch(rf"(?P<v>{_VERBS_BY}) (?:the )?(?P<s>.+?) by a factor of (?P<k>{_FACTOR})", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
-        k = float(m.group("k"))
-        if not (0 < k < math.inf):
-            raise EditError(f"{clause!r}: a factor is a finite number > 0, not {m.group('k')}")
+        k = _factor(m.group("k"), clause)
         up = m.group("v") in _UP
         if k < 1:  # "reduce the mass by a factor of 0.5" doubled it, "increase ... by a factor of 0.5" halved it
             raise EditError(
@@ -493,6 +518,18 @@ def _clause(
     ):
         q, comp, t_text = _quantity(_AS[m.group("adj")])[0], None, m.group("t")
         fn = _scale(q, _times(m.group("f")))
+    elif m := re.fullmatch(rf"make (?P<t>.+?) (?P<f>{_TIMES}) (?P<adj>{'|'.join(_ER)})", c):
+        # "3 times faster" is 3 times as fast; "3 times slower" / "twice lighter" divide by the factor, as
+        # everyday English means them (a factor of 1 or less has no such reading)
+        (q_text, sign), t_text = _ER[m.group("adj")], m.group("t")
+        q, comp = _quantity(q_text)
+        k = _times(m.group("f"))
+        if k <= 1:
+            raise EditError(
+                f"{clause!r}: '{m.group('f')} {m.group('adj')}' needs a factor > 1 (e.g. 'twice {m.group('adj')}'); "
+                f"for a factor of {k:g} say 'make ... {m.group('f')} as {_AS_OF[q_text]}'"
+            )
+        fn = _scale(q, k if sign > 0 else 1.0 / k)
     elif m := re.fullmatch(rf"make (?P<t>.+?) (?P<adj>{'|'.join(_ER)}) by (?P<a>.+)", c):
         (q_text, sign), t_text = _ER[m.group("adj")], m.group("t")
         q, comp = _quantity(q_text)
@@ -507,10 +544,10 @@ def _clause(
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
         fn = _scale(q, _FACTORS[m.group("v")])
-    elif m := re.fullmatch(rf"(?:multiply|scale) (?:the )?(?P<s>.+?) by (?:a factor of )?(?P<k>{_NUM})", c):
+    elif m := re.fullmatch(rf"(?:multiply|scale) (?:the )?(?P<s>.+?) by (?:a factor of )?(?P<k>{_FACTOR})", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
-        fn = _scale(q, float(m.group("k")))
+        fn = _scale(q, _factor(m.group("k"), clause, positive=False))
     elif m := re.fullmatch(r"(?:reverse|negate|flip) (?:the )?(?P<s>.+)", c):
         q_text, t_text = _subject(m.group("s"))
         q, comp = _quantity(q_text)
@@ -532,9 +569,16 @@ def _clause(
         fn = _relative(q, comp, sign, amount, "abs", clause)
     elif m := re.fullmatch(r"(?:stop|freeze) (?P<t>.+)", c):
         idx = _targets(m.group("t"), scene, previous)
+        _not_removed(items, idx, clause)
         for i in idx:
             items[i]["state"]["linear_velocity"] = [0.0, 0.0, 0.0]
             items[i]["state"]["angular_velocity"] = [0.0, 0.0, 0.0]
+        return idx
+    elif m := re.fullmatch(r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the scene)?", c):
+        idx = _targets(m.group("t"), scene, previous)
+        _not_removed(items, idx, clause)
+        for i in idx:
+            items[i][_REMOVED] = True
         return idx
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
@@ -547,11 +591,20 @@ def _clause(
     return idx if q.scope == "object" else clause if q.scope == "camera" else previous
 
 
+_REMOVED = "__removed__"  # marks an object item a clause removed; `apply_instruction` drops it at the end
+
+
+def _not_removed(items: list[dict], idx: list[int], clause: str) -> None:
+    for i in idx:
+        if items[i].get(_REMOVED):
+            raise EditError(f"{clause!r}: {items[i]['name']} was removed by an earlier clause")
+
+
 # the words a clause starts with: "and" before one of them joins two clauses ("double the mass of box_0 and halve its
 # friction"); elsewhere it joins objects ("box_0 and sphere_1")
 _CLAUSE_START = (
     rf"(?:{_VERBS_BY}|set|change|double|triple|quadruple|halve|multiply|scale|reverse|negate|flip|stop|freeze|make|"
-    rf"use|switch to|apply|{_MOVE})\b"
+    rf"use|switch to|apply|remove|delete|take away|take out|{_MOVE})\b"
 )
 
 
@@ -584,7 +637,7 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
     previous = None  # the objects the last clause edited ("its", "it", "their", "them"), or a camera clause
     for clause in clauses:
         previous = _clause(clause, scene, items, previous)
-    return finish(scene, items, instruction)
+    return finish(scene, [it for it in items if not it.get(_REMOVED)], instruction)
 
 
 def finish(scene: Scene, items: list[dict], instruction: str) -> EditResult:
@@ -628,12 +681,13 @@ def _flatten(scene: Scene) -> dict[str, Any]:
 
 
 def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
-    """Every leaf that differs between two scenes of the same objects (paths use object names). A scene without an
-    environment item compares as one with the default item (no air, wind or tilt, time_scale 1), and an object
-    without `magnus` or `friction_slope` as one with 0, as they simulate.
+    """Every leaf that differs between two scenes of the same objects (paths use object names), and each object
+    `after` leaves out (`Change(name, type, None)`, `Change.removed`). A scene without an environment item compares
+    as one with the default item (no air, wind or tilt, time_scale 1), and an object without `magnus` or
+    `friction_slope` as one with 0, as they simulate.
 
     Raises:
-        EditError: the scenes differ in their objects (count, names or shapes).
+        EditError: `after` adds, renames, reorders or reshapes objects (an edit keeps the objects or removes some).
     """
     require_scene(before, "diff: before")  # YAML text failed on "'str' object has no attribute 'names'"
     require_scene(after, "diff: after")
@@ -644,13 +698,17 @@ def diff(before: Scene, after: Scene, tol: float = 1e-9) -> list[Change]:
     if not ok:
         raise ValueError(f"diff: tol = {tol!r}: must be a finite number >= 0")
     tol = float(tol)
-    if before.names != after.names or before.structure != after.structure:
+    kept = dict(zip(after.names, after.structure, strict=True))
+    pairs = list(zip(before.names, before.structure, strict=True))
+    if [p for p in pairs if p[0] in kept] != list(kept.items()):
         raise EditError(
-            f"the edit changed the objects: {list(zip(before.names, before.structure, strict=False))} -> "
-            f"{list(zip(after.names, after.structure, strict=False))}; edits keep the objects and only change numbers"
+            f"the edit changed the objects: {pairs} -> {list(kept.items())}; edits keep the objects (or remove some) "
+            "and only change numbers"
         )
+    gone = [(name, kind) for name, kind in pairs if name not in kept]
+    out = [Change(name, before.object(name).type, None) for name, _ in gone]
     a, b = _flatten(before), _flatten(after)
-    out = []
+    a = {k: v for k, v in a.items() if not k.startswith(tuple(f"{name}." for name, _ in gone))}
     for key in [*a, *(k for k in b if k not in a)]:
         va, vb = a.get(key), b.get(key)
         same = va == vb or (
@@ -694,7 +752,7 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     Objects named in the text (or 'the box', 'all spheres') restrict the per-object fields; none named means
     every object, unless the camera is named ("rotate the camera": its fields, no object's; "toward the camera" is a
     direction, not the camera). A component named ('x-velocity') restricts a vector to that element. Moves name
-    positions, 'stop' names both velocities.
+    positions, 'stop' names both velocities, 'remove' the whole object.
     """
     require_scene(scene, "named_fields: scene")
     if not isinstance(instruction, str):  # None / bytes failed on "'NoneType' object has no attribute 'lower'"
@@ -732,6 +790,8 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
         fields.update(f"{o}.state.position" for o in objs)
     if re.search(r"\b(?:stop|freeze)\b", text):
         fields.update(f"{o}.state.{k}" for o in objs for k in ("linear_velocity", "angular_velocity"))
+    if re.search(r"\b(?:remove|delete|take (?:away|out))\b", text):  # the whole object: its removal is one change
+        fields.update(objs)
     return fields
 
 

@@ -117,7 +117,8 @@ def _dataset(path: str | None) -> str:
     return str(out)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
+    """Measure the configurations; exit status 1 when a measuring process died (the others are still printed)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", help="generated data set folder (default: data/generated/make_train_plain or a fresh one)")
     p.add_argument("--steps", type=int, default=6, help="optimizer steps per configuration (first untimed)")
@@ -148,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
         f"{args.steps} steps, overrides {args.overrides or 'none'}, {os.cpu_count()} CPU cores, torch threads "
         f"{torch.get_num_threads()}, data {data}"
     )
-    results = {}
+    results, died = {}, []
     for name, as_video, ckpt in [c for c in CONFIGS if not args.only or c[0] in args.only]:
         # a pool of its own for each: a worker killed (out of memory) breaks only its pool, and is named
         with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
@@ -156,6 +157,7 @@ def main(argv: list[str] | None = None) -> None:
                 r = pool.submit(_measure, (overrides, data, as_video, ckpt, args.steps)).result()
             except BrokenProcessPool:
                 print(f"  {name:<24} the measuring process died (killed: out of memory?)", flush=True)
+                died.append(name)
                 continue
         results[name] = r
         print(
@@ -178,6 +180,9 @@ def main(argv: list[str] | None = None) -> None:
             f"checkpointing on / off ({kind}): throughput {on['samples_per_s'] / off['samples_per_s']:.2f}x, "
             f"training memory {on['train_rss_mb'] / max(off['train_rss_mb'], 1e-9):.2f}x"
         )
+    if died:
+        print(f"not measured: {', '.join(died)} (its process died)", file=sys.stderr)
+    return 1 if died else 0
 
 
 if __name__ == "__main__":

@@ -51,3 +51,24 @@ def test_benchmark_runs_to_its_end(script):
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip(), "printed nothing"
+
+
+def _die(args):  # a measuring process killed by the kernel (out of memory), as bench_train's _measure
+    import signal
+
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_bench_train_names_a_dead_measuring_process_and_fails(monkeypatch, tmp_path, capsys):
+    """A configuration whose process was killed (the 3B's images without checkpointing at 24 GB) is named, and the
+    benchmark exits 1: it hung forever, then printed its name and exited 0 as if every configuration was measured."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_train", ROOT / "benchmarks" / "bench_train.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    monkeypatch.setattr(bench, "_measure", _die)
+    assert bench.main(["--data", str(tmp_path), "--steps", "2", "--only", "video"]) == 1
+    out, err = capsys.readouterr()
+    assert "video                    the measuring process died (killed: out of memory?)" in out
+    assert "not measured: video (its process died)" in err

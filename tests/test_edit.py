@@ -95,6 +95,17 @@ CASES = [
     ("increase the mass of box_0 and cylinder_0 by 10%", {"box_0.physics.mass": 1.1, "cylinder_0.physics.mass": 1.1}),
     # "massive" names the mass for the LLM editor's check too (named_fields gave none: the mass was "outside")
     ("make box_0 twice as massive", {"box_0.physics.mass": 2.0}),
+    # "N times ADJ-er" (it was "not understood"): faster multiplies, slower / lighter divide, as English means them
+    ("make box_0 3 times heavier", {"box_0.physics.mass": 3.0}),
+    ("make the box twice lighter", {"box_0.physics.mass": 0.5}),
+    (
+        "make cylinder_0 four times slower",  # [-0.1, -0.5, 0] / 4
+        {"cylinder_0.state.linear_velocity[0]": -0.025, "cylinder_0.state.linear_velocity[1]": -0.125},
+    ),
+    # a factor as a word ("value 'a factor of three' not understood")
+    ("increase the mass of box_0 by a factor of three", {"box_0.physics.mass": 3.0}),
+    ("multiply the mass of cylinder_0 by two", {"cylinder_0.physics.mass": 2.0}),
+    ("multiply the x-velocity of box_0 by -1", {"box_0.state.linear_velocity[0]": -4.3}),
 ]
 
 
@@ -145,6 +156,13 @@ REFUSED = [
     # a factor below 1 turned the verb around: "reduce" by 1/0.5 doubled the mass (1 -> 2), "increase" halved it
     ("reduce the mass of box_0 by a factor of 0.5", "a factor of 0.5 < 1 would increase it"),
     ("increase the mass of box_0 by a factor of 0.5", "a factor of 0.5 < 1 would decrease it"),
+    ("make box_0 half heavier", "'half heavier' needs a factor > 1 (e.g. 'twice heavier'); for a factor of 0.5 say"),
+    ("multiply the mass of box_0 by 1e400", "a factor is a finite number, not 1e400"),
+    # a removed object can't be edited afterwards, by name or pronoun
+    ("remove box_0 and stop it", "'stop it': box_0 was removed by an earlier clause"),
+    ("delete box_0; double the mass of box_0", "'double the mass of box_0': box_0 was removed by an earlier clause"),
+    ("remove box_0 and cylinder_0", "the scene needs at least one box, sphere or cylinder"),
+    ("remove the sphere", "'the sphere': the scene has no sphere"),
     # after a camera clause "it" could be the camera: it moved box_0 (position[1] -0.3 -> -1.3) as the object before
     (
         "double the mass of box_0; set the fov to 60 and move it 1 m back",
@@ -388,9 +406,29 @@ def test_check_output_refuses_bad_answers(scene):
         check_output(scene, "double the mass of box_0", "I cannot do that.")
     with pytest.raises(EditError, match="changes nothing"):
         check_output(scene, "double the mass of box_0", dump(scene))
-    one = dump(scene.model_copy(update={"objects": scene.objects[:1]}))
-    with pytest.raises(EditError, match="changed the objects"):
+    one = dump(scene.model_copy(update={"objects": scene.objects[:1]}))  # cylinder_0 removed unasked
+    with pytest.raises(EditError, match=r"does not name: cylinder_0: removed \(cylinder\)"):
         check_output(scene, "double the mass of box_0", one)
+    swapped = dump(scene.model_copy(update={"objects": scene.objects[::-1]}))
+    with pytest.raises(EditError, match="changed the objects"):
+        check_output(scene, "double the mass of box_0", swapped)
+
+
+def test_remove_objects(scene):
+    """ "remove box_0" drops the object (one change naming it), keeps the other's numbers, and a clause after it edits
+    the objects left; the free editor's answer that removes the named object passes the check, one that removes
+    another does not."""
+    result = apply_instruction(scene, "remove box_0, then double the mass of the cylinder")
+    assert result.scene.names == ("cylinder_0",)
+    assert [str(c) for c in result.changes] == ["box_0: removed (box)", "cylinder_0.physics.mass: 1.0 -> 2.0"]
+    assert result.changes[0].removed and not result.changes[1].removed
+    assert result.scene.objects[0].state == scene.objects[1].state
+    assert not outside(result.changes, named_fields("remove box_0", scene) | {"cylinder_0.physics.mass"})
+    assert [c.path for c in apply_instruction(scene, "take away the cylinder").changes] == ["cylinder_0"]
+    without_box = f"```yaml\n{dump(scene.model_copy(update={'objects': scene.objects[1:]}))}```"
+    assert [str(c) for c in check_output(scene, "delete box_0", without_box).changes] == ["box_0: removed (box)"]
+    with pytest.raises(EditError, match=r"does not name: box_0: removed \(box\)"):
+        check_output(scene, "delete cylinder_0", without_box)
 
 
 def _tiny_chat_model(folder: Path) -> Path:
