@@ -23,7 +23,8 @@ SYSTEM_PROMPT = (
     "quaternion, linear_velocity in m/s and angular_velocity in rad/s, world frame, z up) and physics (friction "
     "[sliding, rolling], mass in kg, damping as log10 of a decay rate in 1/s, optional restitution). Directions: "
     "left is -x, right +x, forward/away from the camera +y, back/toward the camera -y, up +z. Apply the user's "
-    "instruction and change nothing else: keep every object, name and number the instruction does not mention. "
+    "instruction and change nothing else: keep every object (unless the instruction removes it), name and number "
+    "the instruction does not mention. "
     "Answer with the complete edited scene as YAML in a ```yaml block and nothing else."
 )
 
