@@ -48,6 +48,9 @@ def match_objects(
     pred_names: Sequence[str] | None,
     obs_names: Sequence[str] | None,
     score: np.ndarray,
+    *,
+    pred_rank: Sequence[int] | None = None,
+    obs_rank: Sequence[int] | None = None,
 ) -> list[tuple[int, int]]:
     """Pair predicted objects i with observed objects j: equal chosen names first, the rest by optimal assignment.
 
@@ -57,6 +60,9 @@ def match_objects(
             are left to the assignment.
         score: (Np, No) how well i fits j, higher better (mask IoU, or minus a distance); pairs whose score is
             0 after assignment (no overlap) are dropped (distances: pass `-dist - eps`, so that none is).
+        pred_rank, obs_rank: each object's place in an order of the objects' contents (`content_rank`), in which
+            they enter the assignment: where several assignments score alike, the one it returns then does not
+            depend on the order the objects are listed in (default: list order).
 
     Returns:
         (i, j) pairs, sorted by i, each index at most once.
@@ -70,8 +76,15 @@ def match_objects(
         for k, name in enumerate(() if names is None else names):
             if not isinstance(name, str):
                 raise ValueError(f"match_objects: {side}[{k}] = {name!r}: object names must be str")
+    for side, rank, n in (("pred_rank", pred_rank, n_pred), ("obs_rank", obs_rank, n_obs)):
+        if rank is not None and len(rank) != n:
+            raise ValueError(f"match_objects: {side} has {len(rank)} entries for {n} objects (score's shape)")
     pairs: list[tuple[int, int]] = []
     free_p, free_o = list(range(n_pred)), list(range(n_obs))
+    if pred_rank is not None:  # ties of the assignment are broken by content, not by list order
+        free_p.sort(key=lambda i: pred_rank[i])
+    if obs_rank is not None:
+        free_o.sort(key=lambda j: obs_rank[j])
     if pred_names is not None and obs_names is not None:
         where = {name: j for j, name in enumerate(obs_names)}
         for i, name in enumerate(pred_names):
@@ -85,6 +98,19 @@ def match_objects(
         rows, cols = linear_sum_assignment(sub, maximize=True)
         pairs += [(free_p[r], free_o[c]) for r, c in zip(rows, cols, strict=True) if sub[r, c] != 0]
     return sorted(pairs)
+
+
+def content_rank(rows) -> np.ndarray:
+    """rank[i]: the place of row i of `rows` (N, K) in lexicographic order of the rows (equal rows by index).
+
+    Objects described by their rows (masks' pixel counts, initial states) enter `match_objects`' assignment in
+    this order, so that which of several equally good assignments it picks follows the objects, not their order
+    in the list: objects with equal rows are interchangeable in the metric."""
+    a = np.asarray(rows, float).reshape(len(rows), -1)
+    order = np.lexsort(a.T[::-1]) if a.shape[1] else np.arange(len(a))
+    rank = np.empty(len(a), np.int64)
+    rank[order] = np.arange(len(a))
+    return rank
 
 
 def _score_matrix(score) -> np.ndarray:
@@ -156,7 +182,10 @@ def iou_from_counts(
     total_u = area_p.sum(0)[:, None] + area_o.sum(0)[None, :] - total_i
     with np.errstate(invalid="ignore", divide="ignore"):
         seq_iou = np.where(total_u > 0, total_i / total_u, 0.0)
-    pairs = match_objects(pred_names, obs_names, seq_iou)
+    # ties (two predicted objects overlapping the video's alike over the sequence) broken by each predicted
+    # object's pixel counts per frame and observed id: the same pairs whatever order the prediction lists them in
+    rank = content_rank(counts[:, 1:, :].transpose(1, 0, 2))
+    pairs = match_objects(pred_names, obs_names, seq_iou, pred_rank=rank)
     n_frames = counts.shape[0]
     score = np.zeros(n_frames)
     n_visible = (area_p > 0).sum(1) + (area_o > 0).sum(1)  # (F,) objects visible on either side
@@ -292,12 +321,15 @@ def state_mae(pred: Scene, obs: Scene) -> tuple[float, float]:
     if not len(p_pos) or not len(o_pos):
         return POSITION_MAE_INVALID, VELOCITY_MAE_INVALID
     dist = np.linalg.norm(p_pos[:, None] - o_pos[None], axis=-1)
-    pairs = match_objects(pred.names, obs.names, -dist - 1.0)  # all scores < 0: no pair is dropped
-    paired = {j for _, j in pairs}
-    pairs += [(int(dist[:, j].argmin()), j) for j in range(len(o_pos)) if j not in paired]
-    i, j = np.array(pairs).T
     p_vel = np.array([o.state.linear_velocity for o in pred.objects])
     o_vel = np.array([o.state.linear_velocity for o in obs.objects])
+    # ties (objects at equal distances) broken by the objects' states, not their places in the lists
+    p_rank, o_rank = content_rank(np.hstack([p_pos, p_vel])), content_rank(np.hstack([o_pos, o_vel]))
+    pairs = match_objects(pred.names, obs.names, -dist - 1.0, pred_rank=p_rank, obs_rank=o_rank)  # all < 0: kept
+    paired = {j for _, j in pairs}
+    for j in (j for j in range(len(o_pos)) if j not in paired):  # the nearest prediction, the first by state on a tie
+        pairs.append((min(range(len(p_pos)), key=lambda i, j=j: (dist[i, j], p_rank[i])), j))
+    i, j = np.array(pairs).T
     return float(np.abs(p_pos[i] - o_pos[j]).mean()), float(np.abs(p_vel[i] - o_vel[j]).mean())
 
 

@@ -396,3 +396,30 @@ def test_metric_arguments_of_the_wrong_kind_are_named_not_failed_deep_inside():
     with pytest.raises(TypeError, match=r"mean_finite: values\[1\] = '2.0': must be a number or None"):
         metrics.mean_finite([1.0, "2.0"])
     assert metrics.mean_finite(x for x in (1.0, None, 3.0)) == 2.0
+
+
+def test_equally_good_pairings_do_not_depend_on_the_list_order():
+    """Ties of the assignment are broken by the objects, not by their places in the list.
+
+    Masks: the video shows one object on columns {0, 1} in frames 0 and 1; the prediction draws it right with
+    object A in frame 0 and with object B in frame 1 (each absent in the other frame). Sequence IoUs: A 2 / (2 + 4 -
+    2) = 0.5 = B: a tie. Pairing A: frame 0 IoU 1, frame 1 B unmatched beside the observed object, 0 / 2 -> (1.0,
+    0.5); pairing B: (0.0, 0.5). B's pixel counts (frame 0: none) sort before A's (frame 0: 2 on the object), so B
+    is paired whichever comes first in the list: (0.0, 0.5) both ways (it was (1.0, 0.5) with A listed first).
+
+    States: one sphere observed at x = 1 moving at 1 m/s, predicted at x = 0 (1 m/s) and x = 2 (still): both 1 m
+    away. The first by state (x = 0) is paired whichever is listed first: position MAE 1 / 3, velocity 0 (it was
+    1 / 3 with the still one listed first)."""
+    obs = _seg([[0, 0, -1, -1]], [[0, 0, -1, -1]])
+    a_first = _seg([[0, 0, -1, -1]], [[1, 1, -1, -1]])
+    b_first = _seg([[1, 1, -1, -1]], [[0, 0, -1, -1]])
+    assert metrics.segmentation_iou(a_first, obs) == metrics.segmentation_iou(b_first, obs) == (0.0, 0.5)
+    assert metrics.content_rank([[0, 2, 0, 0], [0, 0, 0, 2], [0, 0, 0, 2]]).tolist() == [2, 0, 1]
+
+    sphere = "- {{type: sphere, radius: 0.1, state: {{position: [{}, 0, 0.1], linear_velocity: [{}, 0, 0]}}}}\n"
+    truth = _scene(sphere.format(1, 1))
+    moving, still = sphere.format(0, 1), sphere.format(2, 0)
+    assert metrics.state_mae(_scene(moving + still), truth) == pytest.approx((1 / 3, 0.0))
+    assert metrics.state_mae(_scene(still + moving), truth) == pytest.approx((1 / 3, 0.0))
+    with pytest.raises(ValueError, match=r"match_objects: pred_rank has 1 entries for 2 objects"):
+        metrics.match_objects(None, None, np.ones((2, 2)), pred_rank=[0])
