@@ -7,9 +7,10 @@ A scene is a YAML list of items, as written by the model (the ΔYNAMICS format):
     - type: gravity                   # optional, default [0, 0, -9.81]
     - type: environment               # optional extension item (air, wind, floor), absent in the paper
 
-Meaning of every field (units, frames) and its plausible range live in one table, `RANGES`,
-which validation uses here, the dataset sampler and CMA-ES bounds use later, and the README
-reproduces (`aynamics ranges --markdown`).
+Meaning of every field (units, frames) and its plausible range live in one table, `RANGES`
+(`ranges.py`), which validation uses here, the dataset sampler and CMA-ES bounds use later, and the README
+reproduces (`aynamics ranges --markdown`). Text is read by `scene_text.py` (safe YAML, the YAML inside a
+model's response); this module holds the records, their validation and the canonical dump.
 
     scene = parse(text)        # plain YAML, or model output with <think>/<answer> and stray text
     text = dump(scene)         # canonical: fixed key order, fixed decimals; parse(dump(s)) == s
@@ -24,194 +25,26 @@ import math
 import numbers
 import os
 import re
-from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 from pydantic_core import PydanticCustomError
 
+# the range table and the errors, and the text reader, are part of the scene language's API: scene.RANGES etc.
+from aynamics.ranges import NO_VALUE, fmt_number
+from aynamics.ranges import RANGES as RANGES
+from aynamics.ranges import Problem as Problem
+from aynamics.ranges import Range as Range
+from aynamics.ranges import SceneError as SceneError
+from aynamics.ranges import ranges_markdown as ranges_markdown
+from aynamics.scene_text import MAX_TEXT_CHARS as MAX_TEXT_CHARS
+from aynamics.scene_text import checked_text, extract_with_list
+from aynamics.scene_text import extract_yaml as extract_yaml
+from aynamics.scene_text import load_yaml as load_yaml
+
 DECIMALS = 4  # canonical precision of every number: 0.1 mm, 0.1 mrad, 0.1 g
-MAX_TEXT_CHARS = 200_000  # a scene is a few kB; longer text is refused before parsing
 MAX_OBJECTS = 32
-
-
-# --------------------------------------------------------------------------------------------
-# The range table
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Range:
-    """Plausible range of one scene field (per component for vectors)."""
-
-    lo: float | tuple[float, ...]
-    hi: float | tuple[float, ...]
-    unit: str
-    frame: str
-    meaning: str
-    default: Any = None  # value used when the field is absent (optional fields only)
-
-    def bounds(self, n: int = 1) -> tuple[list[float], list[float]]:
-        """Lower and upper bounds as lists of length n (scalars broadcast)."""
-        lo = list(self.lo) if isinstance(self.lo, tuple) else [self.lo] * n
-        hi = list(self.hi) if isinstance(self.hi, tuple) else [self.hi] * n
-        return lo, hi
-
-
-RANGES: dict[str, Range] = {
-    "box.size": Range(0.05, 2.0, "m", "body", "half-extents along the box's own x, y, z axes (MuJoCo's convention)"),
-    "sphere.radius": Range(0.05, 1.5, "m", "-", "radius"),
-    "cylinder.radius": Range(0.05, 1.5, "m", "-", "radius of the circular faces"),
-    "cylinder.height": Range(
-        0.05, 3.0, "m", "body", "FULL length along the cylinder's own z axis (MuJoCo half-length ×2)"
-    ),
-    "state.position": Range(
-        (-10.0, -10.0, -0.5), (10.0, 10.0, 10.0), "m", "world, z up", "centre of the object (of its bounding box)"
-    ),
-    "state.orientation": Range(
-        -1.0,
-        1.0,
-        "-",
-        "body→world",
-        "quaternion [w, x, y, z], w first; normalised like MuJoCo's compiler (norm must be ≥ 0.1)",
-    ),
-    "state.linear_velocity": Range(-20.0, 20.0, "m/s", "world", "initial velocity of the centre"),
-    "state.angular_velocity": Range(-50.0, 50.0, "rad/s", "world", "initial spin, world axes"),
-    "physics.mass": Range(0.01, 100.0, "kg", "-", "mass; inertia is that of a uniform solid of the shape"),
-    "physics.friction": Range(
-        (0.0, 0.0),
-        (2.0, 1.0),
-        "-",
-        "-",
-        "[sliding μ, rolling-resistance coefficient c_rr]: Coulomb friction against floor and objects, and a "
-        "rolling-resistance torque of at most c_rr·r·N (less when c_rr > μ/2: one friction cone) that slows rolling "
-        "and tumbling (r: sphere/cylinder radius, box smallest half-extent). The object's values are used against the "
-        "floor; two objects use the larger of each",
-    ),
-    "physics.damping": Range(
-        -8.0,
-        2.0,
-        "log10(1/s)",
-        "-",
-        "log10 of the linear damping rate k: in free motion v and ω decay as exp(-k·t) (k = 10^damping); -4 → 1e-4/s",
-    ),
-    "physics.restitution": Range(
-        0.0,
-        0.95,
-        "-",
-        "-",
-        "optional: normal bounce coefficient, off the floor and objects alike (rebound 0.50-0.60 at e = 0.5, above e "
-        "at low e: it varies with the impact's phase in the physics step); two objects take the less bouncy one's (an "
-        "object without one: the other's); absent: MuJoCo's soft contact (rebound 0.09-0.15)",
-    ),
-    "physics.magnus": Range(
-        -0.05,
-        0.05,
-        "kg",
-        "world",
-        "optional: spin lift (Magnus) F = k·ω×v on the object in flight and on the floor (absent: none)",
-    ),
-    "physics.friction_slope": Range(
-        -0.5,
-        1.0,
-        "s/m",
-        "-",
-        "optional: speed-dependent sliding friction μ(v) = max(μ + κ·v_h, 0), v_h the horizontal speed (absent: 0)",
-    ),
-    "camera.position": Range((-20.0, -20.0, 0.1), (20.0, 20.0, 20.0), "m", "world", "optical centre"),
-    "camera.orientation": Range(
-        0.0,
-        89.0,
-        "deg",
-        "world",
-        "pitch: angle between the optical axis and straight down; the camera looks along +y tilted down "
-        "(0 = looking straight down, 90 = horizontal). MuJoCo euler='θ 0 0'",
-    ),
-    "camera.fovy": Range(10.0, 120.0, "deg", "-", "vertical field of view"),
-    "gravity.gravity": Range(-30.0, 30.0, "m/s²", "world", "gravitational acceleration vector", (0.0, 0.0, -9.81)),
-    "environment.air_density": Range(
-        0.0,
-        5.0,
-        "kg/m³",
-        "-",
-        "optional: quadratic air drag on every object, MuJoCo's inertia-box fluid model: ½ρA_i·v_i² against each "
-        "velocity component v_i along the axes of the object's equivalent-inertia box (A_i its face: a box's own; a "
-        "sphere 2.4r² along its axes, 1.39r² along a body diagonal), and a torque on spin",
-        0.0,
-    ),
-    "environment.air_viscosity": Range(
-        0.0,
-        5.0,
-        "Pa·s",
-        "-",
-        "optional: linear air drag on every object (MuJoCo <option viscosity>): -3πη·d·v, d the mean side of the "
-        "equivalent-inertia box (a sphere: 0.775 of Stokes' 6πηrv), and a torque on spin",
-        0.0,
-    ),
-    "environment.wind": Range(
-        -20.0, 20.0, "m/s", "world", "optional: air velocity; acts through the drag terms only", (0.0, 0.0, 0.0)
-    ),
-    "environment.floor_offset": Range(-0.5, 0.5, "m", "world", "optional: height of the floor plane", 0.0),
-    "environment.floor_tilt": Range(
-        -20.0, 20.0, "deg", "world", "optional: floor rotation about world x then y", (0.0, 0.0)
-    ),
-    "environment.time_scale": Range(
-        0.5,
-        2.0,
-        "-",
-        "-",
-        "optional: clock of the recording: a frame stamped t shows the physical instant s·t (a wrong frame rate); "
-        "velocities stay physical",
-        1.0,
-    ),
-}
-
-
-# --------------------------------------------------------------------------------------------
-# Errors
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Problem:
-    """One validation problem: where, what value, what is allowed."""
-
-    path: str
-    value: Any
-    message: str
-
-    def __str__(self) -> str:
-        if self.value is _NO_VALUE:
-            return f"{self.path}: {self.message}" if self.path else self.message
-        return f"{self.path} = {_show(self.value)}: {self.message}"
-
-
-_NO_VALUE = object()
-
-
-def _fmt(x: float) -> str:
-    return f"{x:g}"
-
-
-MAX_PROBLEMS_SHOWN = 20  # in the message (all are in `problems`): 45 000 bad items made a 2.7 MB line
-
-
-class SceneError(ValueError):
-    """A scene text or record is invalid. `problems` lists every problem found."""
-
-    def __init__(self, problems: list[Problem]):
-        self.problems = list(problems)
-        n = len(self.problems)
-        head = f"invalid scene ({n} problem{'s' if n != 1 else ''}): "
-        shown = "; ".join(str(p) for p in self.problems[:MAX_PROBLEMS_SHOWN])
-        more = f"; and {n - MAX_PROBLEMS_SHOWN} more" if n > MAX_PROBLEMS_SHOWN else ""
-        super().__init__(head + shown + more)
-
-
-def _show(value: Any, limit: int = 200) -> str:
-    try:
-        text = repr(value) if isinstance(value, str) else str(value)
-    except RecursionError:  # a list nested thousands deep
-        return f"<{type(value).__name__} nested too deeply to print>"
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 # --------------------------------------------------------------------------------------------
@@ -248,7 +81,7 @@ def _ranged(key: str, positive: bool = False) -> AfterValidator:
             if positive and v <= 0:
                 msg = "must be > 0"
             elif not a <= v <= b:
-                msg = f"must be in [{_fmt(a)}, {_fmt(b)}] {rng.unit}".rstrip(" -")
+                msg = f"must be in [{fmt_number(a)}, {fmt_number(b)}] {rng.unit}".rstrip(" -")
             else:
                 continue
             index = i if isinstance(value, tuple) else -1
@@ -409,7 +242,7 @@ def _lookup(data: Any, loc: tuple) -> Any:
         try:
             data = data[key]
         except (KeyError, IndexError, TypeError):
-            return _NO_VALUE
+            return NO_VALUE
     return data
 
 
@@ -433,7 +266,7 @@ def _pydantic_problems(prefix: str, err: ValidationError, item: Any = None) -> l
             continue
         path = prefix + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc)
         msg = e["msg"]
-        value = _NO_VALUE if e["type"] == "missing" else e.get("input", _NO_VALUE)
+        value = NO_VALUE if e["type"] == "missing" else e.get("input", NO_VALUE)
         if e["type"] == "range":
             ctx = e["ctx"]
             if ctx.get("index", -1) >= 0:
@@ -461,7 +294,7 @@ def from_items(items: Any) -> Scene:
     """
     problems: list[Problem] = []
     if items is None:
-        raise SceneError([Problem("", _NO_VALUE, "empty scene: no YAML items found")])
+        raise SceneError([Problem("", NO_VALUE, "empty scene: no YAML items found")])
     if not isinstance(items, list):
         raise SceneError(
             [Problem("scene", items, f"must be a YAML list of items (- type: ...), got {_type_name(items)}")]
@@ -505,11 +338,11 @@ def from_items(items: Any) -> Scene:
             environments.append(rec)
 
     if n_obj == 0:
-        problems.append(Problem("objects", _NO_VALUE, "the scene needs at least one box, sphere or cylinder"))
+        problems.append(Problem("objects", NO_VALUE, "the scene needs at least one box, sphere or cylinder"))
     if n_obj > MAX_OBJECTS:
         problems.append(Problem("objects", n_obj, f"at most {MAX_OBJECTS} objects"))
     if counts["camera"] == 0:
-        problems.append(Problem("camera", _NO_VALUE, "the scene needs one camera item (- type: camera)"))
+        problems.append(Problem("camera", NO_VALUE, "the scene needs one camera item (- type: camera)"))
     for kind, n in counts.items():
         if n > 1:
             problems.append(Problem(kind, n, f"at most one {kind} item, found {n}"))
@@ -552,272 +385,6 @@ def _type_name(value: Any) -> str:
     return "a mapping" if isinstance(value, dict) else type(value).__name__
 
 
-# --------------------------------------------------------------------------------------------
-# Safe YAML
-# --------------------------------------------------------------------------------------------
-class _DuplicateKey(yaml.constructor.ConstructorError):
-    """A mapping repeats a key (reported as is; other constructor errors are refused tags)."""
-
-
-def _core_schema_numbers(table: dict) -> dict:
-    """The implicit-resolver table `table` (PyYAML's, YAML 1.1) with YAML 1.2 core-schema numbers: `1e-1` and
-    `2E5` are floats (1.1 reads them as strings, then "must be a number, got str"), `1:00` is not 60 (1.1's
-    base 60), `010` is 10 (1.1: octal 8; `_construct_int`), `0o17` and `0x1F` are 15 and 31; `.inf` and `.nan`
-    stay floats (the fields then refuse them by name); `2024-01-01` is a string, not a date."""
-    int_tag, float_tag = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
-    dropped = (int_tag, float_tag, "tag:yaml.org,2002:timestamp")  # a date is a string here (then named)
-    out = {k: [(tag, rx) for tag, rx in v if tag not in dropped] for k, v in table.items()}
-    numbers = (
-        (int_tag, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"), "-+0123456789"),
-        (
-            float_tag,
-            re.compile(
-                r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
-            ),
-            "-+0123456789.",
-        ),
-    )
-    for tag, rx, first in numbers:  # integers appended first: "10" also matches the float pattern
-        for ch in first:
-            out.setdefault(ch, []).append((tag, rx))
-    return out
-
-
-def _construct_int(loader, node) -> int:
-    """A YAML 1.2 integer: decimal (leading zeros included), or `0o` octal / `0x` hexadecimal."""
-    text = loader.construct_scalar(node)
-    body = text.lstrip("+-")
-    base = {"0o": 8, "0x": 16}.get(body[:2], 10)
-    value = int(body[2:] if base != 10 else body, base)
-    return -value if text.startswith("-") else value
-
-
-class _UniqueKeys:
-    """Refuses a mapping that repeats a key (PyYAML keeps the last silently: `radius: 0.2` then `radius: 1.4` read
-    as 1.4). The constructor is Python in both loaders, so the C one gets this check too."""
-
-    def construct_mapping(self, node, deep=False):  # noqa: D102
-        seen: dict = {}
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=True)
-            if not isinstance(key, str | int | float | bool):
-                continue
-            if key in seen:
-                line = key_node.start_mark.line + 1
-                msg = f"key {key!r} given twice (lines {seen[key]} and {line})"
-                raise _DuplicateKey(None, None, msg, key_node.start_mark)
-            seen[key] = key_node.start_mark.line + 1
-        return super().construct_mapping(node, deep=deep)
-
-
-_PLAIN_TAGS = {f"tag:yaml.org,2002:{t}" for t in ("null", "bool", "int", "float", "str", "seq", "map")}
-
-
-class _NoAliasLoader(_UniqueKeys, yaml.SafeLoader):
-    """SafeLoader that refuses anchors/aliases (no alias bombs) and python/* tags (SafeLoader already does)."""
-
-    yaml_implicit_resolvers = _core_schema_numbers(yaml.SafeLoader.yaml_implicit_resolvers)
-    # plain YAML only: the tags !!binary, !!set, !!omap, !!pairs and !!timestamp made values no scene field takes
-    # (!!set {1.0, 0.5, 0.4} became a reordered size, !!binary a name); an unknown tag is a YAML error
-    yaml_constructors = {
-        **{k: v for k, v in yaml.SafeLoader.yaml_constructors.items() if k in _PLAIN_TAGS or k is None},
-        "tag:yaml.org,2002:int": _construct_int,
-    }
-
-    def compose_node(self, parent, index):  # noqa: D102
-        if self.check_event(yaml.AliasEvent):
-            event = self.peek_event()
-            raise yaml.YAMLError(f"YAML aliases are not allowed (*{event.anchor} at line {event.start_mark.line + 1})")
-        return super().compose_node(parent, index)
-
-
-# libyaml's safe loader (PyYAML's C extension) parses a scene ~6x faster than the pure-Python one
-# (benchmarks/bench_parse.py); it can't refuse aliases itself, so it only reads texts without `&` and `*`, in which
-# no anchor or alias can occur. Its recursion is unbounded: ~25 000 nested `[` crash the process (segmentation
-# fault) where the Python loader raises RecursionError; so it only reads texts with few characters that can open a
-# level (`[`, `{`, `-`, `?`; deeper indentation alone needs more than MAX_TEXT_CHARS), a scene of ~100 objects.
-_FAST_LOADER = (
-    type(
-        "_FastLoader",
-        (_UniqueKeys, yaml.CSafeLoader),
-        {
-            "yaml_implicit_resolvers": _NoAliasLoader.yaml_implicit_resolvers,
-            "yaml_constructors": _NoAliasLoader.yaml_constructors,
-        },
-    )
-    if hasattr(yaml, "CSafeLoader")
-    else None
-)
-_FAST_MAX_OPENERS = 2_000
-
-
-def _loader_for(text: str) -> type:
-    if _FAST_LOADER is None or "&" in text or "*" in text:
-        return _NoAliasLoader
-    if sum(text.count(c) for c in "[{-?") > _FAST_MAX_OPENERS:
-        return _NoAliasLoader
-    return _FAST_LOADER
-
-
-_SURROGATE = re.compile("[\ud800-\udfff]")
-# a line break as YAML (PyYAML and libyaml alike) counts them: not str.splitlines, which also breaks at \x0b, \x0c
-# and \x1c-\x1e, characters YAML refuses in a scene
-_BREAK = re.compile("\r\n|[\n\r\x85\u2028\u2029]")
-
-
-def _line_breaks(text: str) -> int:
-    return len(_BREAK.findall(text))
-
-
-def _line_column(text: str, offset: int) -> str:
-    """`offset` in `text` as YAML names a place: "line L, column C", both from 1."""
-    last = max((m.end() for m in _BREAK.finditer(text, 0, offset)), default=0)
-    return f"line {_line_breaks(text[:offset]) + 1}, column {offset - last + 1}"
-
-
-def _checked_text(text: str | bytes) -> str:
-    """`text` as a string (bytes decoded as UTF-8), refused when binary or longer than MAX_TEXT_CHARS."""
-    if isinstance(text, bytes):
-        try:
-            text = text.decode("utf-8")
-        except UnicodeDecodeError as e:
-            raise SceneError([Problem("text", _NO_VALUE, f"not UTF-8 text (byte {e.start}): binary input?")]) from None
-    if "\x00" in text:
-        raise SceneError([Problem("text", _NO_VALUE, "contains NUL bytes: binary input?")])
-    surrogate = _SURROGATE.search(text)
-    if surrogate is not None:  # no UTF-8 form: the YAML reader would refuse it by its offset in the text
-        where = _line_column(text, surrogate.start())
-        msg = f"contains a lone surrogate character {surrogate.group()!r} ({where}): not valid Unicode text"
-        raise SceneError([Problem("text", _NO_VALUE, msg)])
-    if len(text) > MAX_TEXT_CHARS:
-        raise SceneError([Problem("text", len(text), f"too long: at most {MAX_TEXT_CHARS} characters")])
-    return text
-
-
-MAX_FLOW_DEPTH = 32  # levels of `[` / `{`: a scene needs 3 even in flow style, [{state: {position: [0, 0, 1]}}]
-_BRACKET = re.compile(r"[\[\]{}]")
-
-
-def _too_deep(text: str) -> Problem | None:
-    """A problem when `[` / `{` nest more than MAX_FLOW_DEPTH levels, else None. PyYAML's Python scanner keeps
-    one possible key per open flow level and walks them all at every token: 2 001 nested `[` (4 kB, a model's
-    repetition loop) took 6 s to refuse, 300 lines of 300 levels (181 kB) 18 s. Brackets in quotes and comments
-    count too (never 32 deep in a scene); closers there can only hide depth, which the loaders still bound."""
-    depth = 0
-    for m in _BRACKET.finditer(text):
-        depth = depth + 1 if m.group() in "[{" else max(depth - 1, 0)
-        if depth > MAX_FLOW_DEPTH:
-            msg = f"nested too deeply: more than {MAX_FLOW_DEPTH} levels of [ and {{ ({_line_column(text, m.start())})"
-            return Problem("yaml", _NO_VALUE, msg)
-    return None
-
-
-def load_yaml(text: str | bytes) -> Any:
-    """Parse YAML text safely: no tags that build Python objects, no aliases, bounded size and flow nesting."""
-    text = _checked_text(text)
-    deep = _too_deep(text)
-    if deep is not None:
-        raise SceneError([deep])
-    try:
-        return yaml.load(text, Loader=_loader_for(text))  # noqa: S506 - safe loaders only
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e)
-        if isinstance(e, yaml.reader.ReaderError) and isinstance(e.character, int):
-            # a control character, located by an offset (in bytes with the C loader): by line and column instead;
-            # the reader stops at the first unacceptable character, so its first occurrence is the one
-            offset = text.find(chr(e.character))
-            problem = f"unacceptable character #x{e.character:04x}: {e.reason}"
-            where = f" ({_line_column(text, offset if offset >= 0 else e.position)})"
-        if isinstance(e, yaml.constructor.ConstructorError) and problem.startswith("could not determine a constructor"):
-            problem = f"refused YAML tag: {problem}"
-        raise SceneError([Problem("yaml", _NO_VALUE, f"{problem}{where}")]) from None
-    except RecursionError:
-        raise SceneError([Problem("yaml", _NO_VALUE, "nested too deeply")]) from None
-    except ValueError as e:  # e.g. an integer past Python's 4300-digit conversion limit
-        raise SceneError([Problem("yaml", _NO_VALUE, f"unreadable value: {e}")]) from None
-
-
-_ANSWER = re.compile(r"<answer>(.*?)(?:</answer>|$)", re.S)
-_THINK = re.compile(r"<think>.*?(?:</think>|$)", re.S)
-_FENCE = re.compile(r"```(?:ya?ml)?\s*\n(.*?)(?:```|$)", re.S)
-# `- type:`, or `-` alone then `type:` on the next line; not \s*: runs of blank lines made the search quadratic
-_FIRST_ITEM = re.compile(r"^[ \t]*-(?:[ \t]+|[ \t]*\n[ \t]+)type[ \t]*:", re.M)
-_INLINE_ITEM = re.compile(r"-[ \t]+type[ \t]*:")  # an item after other text on its line
-
-
-def _strip_wrappers(text: str) -> str:
-    """The last `<answer>` block (an unclosed one runs to the end), else the text without `<think>`; then a fence.
-    What is left out before it is left as its line breaks, so that a YAML error names the line of the response."""
-    answers = list(_ANSWER.finditer(text))
-    if answers:
-        body = "\n" * _line_breaks(text[: answers[-1].start(1)]) + answers[-1].group(1)
-    else:
-        body = _THINK.sub(lambda m: "\n" * _line_breaks(m.group()), text)
-    fence = _FENCE.search(body)
-    return "\n" * _line_breaks(body[: fence.start(1)]) + fence.group(1) if fence else body
-
-
-def _cut_prose(body: str) -> tuple[int, str] | None:
-    """Where in `body` the list starts, and the part of `body` from the first `- type:` line to the last line of
-    that list; or None. A first item after other text on its line ("Scene: - type: box", a stray control
-    character), followed by its indented keys, starts the list there: cut with its line, it was an object dropped
-    without a word."""
-    m = _FIRST_ITEM.search(body)
-    start = None if m is None else m.start()
-    before = body if start is None else body[:start]
-    inline = None
-    for inline in _INLINE_ITEM.finditer(before):  # the last one before the first line-start item
-        pass
-    if inline is not None:  # its own keys follow it, indented, up to the next item
-        keys = [line for line in _BREAK.split(body[inline.start() : start])[1:] if line.strip()]
-        # indented as the list's lines below are measured (str.lstrip): a form feed or another control character
-        # before a key leaves the item in, for YAML to refuse, rather than dropping the object without a word
-        if keys and keys[0][:1].isspace() and (start is None or all(line[:1].isspace() for line in keys)):
-            start = inline.start()
-    if start is None:
-        return None
-    lines = _BREAK.split(body[start:])
-    indent = len(lines[0]) - len(lines[0].lstrip())
-    keep = []
-    for line in lines:
-        stripped = line.strip()
-        # list items and their indented children belong; an unindented non-item line is prose
-        if stripped and (len(line) - len(line.lstrip())) <= indent and not stripped.startswith("-"):
-            break
-        keep.append(line)
-    if indent:  # a list indented under prose ("Here is the scene:\n  - type: box"): as if written at the margin
-        keep = [line[indent:] if len(line) - len(line.lstrip()) >= indent else line.lstrip() for line in keep]
-    return start, "\n".join(keep)
-
-
-def extract_yaml(text: str) -> str:
-    """Return the YAML part of a model response.
-
-    Takes the last `<answer>...</answer>` block when there is one, otherwise drops `<think>...</think>`;
-    then the inside of a ```yaml fence if any. When that is not a YAML list by itself, stray prose before the
-    first `- type:` line and after the list is cut away.
-    """
-    return _extract(text)[0].strip()
-
-
-def _extract(text: str) -> tuple[str, Any]:
-    """`extract_yaml`'s text and, when it already parsed as a YAML list there, the list (else None). Without the
-    list, the text comes after blank lines in place of the prose cut before it, so that a YAML error's line is the
-    line of the YAML body (a scene file's own, after a comment: before, it was counted from the first item)."""
-    body = _strip_wrappers(text)
-    try:
-        data = load_yaml(body)
-        if isinstance(data, list):
-            return body.strip(), data
-    except SceneError:
-        pass
-    start, part = _cut_prose(body) or (0, body)
-    lead = len(part) - len(part.lstrip())
-    return "\n" * _line_breaks(body[:start] + part[:lead]) + part.strip(), None
-
-
 def parse(text: str | bytes) -> Scene:
     """Parse a scene from YAML text or a model response.
 
@@ -825,12 +392,12 @@ def parse(text: str | bytes) -> Scene:
         SceneError: naming every problem (path, value, what is allowed).
     """
     if isinstance(text, bytes):  # a file's contents: decoded and checked, not parsed (it may wrap the YAML)
-        text = _checked_text(text)
+        text = checked_text(text)
     if not isinstance(text, str):
-        raise SceneError([Problem("text", _NO_VALUE, f"must be a string, got {_type_name(text)}")])
+        raise SceneError([Problem("text", NO_VALUE, f"must be a string, got {_type_name(text)}")])
     if not text.strip():
-        raise SceneError([Problem("text", _NO_VALUE, "empty text: no YAML found")])
-    body, data = _extract(text)
+        raise SceneError([Problem("text", NO_VALUE, "empty text: no YAML found")])
+    body, data = extract_with_list(text)
     return from_items(data if data is not None else load_yaml(body))
 
 
@@ -997,15 +564,3 @@ def dump(scene: Scene, decimals: int = DECIMALS, names: bool = True, objects_las
                 first = False
             lines.extend(sub)
     return "\n".join(lines) + "\n"
-
-
-def ranges_markdown() -> str:
-    """The range table as Markdown (the README's scene-format reference)."""
-    rows = ["| field | unit | frame | range | meaning |", "| --- | --- | --- | --- | --- |"]
-    for key, r in RANGES.items():
-        if isinstance(r.lo, tuple):
-            rng = ", ".join(f"[{_fmt(a)}, {_fmt(b)}]" for a, b in zip(r.lo, r.hi, strict=True))
-        else:
-            rng = f"[{_fmt(r.lo)}, {_fmt(r.hi)}]"
-        rows.append(f"| `{key}` | {r.unit} | {r.frame} | {rng} | {r.meaning} |")
-    return "\n".join(rows) + "\n"

@@ -15,6 +15,7 @@ from timing import timed
 
 from aynamics import sampler
 from aynamics import scene as S
+from aynamics import scene_text as T
 
 
 def main() -> None:
@@ -25,16 +26,16 @@ def main() -> None:
     config = sampler.SamplerConfig(min_objects=4, max_objects=4)
     rng = np.random.default_rng(0)
     texts = [S.dump(sampler.sample_scene(rng, config)) for _ in range(args.scenes)]
-    fast_loader = S._FAST_LOADER
+    fast_loader = T._FAST_LOADER
     if fast_loader is None:
         print("PyYAML has no libyaml here: only the pure-Python loader is available")
         return
     fast = timed(lambda: [S.parse(t) for t in texts], args.repeats)
-    S._FAST_LOADER = None
+    T._FAST_LOADER = None
     try:
         slow = timed(lambda: [S.parse(t) for t in texts], args.repeats)
     finally:
-        S._FAST_LOADER = fast_loader
+        T._FAST_LOADER = fast_loader
     assert fast.result == slow.result, "the two loaders read different scenes"
     n = len(texts)
     print(f"{n} 4-object scenes, {sum(map(len, texts)) // n} characters each; best of {args.repeats}")

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from aynamics import cli
 from aynamics import scene as S
+from aynamics import scene_text as T
 
 ASSETS = Path(__file__).parent / "assets"
 EXAMPLE = (ASSETS / "paper_example.yaml").read_text()
@@ -435,20 +436,20 @@ def _load_with(text, loader):
         return type(e).__name__
 
 
-@pytest.mark.skipif(S._FAST_LOADER is None, reason="PyYAML built without libyaml")
+@pytest.mark.skipif(T._FAST_LOADER is None, reason="PyYAML built without libyaml")
 @pytest.mark.parametrize("text", [m[1] for m in MALFORMED if isinstance(m[1], str)] + [OK_BOX + CAMERA])
 def test_fast_loader_reads_what_the_safe_python_loader_reads(text):
     # libyaml is used for texts without anchors or aliases: the same data (or the same error) as the checked loader
     if "&" in text or "*" in text:
-        assert S._loader_for(text) is S._NoAliasLoader
+        assert T._loader_for(text) is T._NoAliasLoader
     else:
-        assert S._loader_for(text) is S._FAST_LOADER
-        assert _load_with(text, S._FAST_LOADER) == _load_with(text, S._NoAliasLoader)
+        assert T._loader_for(text) is T._FAST_LOADER
+        assert _load_with(text, T._FAST_LOADER) == _load_with(text, T._NoAliasLoader)
 
 
 def test_text_with_an_ampersand_takes_the_checked_loader():
     text = "# boxes & cylinders\n" + OK_BOX + CAMERA
-    assert S._loader_for(text) is S._NoAliasLoader
+    assert T._loader_for(text) is T._NoAliasLoader
     assert S.parse(text) == S.parse(OK_BOX + CAMERA)
 
 
@@ -460,7 +461,7 @@ def test_text_with_an_ampersand_takes_the_checked_loader():
 def test_deep_nesting_is_a_scene_error_not_a_crash(text):
     """~25 000 nested levels crashed libyaml's C loader (a segmentation fault took the process down, score and
     refine runs included); such texts take the Python loader, which reports the depth."""
-    assert len(text) < S.MAX_TEXT_CHARS and S._loader_for(text) is S._NoAliasLoader
+    assert len(text) < S.MAX_TEXT_CHARS and T._loader_for(text) is T._NoAliasLoader
     with pytest.raises(S.SceneError, match="nested too deeply"):
         S.load_yaml(text)
 
@@ -495,7 +496,7 @@ def test_numbers_are_read_as_yaml_1_2():
     text = "a: 1e-1\nb: 2E5\nc: 1.0e5\nd: 1:00\ne: 0x1F\nf: 10\ng: -.5\nh: .inf\ni: true\nj: 010\nk: 09\nl: 0o17\n"
     want = {"a": 0.1, "b": 2e5, "c": 1e5, "d": "1:00", "e": 31, "f": 10, "g": -0.5, "h": math.inf, "i": True}
     want |= {"j": 10, "k": 9, "l": 15}
-    assert S.load_yaml(text) == want and yaml.load(text, Loader=S._NoAliasLoader) == want  # noqa: S506
+    assert S.load_yaml(text) == want and yaml.load(text, Loader=T._NoAliasLoader) == want  # noqa: S506
     box = OK_BOX + "  physics: {mass: 1e-1}\n" + CAMERA
     assert S.parse(box).objects[0].physics.mass == pytest.approx(0.1)
     with pytest.raises(S.SceneError, match=r"camera\.fovy.*number"):
@@ -505,7 +506,7 @@ def test_numbers_are_read_as_yaml_1_2():
 def test_only_plain_yaml_types_are_read():
     """`!!set {1.0, 0.5, 0.4}` was read as a reordered size and `!!binary Ym94XzA=` as the name box_0: both tags are
     refused by name, in both loaders; a date-like value is a string the field then names."""
-    for loader in (S._NoAliasLoader, S._FAST_LOADER):
+    for loader in (T._NoAliasLoader, T._FAST_LOADER):
         for text, tag in (("a: !!set {1.0, 0.5}\n", "set"), ("a: !!binary Ym94XzA=\n", "binary")):
             with pytest.raises(yaml.YAMLError, match=f"constructor for the tag 'tag:yaml.org,2002:{tag}'"):
                 yaml.load(text, Loader=loader)  # noqa: S506
