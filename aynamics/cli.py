@@ -100,7 +100,7 @@ def add_device_option(p: argparse.ArgumentParser, what: str = "the model") -> No
     p.add_argument("--device", default="auto", help=f"device of {what}: {choices}")
 
 
-def _print_json(obj) -> None:
+def print_json(obj) -> None:
     json.dump(obj, sys.stdout, indent=None)
     sys.stdout.write("\n")
 
@@ -149,7 +149,7 @@ def _run_simulate(args) -> int:
         except OSError as e:
             raise UsageError(f"simulate: cannot write --out {args.out!r}: {e.strerror or e}") from None
     if args.json:
-        _print_json(rollout.summary())
+        print_json(rollout.summary())
     if not rollout.valid:
         sys.stderr.write(f"simulate: the rollout is invalid: {rollout.reason}\n")
     return 0 if rollout.valid else 1
@@ -170,7 +170,7 @@ def _run_ranges(args) -> int:
     if args.markdown:
         sys.stdout.write(ranges_markdown())
     else:
-        _print_json({k: {"lo": r.lo, "hi": r.hi, "unit": r.unit, "frame": r.frame} for k, r in RANGES.items()})
+        print_json({k: {"lo": r.lo, "hi": r.hi, "unit": r.unit, "frame": r.frame} for k, r in RANGES.items()})
     return 0
 
 

@@ -532,7 +532,7 @@ def add_preferences_command(sub) -> None:
 
 def run_preferences(args) -> int:
     from aynamics import lm
-    from aynamics.cli import UsageError, _print_json
+    from aynamics.cli import UsageError, print_json
     from aynamics.pro import ProModule
     from aynamics.unlabeled import GeneratedVideos, is_generated, open_videos
 
@@ -600,7 +600,7 @@ def run_preferences(args) -> int:
             progress.remove()  # under the lock: no second writer starts on the batches meanwhile
     except ValueError as e:
         raise UsageError(f"preferences: {e}") from None
-    _print_json(summary)
+    print_json(summary)
     return 0
 
 

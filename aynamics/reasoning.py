@@ -84,13 +84,13 @@ def position_words(position: np.ndarray) -> tuple[str, str, str]:
 def floor_heights(scene: Scene, position: np.ndarray) -> np.ndarray:
     """Heights (..., ) m of points (..., 3) above the scene's floor plane (`environment.floor_offset`, tilted by
     `floor_tilt`), along its normal: the world z when the scene has no environment item."""
-    from aynamics.simulate import _tilt_quaternion, quat_to_mat
+    from aynamics.simulate import quat_to_mat, tilt_quaternion
 
     env = scene.environment
     pos = np.asarray(position, dtype=float)
     if env is None:
         return pos[..., 2]
-    normal = quat_to_mat(_tilt_quaternion(*env.floor_tilt))[:, 2]
+    normal = quat_to_mat(tilt_quaternion(*env.floor_tilt))[:, 2]
     return (pos - np.array([0.0, 0.0, env.floor_offset])) @ normal
 
 

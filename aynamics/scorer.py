@@ -192,7 +192,7 @@ class Observation:
             if not is_whole(v) or not 1 <= v <= top:  # width 0: empty
                 raise ValueError(f"Observation.from_scene: {name} = {v!r}: must be a whole number in [1, {top}]")
         try:  # 30, 30.0 and numpy's 30 alike, as `SimConfig` takes them (a clock read from JSON is a float)
-            fps = sim._whole(fps, "fps")
+            fps = sim.whole_in_range(fps, "fps")
         except ValueError as e:
             raise ValueError(f"Observation.from_scene: {e}") from None
         if frames is not None:  # [1.7] was taken as frame 1, [[0, 3]] failed broadcasting in the ray cast

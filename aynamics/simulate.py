@@ -289,11 +289,11 @@ def scene_params(scene: Scene, tpl: Template, timestep: float = RESTITUTION_TIME
         p["opt.wind"][:] = env.wind
         f = tpl.floor_geom
         p["geom_pos"][f] = [0.0, 0.0, env.floor_offset]
-        p["geom_quat"][f] = _tilt_quaternion(*env.floor_tilt)
+        p["geom_quat"][f] = tilt_quaternion(*env.floor_tilt)
     return p
 
 
-def _tilt_quaternion(about_x: float, about_y: float) -> np.ndarray:
+def tilt_quaternion(about_x: float, about_y: float) -> np.ndarray:
     qx = np.array([math.cos(math.radians(about_x) / 2), math.sin(math.radians(about_x) / 2), 0, 0])
     qy = np.array([math.cos(math.radians(about_y) / 2), 0, math.sin(math.radians(about_y) / 2), 0])
     out = np.zeros(4)
@@ -419,7 +419,7 @@ class Rollout:
 MAX_STEPS = 200_000  # physics steps of one rollout (each recorded): e.g. 60 s at 30 fps with 100 substeps
 
 
-def _whole(value, name: str) -> int:
+def whole_in_range(value, name: str) -> int:
     """`value` as an int in [1, 1000] (30, 30.0 and numpy's 30 alike), else a ValueError naming it."""
     try:
         ok = float(value).is_integer() and 1 <= value <= 1000 and not isinstance(value, bool)
@@ -450,9 +450,9 @@ class SimConfig:
             raise ValueError(f"duration = {self.duration!r}: must be a number of seconds in (0, 60]")
         if not (0 < self.duration <= 60):
             raise ValueError(f"duration = {self.duration}: must be in (0, 60] s")
-        object.__setattr__(self, "fps", _whole(self.fps, "fps"))
+        object.__setattr__(self, "fps", whole_in_range(self.fps, "fps"))
         per_frame = max(1, round(PHYSICS_HZ / self.fps)) if self.substeps is None else self.substeps
-        object.__setattr__(self, "substeps", _whole(per_frame, "substeps"))
+        object.__setattr__(self, "substeps", whole_in_range(per_frame, "substeps"))
         steps = self.frames * self.substeps
         if steps > MAX_STEPS:  # every step's state is recorded: 60 s at 1000 fps x 1000 substeps needed > 6 GB
             raise ValueError(
@@ -829,7 +829,7 @@ def check_states(
     tilt = scene.environment.floor_tilt if scene.environment is not None else (0.0, 0.0)
     # signed height of each centre above the (possibly tilted) floor plane through (0, 0, floor_offset)
     rot = np.zeros(9)
-    mujoco.mju_quat2Mat(rot, _tilt_quaternion(*tilt))
+    mujoco.mju_quat2Mat(rot, tilt_quaternion(*tilt))
     normal = rot.reshape(3, 3)[:, 2]  # the floor's z axis in world
     height = (position - np.array([0.0, 0.0, floor])) @ normal
     depth = np.array([half_extents(o).min() for o in scene.objects])
