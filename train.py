@@ -76,7 +76,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if cfg.data.get("target", cfg.stage.target) != cfg.stage.target:  # the data take the stage's: one key
         raise ValueError(f"data.target = {cfg.data.target!r}: set the target as stage.target={cfg.data.target}")
     if cfg.get("ckpt_path"):
-        from aynamics.lm import check_resume_checkpoint
+        from aynamics.adapters import check_resume_checkpoint
 
         check_resume_checkpoint(cfg.ckpt_path, cfg.stage.get("name"))  # before the model loads
     L.seed_everything(cfg.seed, workers=True)

@@ -35,7 +35,7 @@ from lightning.pytorch.callbacks.progress.rich_progress import _RICH_AVAILABLE
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-from aynamics import lm, metrics, sharding
+from aynamics import adapters, lm, metrics, sharding
 from aynamics.scene import Scene, SceneError, parse
 
 log = logging.getLogger(__name__)
@@ -135,14 +135,14 @@ class AdapterExport(L.Callback):
         state = sharding.trainable_state(pl_module.model) if sharding.is_sharded(pl_module.model) else None
         if not trainer.is_global_zero:
             return None
-        return lm.save_adapter(pl_module.model, self._dir(trainer), pl_module.spec, self._prompt(trainer), state)
+        return adapters.save_adapter(pl_module.model, self._dir(trainer), pl_module.spec, self._prompt(trainer), state)
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
         # plain JSON types (peft's dict holds enums and sets): checkpoints load with torch.load(weights_only=True)
         configs = {k: v.to_dict() for k, v in pl_module.model.peft_config.items()}
         checkpoint["adapter_config"] = json.loads(json.dumps(configs, default=_plain))
         # the specs too: `aynamics export-adapter CKPT` writes any checkpoint's adapter folder, not only the latest
-        checkpoint["aynamics_meta"] = lm.adapter_meta(pl_module.spec, self._prompt(trainer))
+        checkpoint["aynamics_meta"] = adapters.adapter_meta(pl_module.spec, self._prompt(trainer))
         self.export(trainer, pl_module)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

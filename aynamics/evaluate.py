@@ -270,7 +270,7 @@ def evaluate_adapter(
         ValueError: a split the data set lacks or an empty one, bad counts, an adapter that cannot be loaded, or a
             data set without the adapter's modality.
     """
-    from aynamics import data, lm
+    from aynamics import adapters, data, lm
 
     _check_counts(num, batch_size, max_new_tokens, refine_budget, refine_seconds)
     splits = data.load_splits(data_dir, what="--data", require_train=False)
@@ -279,7 +279,7 @@ def evaluate_adapter(
             f"--split {split!r}: the data set {str(data_dir)!r} has no {split!r} scenes "
             f"(splits: {dict(splits.num_rows)})"
         )
-    model, spec, prompt = lm.load_adapter(adapter, device)
+    model, spec, prompt = adapters.load_adapter(adapter, device)
     if prompt.modality not in splits[split].column_names:
         raise ValueError(
             f"--data {str(data_dir)!r}: its {split!r} split has no {prompt.modality!r} frames, which the adapter "
@@ -343,13 +343,13 @@ def evaluate_videos(
         ValueError: bad counts or an adapter that cannot be loaded (a video folder that cannot be read is left out
             with a warning naming it).
     """
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.cli import missing_file_message
     from aynamics.unlabeled import video_folders, video_from_folder
 
     _check_counts(num, batch_size, max_new_tokens, refine_budget, refine_seconds)
     found = video_folders(videos)
-    model, spec, prompt = lm.load_adapter(adapter, device)
+    model, spec, prompt = adapters.load_adapter(adapter, device)
     processor = lm.load_processor(spec, prompt)
     n = len(found) if num is None else min(num, len(found))
 

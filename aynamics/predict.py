@@ -38,7 +38,7 @@ def clip_of(path: str | Path, prompt, fps: float | None = None) -> list[np.ndarr
         path: A video file (its own frame rate) or a folder of consecutive frames (at `fps`, default the training
             videos' rate); a folder holding exactly as many images as a training record (no `fps` given) is taken
             as those frames, the way `aynamics evaluate --videos` reads one.
-        prompt: The adapter's `lm.PromptSpec` (`lm.read_adapter_meta`).
+        prompt: The adapter's `lm.PromptSpec` (`adapters.read_adapter_meta`).
         fps: The video's frame rate, when its file states none or states it wrong, or for a folder.
 
     Returns:
@@ -67,10 +67,10 @@ def clip_of(path: str | Path, prompt, fps: float | None = None) -> list[np.ndarr
 def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048, device: str = "auto") -> dict:
     """Greedy response of the adapter's model for `frames`: {"response", "reasoning", "yaml", "valid", "problems"}.
     `device`: "auto" (a GPU when there is one), "cpu", "cuda", "cuda:1", ..."""
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.scene import SceneError, dump, parse
 
-    model, spec, prompt = lm.load_adapter(adapter, device)
+    model, spec, prompt = adapters.load_adapter(adapter, device)
     processor = lm.load_processor(spec, prompt)
     inputs = lm.prompt_inputs(processor, prompt, frames)
     response = lm.greedy_texts(model, processor, [inputs], max_new_tokens)[0]
@@ -106,7 +106,7 @@ def add_predict_command(sub) -> None:
 
 
 def run_predict(args) -> int:
-    from aynamics import lm
+    from aynamics import adapters
     from aynamics.cli import UsageError, missing_file_message
 
     if args.max_new_tokens < 1:
@@ -116,7 +116,7 @@ def run_predict(args) -> int:
     if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
         raise UsageError(f"predict: --fps {args.fps}: must be a finite number > 0")
     try:
-        frames = clip_of(args.input, lm.read_adapter_meta(args.adapter)[1], args.fps)
+        frames = clip_of(args.input, adapters.read_adapter_meta(args.adapter)[1], args.fps)
         result = predict(args.adapter, frames, args.max_new_tokens, args.device)
     except FileNotFoundError as e:
         raise UsageError(f"predict: {missing_file_message(e)}") from None
@@ -174,7 +174,7 @@ def check_export_folder(out: str | Path) -> None:
 
 
 def run_export(args) -> int:
-    from aynamics import lm
+    from aynamics import adapters
     from aynamics.cli import UsageError
 
     try:
@@ -182,7 +182,7 @@ def run_export(args) -> int:
     except ValueError as e:
         raise UsageError(f"export-adapter: {e}") from None
     try:
-        out = lm.adapter_from_checkpoint(args.checkpoint, args.out)
+        out = adapters.adapter_from_checkpoint(args.checkpoint, args.out)
     except FileNotFoundError:
         raise  # the CLI names the missing checkpoint
     except (OSError, ValueError) as e:

@@ -36,7 +36,7 @@ from typing import Any
 
 import torch
 
-from aynamics import lm, rng
+from aynamics import adapters, lm, rng
 from aynamics import reward as rw
 from aynamics.kept_batches import KeptBatches, content_digest, differences, file_digest, partial_folder
 from aynamics.scorer import Score
@@ -543,7 +543,7 @@ def run_preferences(args) -> int:
     try:
         check_out(args.out)  # before hours of sampling, not after
         device = lm.inference_device(args.device)
-        trained, prompt = lm.read_adapter_meta(args.adapter) if args.adapter else (None, None)
+        trained, prompt = adapters.read_adapter_meta(args.adapter) if args.adapter else (None, None)
         model = args.model or (trained.path if trained is not None and trained.kind == "pretrained" else "tiny")
         if model == "tiny":
             spec = lm.ModelSpec(kind="tiny") if trained is None or trained.kind != "tiny" else trained

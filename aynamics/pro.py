@@ -35,7 +35,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from aynamics import lm, sharding
+from aynamics import adapters, lm, sharding
 from aynamics import reward as rw
 from aynamics.data import real_rows
 from aynamics.preference import check_finite_rewards, pro_ranking_loss, sft_on_best, soft_preference_loss
@@ -70,7 +70,7 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
 
     if not Path(init_adapter, "adapter_config.json").is_file():
         raise FileNotFoundError(2, f"stage.init_adapter = {init_adapter!r} holds no adapter_config.json", init_adapter)
-    adapter_spec, _ = lm.read_adapter_meta(init_adapter)
+    adapter_spec, _ = adapters.read_adapter_meta(init_adapter)
     if (adapter_spec.kind, adapter_spec.path) != (spec.kind, spec.path):
         raise ValueError(
             f"stage.init_adapter = {init_adapter!r} was trained on model kind={adapter_spec.kind!r} "
@@ -103,7 +103,7 @@ def build_policy(spec: lm.ModelSpec, init_adapter: str | None = None) -> tuple[t
     return model.train(), used
 
 
-class ProModule(lm.ExactResume, L.LightningModule):
+class ProModule(adapters.ExactResume, L.LightningModule):
     """PRO on unlabeled videos (online) or on a stored preference data set (offline).
 
     Args:
@@ -216,7 +216,7 @@ class ProModule(lm.ExactResume, L.LightningModule):
                     )
         self.ensure_processor()
         if self.hparams.init_adapter is not None:
-            _, trained = lm.read_adapter_meta(self.hparams.init_adapter)
+            _, trained = adapters.read_adapter_meta(self.hparams.init_adapter)
             mismatch = lm.prompt_mismatch({k: getattr(trained, k) for k in lm.PROMPT_KEYS}, self.prompt)
             if mismatch:
                 was, now = mismatch

@@ -18,7 +18,7 @@ import math
 import lightning as L
 import torch
 
-from aynamics import lm, sharding, visual_targets
+from aynamics import adapters, lm, sharding, visual_targets
 from aynamics.data import real_rows
 from aynamics.model import find_visual
 from aynamics.processor import IGNORE_INDEX, model_inputs
@@ -89,7 +89,7 @@ def check_gradients(module: L.LightningModule, optimizer: torch.optim.Optimizer)
         )
 
 
-class SFTModule(lm.ExactResume, L.LightningModule):
+class SFTModule(adapters.ExactResume, L.LightningModule):
     """Supervised fine-tuning on (frames, response) pairs.
 
     Args:

@@ -213,10 +213,10 @@ def _clip_folder(path: Path, n: int = 10) -> Path:
 def test_predict_cli_errors_are_clear(tmp_path, capsys):
     """Exit 2 naming the problem: a missing input, no frames, a video too short for the clip the adapter was
     trained on (every third frame of 30 at 30 fps: 0 to 0.9 s), a bad --fps."""
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.cli import main
 
-    (tmp_path / "aynamics.json").write_text(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
+    (tmp_path / "aynamics.json").write_text(json.dumps(adapters.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
     assert main(["predict", "--adapter", str(tmp_path), str(tmp_path / "missing")]) == 2
     assert "file not found" in capsys.readouterr().err
     (tmp_path / "frames").mkdir()
@@ -255,11 +255,11 @@ def test_inference_device_names_a_device_this_machine_lacks(tmp_path, capsys):
         inference_device("gpu0")
     with pytest.raises(ValueError, match="device = 'meta': only cpu and cuda"):
         inference_device("meta")
-    from aynamics import lm
+    from aynamics import adapters, lm
 
     adapter = tmp_path / "adapter"
     adapter.mkdir()
-    (adapter / "aynamics.json").write_text(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
+    (adapter / "aynamics.json").write_text(json.dumps(adapters.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
     frames = _clip_folder(tmp_path / "frames")
     assert main(["predict", "--adapter", str(adapter), str(frames), "--device", f"cuda:{gpus}"]) == 2
     assert f"predict: device = 'cuda:{gpus}'" in capsys.readouterr().err
@@ -270,14 +270,14 @@ def test_predict_cli_names_the_broken_file(tmp_path, capsys):
     raised OSError, KeyError 'prompt', SafetensorError, or "Expecting value" without a file name). Every check runs
     before a base model is built, so the folders here are written by hand."""
 
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.cli import main
 
     frames = _clip_folder(tmp_path / "frames")
     broken = _clip_folder(tmp_path / "broken")
     png = (broken / "3.png").read_bytes()
     (broken / "3.png").write_bytes(png[: len(png) // 2])
-    good_meta = json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec()))
+    good_meta = json.dumps(adapters.adapter_meta(lm.ModelSpec(), lm.PromptSpec()))
     adapter = tmp_path / "adapter"
     adapter.mkdir()
     (adapter / "aynamics.json").write_text(good_meta)
@@ -353,19 +353,19 @@ def test_predict_reads_the_response_and_exits_by_its_validity(tmp_path, monkeypa
     SCENE, valid, exit 0, printed as "# reasoning", "why", a blank line, then the YAML. A response cut inside its
     <think> by the token limit: the reasoning so far ("the box slides"), no scene, exit 1, the response printed
     after the line naming its problems."""
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.cli import main
     from aynamics.predict import predict
 
     scene = load(str(ASSET))
     response = [f"<think>\n why \n</think><answer>\n{dump(scene)}</answer>"]
-    monkeypatch.setattr(lm, "load_adapter", lambda adapter, device: (None, lm.ModelSpec(), lm.PromptSpec()))
+    monkeypatch.setattr(adapters, "load_adapter", lambda adapter, device: (None, lm.ModelSpec(), lm.PromptSpec()))
     monkeypatch.setattr(lm, "load_processor", lambda spec, prompt: None)
     monkeypatch.setattr(lm, "prompt_inputs", lambda processor, prompt, frames: {"frames": len(frames)})
     monkeypatch.setattr(lm, "greedy_texts", lambda model, processor, prompts, max_new_tokens: response[:1])
     got = predict(tmp_path, [], max_new_tokens=8, device="cpu")
     assert got == {"response": response[0], "reasoning": "why", "yaml": dump(scene), "valid": True, "problems": []}
-    (tmp_path / "aynamics.json").write_text(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
+    (tmp_path / "aynamics.json").write_text(json.dumps(adapters.adapter_meta(lm.ModelSpec(), lm.PromptSpec())))
     frames = _clip_folder(tmp_path / "frames")
     args = ["predict", "--adapter", str(tmp_path), str(frames), "--device", "cpu"]
     assert main(args) == 0
@@ -461,13 +461,13 @@ def test_evaluate_reads_only_num_records_of_a_split_or_folder(tmp_path, tmp_path
 
     from train_fixtures import tiny_dataset
 
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.evaluate import evaluate_adapter, evaluate_videos
 
     spec = lm.ModelSpec(kind="tiny", lora_rank=8, lora_alpha=16.0, lora_dropout=0.0)
     prompt = lm.PromptSpec(num_frames=2, min_pixels=3136, max_pixels=3136)
     adapter = tmp_path / "adapter"
-    lm.save_adapter(lm.build_model(spec), adapter, spec, prompt)
+    adapters.save_adapter(lm.build_model(spec), adapter, spec, prompt)
     data = tiny_dataset(tmp_path_factory)
     settings = {"max_new_tokens": 2, "device": "cpu", "baseline": False}
     two = evaluate_adapter(adapter, data, num=2, **settings)
@@ -662,13 +662,13 @@ def test_evaluate_goes_on_after_an_interruption(tmp_path, tmp_path_factory, monk
     from train_fixtures import tiny_dataset
 
     import aynamics.refine
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.cli import main
 
     spec = lm.ModelSpec(kind="tiny", lora_rank=8, lora_alpha=16.0, lora_dropout=0.0)
     prompt = lm.PromptSpec(num_frames=2, min_pixels=3136, max_pixels=3136)
     adapter = tmp_path / "adapter"
-    lm.save_adapter(lm.build_model(spec), adapter, spec, prompt)
+    adapters.save_adapter(lm.build_model(spec), adapter, spec, prompt)
     data = tiny_dataset(tmp_path_factory)
     args = ["evaluate", "--adapter", str(adapter), "--data", str(data), "--batch-size", "1", "--quiet"]
     args += ["--max-new-tokens", "3", "--refine", "6", "--refine-seconds", "60", "--device", "cpu"]
@@ -720,12 +720,14 @@ def test_evaluate_with_another_refinement_budget_keeps_the_responses(tmp_path, t
     from train_fixtures import tiny_dataset
 
     import aynamics.refine
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.cli import main
 
     spec = lm.ModelSpec(kind="tiny", lora_rank=8, lora_alpha=16.0, lora_dropout=0.0)
     adapter = tmp_path / "adapter"
-    lm.save_adapter(lm.build_model(spec), adapter, spec, lm.PromptSpec(num_frames=2, min_pixels=3136, max_pixels=3136))
+    adapters.save_adapter(
+        lm.build_model(spec), adapter, spec, lm.PromptSpec(num_frames=2, min_pixels=3136, max_pixels=3136)
+    )
     args = ["evaluate", "--adapter", str(adapter), "--data", str(tiny_dataset(tmp_path_factory)), "--batch-size", "1"]
     args += ["--quiet", "--max-new-tokens", "3", "--refine", "6", "--device", "cpu", "--out", str(tmp_path / "eval")]
     generate, refine, calls = lm.greedy_texts, aynamics.refine.refine, []

@@ -59,7 +59,7 @@ def test_missing_file_messages_say_what_was_expected(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert cli.main(["score", str(tmp_path / "pred.yaml"), "--observed", str(tmp_path / "empty")]) == 2
     assert "has neither segmentation.npy nor segmentation/*.png" in capsys.readouterr().err
-    # an adapter folder without aynamics.json (lm.read_adapter_meta raises with a message only)
+    # an adapter folder without aynamics.json (adapters.read_adapter_meta raises with a message only)
     assert (
         cli.main(["preferences", "--data", str(tmp_path), "--out", str(tmp_path / "p"), "--adapter", str(tmp_path)])
         == 2

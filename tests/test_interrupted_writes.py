@@ -13,7 +13,7 @@ import pytest
 import torch
 from train_fixtures import ROOT, tiny_dataset, train_cfg
 
-from aynamics import lm
+from aynamics import adapters, lm
 
 sys.path.insert(0, str(ROOT))
 _cfg = train_cfg
@@ -101,7 +101,7 @@ def test_an_adapter_folder_is_replaced_whole(tmp_path, monkeypatch):
     spec = lm.ModelSpec(kind="tiny")
     model = lm.build_model(spec)
     out = tmp_path / "adapter"
-    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
+    adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
     (out / "notes.txt").write_text("mine")
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     with torch.no_grad():
@@ -110,12 +110,12 @@ def test_an_adapter_folder_is_replaced_whole(tmp_path, monkeypatch):
     def dying(spec, prompt):
         raise KeyboardInterrupt  # a kill after the weights were written, before aynamics.json
 
-    monkeypatch.setattr(lm, "adapter_meta", dying)
+    monkeypatch.setattr(adapters, "adapter_meta", dying)
     with pytest.raises(KeyboardInterrupt):
-        lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
+        adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     monkeypatch.undo()
-    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
+    adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
     assert json.loads((out / "aynamics.json").read_text())["prompt"]["num_frames"] == 4
     assert (out / "notes.txt").read_text() == "mine" and (out / "adapter_model.safetensors").read_bytes() != before[
         "adapter_model.safetensors"
@@ -302,7 +302,7 @@ def test_an_adapter_write_killed_midway_is_finished_by_the_next(tmp_path, monkey
     spec = lm.ModelSpec(kind="tiny")
     model = lm.build_model(spec)
     out = tmp_path / "adapter"
-    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
+    adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
     (out / "notes.txt").write_text("mine")
     real_replace = os.replace
 
@@ -313,7 +313,7 @@ def test_an_adapter_write_killed_midway_is_finished_by_the_next(tmp_path, monkey
 
     monkeypatch.setattr(os, "replace", killed)
     with pytest.raises(KeyboardInterrupt):
-        lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
+        adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
     monkeypatch.undo()
     for kind in ("tmp", "old"):  # as another process left them
         (tmp_path / f".adapter.{kind}-{os.getpid()}").rename(tmp_path / f".adapter.{kind}-999999")
@@ -325,16 +325,16 @@ def test_an_adapter_write_killed_midway_is_finished_by_the_next(tmp_path, monkey
 
     monkeypatch.setattr(type(model), "save_pretrained", dying)
     with pytest.raises(KeyboardInterrupt):
-        lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=8))
+        adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=8))
     monkeypatch.undo()
-    assert json.loads((out / lm.ADAPTER_META).read_text())["prompt"]["num_frames"] == 4
+    assert json.loads((out / adapters.ADAPTER_META).read_text())["prompt"]["num_frames"] == 4
     assert (out / "notes.txt").read_text() == "mine"
 
     moving = tmp_path / ".adapter.tmp-888888"  # killed while moving the user's files into its new adapter
     shutil.copytree(out, moving)
     (out / "notes.txt").rename(moving / "notes.txt")
-    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=8))
-    assert json.loads((out / lm.ADAPTER_META).read_text())["prompt"]["num_frames"] == 8
+    adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=8))
+    assert json.loads((out / adapters.ADAPTER_META).read_text())["prompt"]["num_frames"] == 8
     assert (out / "notes.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == [".adapter.lock", ".adapter.tmp-mine", "adapter"]
 
@@ -355,11 +355,11 @@ def test_an_adapter_is_written_on_a_file_system_without_locks(tmp_path, monkeypa
     spec = lm.ModelSpec(kind="tiny")
     model = lm.build_model(spec)
     out = tmp_path / "adapter"
-    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
+    adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=2))
     (out / "notes.txt").write_text("mine")
     (tmp_path / ".adapter.tmp-999999").mkdir()
-    lm.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
-    assert json.loads((out / lm.ADAPTER_META).read_text())["prompt"]["num_frames"] == 4
+    adapters.save_adapter(model, out, spec, lm.PromptSpec(num_frames=4))
+    assert json.loads((out / adapters.ADAPTER_META).read_text())["prompt"]["num_frames"] == 4
     assert (out / "notes.txt").read_text() == "mine"
     assert sorted(p.name for p in tmp_path.iterdir()) == [".adapter.lock", ".adapter.tmp-999999", "adapter"]
 

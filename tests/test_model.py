@@ -297,7 +297,7 @@ def test_completion_logprobs_match_the_sft_loss(proc, frames):
 def test_attention_kernel_is_chosen_by_the_spec(tmp_path, batches):
     """model.attn_implementation reaches the built model (tiny and from_pretrained): eager and sdpa give the same
     logits (on the unpadded positions); flash_attention_2 is refused for the tiny model, an unknown kernel named."""
-    from aynamics import lm
+    from aynamics import adapters, lm
 
     _, batch = batches["images"]
     eager = lm.build_base(lm.ModelSpec(attn_implementation="eager"))
@@ -321,10 +321,10 @@ def test_attention_kernel_is_chosen_by_the_spec(tmp_path, batches):
     # an adapter trained with flash attention loads here (CPU, no flash-attn) with sdpa: the weights are the same
     flash = lm.ModelSpec(kind="pretrained", path=str(tmp_path), attn_implementation="flash_attention_2")
     assert lm.runnable_kernel(flash, torch.device("cpu")).attn_implementation == "sdpa"
-    lm.save_adapter(
+    adapters.save_adapter(
         lm.build_model(lm.runnable_kernel(flash, torch.device("cpu"))), tmp_path / "adapter", flash, lm.PromptSpec()
     )
-    model, spec, _ = lm.load_adapter(tmp_path / "adapter", "cpu")
+    model, spec, _ = adapters.load_adapter(tmp_path / "adapter", "cpu")
     assert spec == flash and model.base_model.model.config._attn_implementation == "sdpa"
 
 
@@ -362,7 +362,7 @@ def test_a_trained_tower_of_a_bfloat16_base_is_kept_in_float32(tmp_path, batches
     the frozen base stays bfloat16, and a forward and backward run with and without autocast. One AdamW step at
     lr 1e-5 moves nearly all of the tower's entries (in bfloat16, 15 % of them); PRO's policy built from the
     adapter keeps it float32 too."""
-    from aynamics import lm
+    from aynamics import adapters, lm
     from aynamics.pro import build_policy
 
     build_tiny_model(seed=3).save_pretrained(tmp_path / "qwen")
@@ -380,7 +380,7 @@ def test_a_trained_tower_of_a_bfloat16_base_is_kept_in_float32(tmp_path, batches
     torch.optim.AdamW(trained.values(), lr=1e-5).step()
     moved = sum(int((p.detach() != tower[n]).sum()) for n, p in trained.items() if n in tower)
     assert moved > 0.99 * sum(t.numel() for t in tower.values())
-    lm.save_adapter(model, tmp_path / "adapter", spec, lm.PromptSpec())
+    adapters.save_adapter(model, tmp_path / "adapter", spec, lm.PromptSpec())
     policy, _ = build_policy(spec, str(tmp_path / "adapter"))
     assert {p.dtype for p in policy.parameters() if p.requires_grad} == {torch.float32}
 
@@ -525,15 +525,15 @@ def test_an_adapters_prompt_spec_of_the_wrong_type_is_named(key, value, message)
     import json
     import re
 
-    from aynamics import lm
+    from aynamics import adapters, lm
 
-    written = json.loads(json.dumps(lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec(examples=("- type: box",)))))
-    assert lm.specs_of_meta(written) == (lm.ModelSpec(), lm.PromptSpec(examples=("- type: box",)))
+    written = json.loads(json.dumps(adapters.adapter_meta(lm.ModelSpec(), lm.PromptSpec(examples=("- type: box",)))))
+    assert adapters.specs_of_meta(written) == (lm.ModelSpec(), lm.PromptSpec(examples=("- type: box",)))
     written["prompt"][key] = value
     with pytest.raises(
         ValueError, match=re.escape(f"'a/aynamics.json': not the model and prompt specs training writes: {message}")
     ):
-        lm.specs_of_meta(written, where="'a/aynamics.json'")
+        adapters.specs_of_meta(written, where="'a/aynamics.json'")
 
 
 def test_the_published_architectures_have_their_published_sizes():

@@ -19,7 +19,7 @@ from hydra import compose, initialize_config_dir
 from PIL import Image
 from train_fixtures import tiny_dataset
 
-from aynamics import lm
+from aynamics import adapters, lm
 from aynamics import reward as rw
 from aynamics.cli import main as cli_main
 from aynamics.preference_data import (
@@ -308,13 +308,13 @@ def test_policy_from_an_adapter_is_trained_with_the_runs_settings(tmp_path, monk
     another LoRA rank): checkpointing is on in the decoder and vision blocks and the LoRA dropout is the run's (both
     were the adapter's before: helper-37), the rank stays the adapter's and the run's is named as ignored; in eval
     mode the policy gives the adapter's outputs. The adapter is read onto the CPU, beside its base, by PRO and by
-    `lm.load_adapter` (predict, evaluate), never onto peft's guess (the first GPU, from every rank)."""
+    `adapters.load_adapter` (predict, evaluate), never onto peft's guess (the first GPU, from every rank)."""
     from aynamics.pro import build_policy
 
     saved = lm.build_model(SPEC).eval()
-    lm.save_adapter(saved, tmp_path / "adapter", SPEC, lm.PromptSpec(num_frames=2))
+    adapters.save_adapter(saved, tmp_path / "adapter", SPEC, lm.PromptSpec(num_frames=2))
     _no_device_guess(monkeypatch)
-    lm.load_adapter(tmp_path / "adapter", "cpu")
+    adapters.load_adapter(tmp_path / "adapter", "cpu")
     run = dataclasses.replace(SPEC, lora_rank=4, lora_dropout=0.3, gradient_checkpointing=True)
     with pytest.warns(UserWarning, match=r"model.lora_rank = 4 \(the adapter's: 8\) ignored"):
         policy, used = build_policy(run, str(tmp_path / "adapter"))
@@ -805,7 +805,7 @@ def test_preferences_take_the_adapters_base_model(tmp_path, dataset_dir, capsys)
     import warnings
 
     adapter = tmp_path / "adapter"
-    lm.save_adapter(lm.build_model(SPEC), adapter, SPEC, PROMPT)
+    adapters.save_adapter(lm.build_model(SPEC), adapter, SPEC, PROMPT)
     args = ["preferences", "--data", str(dataset_dir), "--num-samples", "2", "--max-new-tokens", "3", "--limit", "1"]
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")

@@ -19,7 +19,7 @@ import pytest
 import torch
 from train_fixtures import FAST, ROOT, tiny_dataset, train_cfg
 
-from aynamics import lm
+from aynamics import adapters, lm
 from aynamics.data import SceneDataModule
 from aynamics.processor import model_inputs
 from aynamics.sft import SFTModule
@@ -192,7 +192,7 @@ def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> Non
     for k, f in enumerate(frames):
         iio.imwrite(folder / f"{k:03d}.png", f)
     iio.imwrite(adapter.parent / "video.mp4", np.stack(frames), plugin="pyav", codec="libx264", fps=10)
-    saved_spec, prompt = lm.read_adapter_meta(adapter)
+    saved_spec, prompt = adapters.read_adapter_meta(adapter)
     assert prompt.clip_frames == tuple(record["frame_indices"]) and prompt.fps == 30  # the data's clock
     ours = lm.prompt_inputs(lm.load_processor(saved_spec, prompt), prompt, clip_of(folder, prompt))
     assert sorted(ours) == sorted(expected["prompt"])
@@ -234,9 +234,9 @@ def test_pretrained_config_runs_from_a_model_folder(tmp_path, dataset_dir):
     )
     metrics = train(cfg)
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
-    spec, _ = lm.read_adapter_meta(tmp_path / "run" / "adapter")
+    spec, _ = adapters.read_adapter_meta(tmp_path / "run" / "adapter")
     assert (spec.kind, spec.path, spec.lora_rank, spec.train_vision) == ("pretrained", str(folder), 16, False)
-    model, _, _ = lm.load_adapter(tmp_path / "run" / "adapter")
+    model, _, _ = adapters.load_adapter(tmp_path / "run" / "adapter")
     name = "lm_head.weight"
     ours = dict(model.base_model.model.named_parameters())[name]
     assert torch.equal(ours, dict(saved.named_parameters())[name])
@@ -361,8 +361,8 @@ def test_adapter_save_and_reload_give_identical_outputs(tmp_path, dataset_dir):
     module.model.eval()
     with torch.no_grad():
         expected = module.model(**model_inputs(batch)).logits
-    lm.save_adapter(module.model, tmp_path / "adapter", module.spec, dm.prompt)
-    reloaded, spec, prompt = lm.load_adapter(tmp_path / "adapter")
+    adapters.save_adapter(module.model, tmp_path / "adapter", module.spec, dm.prompt)
+    reloaded, spec, prompt = adapters.load_adapter(tmp_path / "adapter")
     with torch.no_grad():
         got = reloaded(**model_inputs(batch)).logits
     assert spec == module.spec and prompt == dm.prompt
@@ -547,11 +547,11 @@ def _exported_checkpoint_is_the_adapter_of_its_step(ckpt: Path, adapter: Path, o
     assert main(["export-adapter", str(ckpt), "--out", str(out)]) == 0
     ours, theirs = load_file(out / "adapter_model.safetensors"), load_file(adapter / "adapter_model.safetensors")
     assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
-    assert lm.read_adapter_meta(out) == lm.read_adapter_meta(adapter)
+    assert adapters.read_adapter_meta(out) == adapters.read_adapter_meta(adapter)
     assert json.loads((out / "adapter_config.json").read_text()) == json.loads(
         (adapter / "adapter_config.json").read_text()
     )
-    lm.load_adapter(out)  # PeftModel.from_pretrained on the rebuilt base
+    adapters.load_adapter(out)  # PeftModel.from_pretrained on the rebuilt base
     torch.save({"state_dict": {}}, out / "other.ckpt")
     assert main(["export-adapter", str(out / "other.ckpt"), "--out", str(out / "x")]) == 2
     assert main(["export-adapter", str(out / "adapter_config.json"), "--out", str(out / "x")]) == 2  # not a ckpt
@@ -836,7 +836,7 @@ def test_ddp_two_processes_on_cpu(tmp_path, dataset_dir):
     )
     record = json.loads((out / "metrics.json").read_text())
     assert record["global_step"] == 2 and "val/yaml_valid" in record["metrics"]
-    model, spec, prompt = lm.load_adapter(out / "adapter")
+    model, spec, prompt = adapters.load_adapter(out / "adapter")
     dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=2)
     dm.setup("fit")
     assert dm.prompt == prompt
@@ -1180,11 +1180,11 @@ def test_a_checkpoint_folder_or_another_stages_checkpoint_is_refused_before_the_
     deepspeed = tmp_path / "deepspeed.ckpt"  # DeepSpeed's folder is still Lightning's to read
     deepspeed.mkdir()
     (deepspeed / "latest").write_text("checkpoint")
-    lm.check_resume_checkpoint(deepspeed, "sft")
+    adapters.check_resume_checkpoint(deepspeed, "sft")
     for stage, other in (("sft", "pro"), ("pro", "sft")):
         with pytest.raises(ValueError, match=rf"a checkpoint of stage={other}, but the run is stage={stage}"):
             train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", f"stage={stage}", f"ckpt_path={folder / other}.ckpt"))
-        lm.check_resume_checkpoint(folder / f"{stage}.ckpt", stage)
+        adapters.check_resume_checkpoint(folder / f"{stage}.ckpt", stage)
     assert not (tmp_path / "x").exists()
 
 
@@ -1458,8 +1458,8 @@ def test_resume_refuses_another_adapter_shape_before_loading_its_weights():
 
     spec = lm.ModelSpec(kind="tiny", lora_rank=32, lora_alpha=64.0, modules_to_save=["embed_tokens", "lm_head"])
     stored = dataclasses.asdict(spec)
-    lm.check_same_base(stored, spec)  # the same settings, tuples or lists alike
-    lm.check_same_base({**stored, "lora_targets": list(spec.lora_targets)}, spec)
+    adapters.check_same_base(stored, spec)  # the same settings, tuples or lists alike
+    adapters.check_same_base({**stored, "lora_targets": list(spec.lora_targets)}, spec)
     for key, value, message in (
         ("lora_rank", 8, "lora_rank=32, but the run builds lora_rank=8"),
         ("lora_targets", ("q_proj",), r"lora_targets=\(.*'down_proj'\), but the run builds lora_targets=\('q_proj',\)"),
@@ -1471,7 +1471,7 @@ def test_resume_refuses_another_adapter_shape_before_loading_its_weights():
         ("train_vision", True, "train_vision=False, but the run builds train_vision=True"),
     ):
         with pytest.raises(ValueError, match=message):
-            lm.check_same_base(stored, dataclasses.replace(spec, **{key: value}))
+            adapters.check_same_base(stored, dataclasses.replace(spec, **{key: value}))
 
 
 def test_resume_takes_the_same_adapter_modules_listed_in_another_order():
@@ -1481,10 +1481,10 @@ def test_resume_takes_the_same_adapter_modules_listed_in_another_order():
 
     spec = lm.ModelSpec(kind="tiny", modules_to_save=["embed_tokens", "lm_head"])
     stored = dataclasses.asdict(spec)
-    lm.check_same_base(stored, dataclasses.replace(spec, modules_to_save=("lm_head", "embed_tokens")))
-    lm.check_same_base(stored, dataclasses.replace(spec, lora_targets=tuple(reversed(spec.lora_targets))))
+    adapters.check_same_base(stored, dataclasses.replace(spec, modules_to_save=("lm_head", "embed_tokens")))
+    adapters.check_same_base(stored, dataclasses.replace(spec, lora_targets=tuple(reversed(spec.lora_targets))))
     with pytest.raises(ValueError, match=r"modules_to_save=\('embed_tokens', 'lm_head'\), but the run builds"):
-        lm.check_same_base(stored, dataclasses.replace(spec, modules_to_save=("lm_head",)))
+        adapters.check_same_base(stored, dataclasses.replace(spec, modules_to_save=("lm_head",)))
 
 
 def test_validation_that_cannot_keep_to_its_steps_under_accumulation_is_named(tmp_path, dataset_dir, caplog):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from aynamics import flow, lm, video_io
+from aynamics import adapters, flow, lm, video_io
 from aynamics.predict import clip_of
 
 
@@ -302,10 +302,10 @@ def test_prompt_clock_checks_and_old_adapters(tmp_path):
         lm.PromptSpec(fps=0)
     with pytest.raises(ValueError, match=r"clip_frames = \[0, 3, 3\]: must be increasing"):
         lm.PromptSpec(clip_frames=(0, 3, 3))
-    meta = lm.adapter_meta(lm.ModelSpec(), lm.PromptSpec())
+    meta = adapters.adapter_meta(lm.ModelSpec(), lm.PromptSpec())
     for key in ("fps", "clip_frames"):
         del meta["prompt"][key]
-    old = lm.specs_of_meta(meta)[1]
+    old = adapters.specs_of_meta(meta)[1]
     assert old.fps == 30 and old.clip_frames == tuple(range(0, 30, 3))
     (tmp_path / "generate.json").write_text('{"config": {"fps": 60, "physics": 2}}')
     split = datasets.Dataset.from_dict({"frame_indices": [[0, 2, 4, 6]]})
