@@ -409,7 +409,7 @@ def run_audit(args) -> int:
     import json
     import sys
 
-    from aynamics.audit_report import write_report
+    from aynamics.audit_report import AUDIT_FILES, write_report
     from aynamics.cli import UsageError, check_out_folder, load_scene
     from aynamics.measured import Measured, check_units, every_nth, read_csv
 
@@ -421,7 +421,7 @@ def run_audit(args) -> int:
         raise UsageError(f"audit: --seed {args.seed}: must be >= 0")
     if args.held_out_every < 0 or args.held_out_every == 1:
         raise UsageError(f"audit: --held-out-every {args.held_out_every}: must be 0 (a random split) or >= 2")
-    check_out_folder("audit", args.out)  # before the audit's minutes
+    check_out_folder("audit", args.out, writes=AUDIT_FILES)  # before the audit's minutes; not mixed into a folder
     scene = load_scene("audit", args.scene, "--scene")
     try:
         measured = read_csv(args.measured)

@@ -23,6 +23,9 @@ from aynamics.residuals import phase_errors  # noqa: E402
 from aynamics.scene import Scene, parse  # noqa: E402
 from aynamics.simulate import half_extents  # noqa: E402
 
+# what write_report writes into --out: `aynamics audit` refuses a folder holding anything else (`cli.check_out_folder`)
+AUDIT_FILES = frozenset({"report.md", "extended_scene.yaml", "residuals.png", "phases.png", "worst.png"})
+
 
 def _first_bounce(scene: Scene, tracks, positions, orientations) -> list[float]:
     out = []

@@ -244,8 +244,9 @@ def config_from_dict(data: dict, base: GenerateConfig | None = None, where: str 
 
 
 def apply_overrides(config: GenerateConfig, overrides: list[str]) -> GenerateConfig:
-    """Apply `key=value` overrides (`width=96`, `sampler.max_objects=2`, `sampler.speed=[0.5,3]`); values are YAML."""
-    import yaml
+    """Apply `key=value` overrides (`width=96`, `sampler.max_objects=2`, `sampler.speed=[0.5,3]`); values are YAML,
+    with YAML 1.2 numbers as in scenes (`duration=5e-1` is a number)."""
+    from aynamics.scene_text import load_yaml
 
     data: dict = {}
     for text in overrides:
@@ -253,8 +254,8 @@ def apply_overrides(config: GenerateConfig, overrides: list[str]) -> GenerateCon
         if not sep or not key:
             raise ValueError(f"override {text!r}: must be key=value, e.g. sampler.max_objects=3")
         try:
-            value = yaml.safe_load(raw)
-        except yaml.YAMLError:
+            value = load_yaml(raw)
+        except SceneError:
             raise ValueError(f"override {text!r}: value {raw!r} is not valid YAML") from None
         parts = key.split(".")
         node = data
@@ -272,17 +273,17 @@ def load_config(path: str | os.PathLike) -> GenerateConfig:
     Raises:
         ValueError: the path is a folder or unreadable, or the file is not valid YAML or not a config.
     """
-    import yaml
+    from aynamics.scene_text import load_yaml
 
     if Path(path).is_dir():
         raise ValueError(f"--config {str(path)!r} is a folder: give a YAML file (see conf/generate/default.yaml)")
     try:
         with open(path, encoding="utf-8") as f:
-            data = yaml.safe_load(f) or {}
+            data = load_yaml(f.read()) or {}  # YAML 1.2 numbers, as in scenes: `duration: 5e-1` is a number
     except FileNotFoundError:
         raise
-    except yaml.YAMLError as e:
-        raise ValueError(f"--config {str(path)!r}: invalid YAML: {e}") from None
+    except SceneError as e:
+        raise ValueError(f"--config {str(path)!r}: invalid YAML: {e.problems[0].message}") from None
     except (OSError, UnicodeDecodeError) as e:
         raise ValueError(f"--config {str(path)!r}: cannot read: {getattr(e, 'strerror', None) or e}") from None
     return config_from_dict(data, where=str(path))

@@ -170,7 +170,7 @@ def _track(tid: str, rows: list, objects: list[str], has_q: bool, has_v: tuple[b
             q = np.array(v[3:7])
             norm = np.linalg.norm(q)
             if not 0.5 < norm < 1.5:
-                raise MeasuredError(f"{path}: trajectory {tid!r}, t = {time}: quaternion {list(q)} is not unit")
+                raise MeasuredError(f"{path}: trajectory {tid!r}, t = {time}: quaternion {q.tolist()} is not unit")
             quat[k, i] = q / norm
         if vel is not None:
             off = 7 if has_q else 3
@@ -291,7 +291,7 @@ def split(
         raise MeasuredError(f"{len(ids)} trajectories: at least 3 are needed to split fit/validation/held-out")
     order = list(np.random.default_rng(seed).permutation(len(ids)))
     n = len(ids)
-    a = max(1, int(round(fractions[0] * n)))
+    a = min(n - 2, max(1, int(round(fractions[0] * n))))  # at least one validation and one held-out trajectory
     b = max(a + 1, min(n - 1, a + int(round(fractions[1] * n))))
     pick = [ids[k] for k in order]
     return pick[:a], pick[a:b], pick[b:]

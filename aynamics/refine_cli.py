@@ -129,6 +129,13 @@ def run_refine_command(args) -> int:
         if not out.parent.is_dir():
             raise UsageError(f"refine: cannot write --out {args.out!r}: folder {str(out.parent)!r} does not exist")
     preds = [load_scene("refine", p) for p in args.pred]
+    odd = next((k for k, s in enumerate(preds) if s.structure != preds[0].structure), None)
+    if odd is not None:  # the search starts from the best of them: one set of objects (named with their files)
+        first, other = (f"{args.pred[k]!r} has {list(preds[k].structure)}" for k in (0, odd))
+        raise UsageError(
+            f"refine: the predicted scenes must hold the same objects in the same order (a warm start from the "
+            f"best): {first}, {other}"
+        )
     obs_path = Path(args.observed)
     try:
         if obs_path.is_dir():
@@ -149,8 +156,8 @@ def run_refine_command(args) -> int:
             stop_at=args.stop_at,
             sigma_scale=args.sigma_scale,
         )
-    except ValueError as e:
-        raise UsageError(f"refine: {e}") from None
+    except ValueError as e:  # refine's own messages start with "refine: " already
+        raise UsageError(f"refine: {str(e).removeprefix('refine: ')}") from None
     if args.out:
         try:
             Path(args.out).write_text(result.yaml)

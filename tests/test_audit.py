@@ -301,8 +301,13 @@ def test_cli_bad_input_exits_2_naming_the_file(tmp_path, capsys):
     scene.write_text(
         "- type: sphere\n  radius: 0.1\n  state:\n    position: [0, 0, 0.1]\n- type: camera\n  position: [0, -3, 2]\n"
     )
-    rc = main(["audit", "--measured", str(tmp_path / "nope.csv"), "--scene", str(scene), "--out", str(tmp_path)])
+    out = tmp_path / "out"
+    rc = main(["audit", "--measured", str(tmp_path / "nope.csv"), "--scene", str(scene), "--out", str(out)])
     assert rc == 2 and "nope.csv" in capsys.readouterr().err
+    # a folder of other files (a user's own report.md was overwritten, the plots mixed in) is refused up front
+    rc = main(["audit", "--measured", str(tmp_path / "nope.csv"), "--scene", str(scene), "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"audit: --out {str(tmp_path)!r} holds other files ('s.yaml', ...)" in err, err
     rc = main(["audit", "--measured", "m.csv", "--scene", str(scene), "--out", str(tmp_path), "--step-hz", "5"])
     assert rc == 2 and "--step-hz 5: must be in [30, 10000]" in capsys.readouterr().err
 
@@ -870,6 +875,26 @@ def test_split_takes_numpy_fractions():
     assert split(ids, seed=1, fractions=(np.float64(0.5), np.float32(0.25))) == split(ids, seed=1)
     with pytest.raises(ValueError, match=r"split: fractions = \(True, 0.25\)"):
         split(ids, fractions=(True, 0.25))
+
+
+def test_split_of_few_trajectories_leaves_no_split_empty():
+    """3 trajectories (the least `split` takes) were cut 2 / 1 / 0: `aynamics audit --max-trajectories 3` ended in a
+    traceback (track_errors: tracks = []); fractions (0.9, 0.05) left the held-out split empty up to 15. Each split
+    now keeps one; the default split of 4 or more is as before."""
+    for fractions in [(0.5, 0.25), (0.9, 0.05), (0.1, 0.1)]:
+        for n in range(3, 40):
+            parts = split([str(k) for k in range(n)], seed=1, fractions=fractions)
+            assert all(parts) and sum(map(len, parts)) == n, (fractions, n, parts)
+    assert [len(p) for p in split([str(k) for k in range(20)], seed=1)] == [10, 5, 5]
+
+
+def test_a_quaternion_that_is_not_unit_is_named_as_plain_numbers(tmp_path):
+    """The message showed NumPy 2's reprs, "quaternion [np.float64(-0.14), np.float64(-868.3), ...]"."""
+    p = tmp_path / "q.csv"
+    rows = "".join(f"0,{k / 100},a,0,0,1,1,0,0,{9 if k == 2 else 0}\n" for k in range(6))
+    p.write_text("trajectory,t,object,x,y,z,qw,qx,qy,qz\n" + rows)
+    with pytest.raises(MeasuredError, match=r"t = 0.02: quaternion \[1.0, 0.0, 0.0, 9.0\] is not unit$"):
+        read_csv(str(p))
 
 
 def test_physics_rate_takes_whole_numbers_and_names_a_fractional_one():

@@ -195,6 +195,21 @@ def test_config_files_and_overrides(tmp_path):
     assert default == gen.GenerateConfig()  # the documented file is the defaults
 
 
+def test_overrides_and_config_files_read_yaml_1_2_numbers(tmp_path):
+    """`duration=5e-1` is a number, as in scenes (the README: YAML 1.2, `1e-3` is a number): PyYAML's 1.1 read it
+    as the string '5e-1', refused as "must be a number"."""
+    cfg = gen.apply_overrides(gen.GenerateConfig(), ["duration=5e-1", "sampler.speed=[5e-1, 3]"])
+    assert (cfg.duration, cfg.sampler.speed) == (0.5, (0.5, 3.0))
+    with pytest.raises(ValueError, match=r"override 'width=\[1,': value '\[1,' is not valid YAML"):
+        gen.apply_overrides(cfg, ["width=[1,"])
+    path = tmp_path / "c.yaml"
+    path.write_text("duration: 5e-1\nsampler:\n  speed: [1e-1, 2]\n")
+    assert (gen.load_config(path).duration, gen.load_config(path).sampler.speed) == (0.5, (0.1, 2.0))
+    path.write_text("width: [1,\n")
+    with pytest.raises(ValueError, match=r"--config '.*c.yaml': invalid YAML: .*\(line 2, column 1\)"):
+        gen.load_config(path)
+
+
 def test_each_resample_draws_from_its_own_attempts_seed(monkeypatch):
     """Attempt a of scene i of a run with seed s samples from `default_rng(scene_seed(s, i, a))`: a scene that
     fails is resampled from new numbers, not the same scene again (3 attempts: 3 different first draws, each that

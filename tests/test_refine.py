@@ -340,6 +340,22 @@ def test_cli_refine_bad_out_is_refused_before_the_search(tmp_path, capsys, truth
     assert "is a folder" in capsys.readouterr().err
 
 
+def test_cli_refine_predictions_with_other_objects_are_named_by_file(tmp_path, capsys, truth, monkeypatch):
+    """Two predictions with different objects: the files are named, before the search, with one "refine:" (it
+    said "refine: refine: initial scenes differ in objects: [...]", naming no file)."""
+    import aynamics.refine
+
+    path, other = tmp_path / "s.yaml", tmp_path / "one.yaml"
+    path.write_text(dump(truth))
+    box = "- type: box\n  size: [0.2, 0.2, 0.2]\n  state:\n    position: [0, 0, 0.2]\n"
+    other.write_text(box + "- type: camera\n  position: [0, -3, 2]\n")
+    monkeypatch.setattr(aynamics.refine, "refine", lambda *a, **k: pytest.fail("searched with mismatched scenes"))
+    assert cli.main(["refine", str(path), str(other), "--observed", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("refine: the predicted scenes must hold the same objects") and "refine: refine" not in err
+    assert f"{str(path)!r} has {list(truth.structure)}, {str(other)!r} has ['box']" in err, err
+
+
 def test_colour_segmentation_by_hand():
     """Background (-1) is dark grey (30, 30, 30); object k takes palette colour k mod 7: 0 red (230, 25, 75),
     1 green (60, 180, 75), 6 pink (240, 50, 230), 7 red again."""
