@@ -75,6 +75,20 @@ def load_scene(command: str, path: str, flag: str | None = None):
         raise UsageError(f"{where}: {e}") from None
 
 
+RENDERED_SUFFIXES = (".npy", ".npz", ".png", ".gif", ".mp4", ".json")  # files a render folder holds
+
+
+def refuse_rendered_file(command: str, path: str) -> None:
+    """An `--observed` file of a render folder (segmentation.npy, a frame) is refused with the folder to give: it
+    was read as a scene text and refused as "too large: a scene is at most 200000 characters"."""
+    p = Path(path)
+    if p.suffix.lower() in RENDERED_SUFFIXES and not p.is_dir():
+        raise UsageError(
+            f"{command}: --observed {path!r} is a {p.suffix} file, not a scene: give the scene's YAML file or the "
+            f"folder `aynamics render` wrote (here perhaps {str(p.parent)!r})"
+        )
+
+
 @contextlib.contextmanager
 def warnings_as_lines(command: str, prefix: str):
     """Within the block, a warning whose text starts with `prefix` (this project's own, about the user's input)

@@ -92,8 +92,10 @@ class LLMEditor:
             self.tokenizer = AutoTokenizer.from_pretrained(model)
             self.model = AutoModelForCausalLM.from_pretrained(model).to(device).eval()
         except (OSError, ValueError) as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise EditError(f"--llm {model!r}: cannot load a chat model with transformers: {first}") from None
+            # on one line, whole up to 400 characters: its first line alone ended at "... from one of:" (helper-93)
+            said = " ".join(str(e).split())
+            said = (said[:397] + "...") if len(said) > 400 else said or type(e).__name__
+            raise EditError(f"--llm {model!r}: cannot load a chat model with transformers: {said}") from None
         if not getattr(self.tokenizer, "chat_template", None):
             raise EditError(f"--llm {model!r}: the tokenizer has no chat template; give an instruction-tuned model")
         self.name = model

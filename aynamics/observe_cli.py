@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aynamics.cli import UsageError, check_out_folder, load_scene
+from aynamics.cli import UsageError, check_out_folder, load_scene, refuse_rendered_file
 
 # What `render --out DIR` writes (see the module docstring): a folder holding anything else is refused.
 RENDER_FILES = frozenset(
@@ -181,6 +181,7 @@ def _run_score(args) -> int:
     if missing:  # a mistyped path, not a prediction to score 0 (a file that exists but cannot be read still is)
         raise UsageError(f"score: prediction file(s) not found: {', '.join(map(repr, missing))}")
     observed = Path(args.observed)
+    refuse_rendered_file("score", args.observed)
     try:
         if observed.is_dir():
             obs = scorer.Observation.from_dir(observed, width=args.width, height=args.height)

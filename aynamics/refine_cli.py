@@ -98,7 +98,7 @@ def run_refine_command(args) -> int:
     """`aynamics refine`: refine, then print/write; usage errors exit 2 with a one-paragraph message."""
     from pathlib import Path
 
-    from aynamics.cli import UsageError, load_scene
+    from aynamics.cli import UsageError, load_scene, refuse_rendered_file
     from aynamics.refine import refine
     from aynamics.scene import load
     from aynamics.scorer import Observation
@@ -137,6 +137,7 @@ def run_refine_command(args) -> int:
             f"best): {first}, {other}"
         )
     obs_path = Path(args.observed)
+    refuse_rendered_file("refine", args.observed)
     try:
         if obs_path.is_dir():
             observed = Observation.from_dir(obs_path)

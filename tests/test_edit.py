@@ -493,6 +493,11 @@ def test_the_chat_editor_asks_with_the_scene_and_answers_greedily_with_its_own_t
 def test_llm_editor_missing_model(tmp_path):
     with pytest.raises(EditError, match="cannot load"):
         LLMEditor(str(tmp_path / "nothing"))
+    # an empty folder: transformers' message is several lines; its first alone ended at "... from one of:"
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(EditError, match="cannot load a chat model with transformers") as err:
+        LLMEditor(str(tmp_path / "empty"))
+    assert "\n" not in str(err.value) and not str(err.value).endswith(":")
 
 
 def test_llm_editor_device_is_checked_before_loading(tmp_path, capsys):

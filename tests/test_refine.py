@@ -401,6 +401,21 @@ def test_cli_refine_missing_observed(tmp_path, capsys, truth):
     assert "missing.yaml" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", ["refine", "score"])
+def test_cli_observed_file_of_a_render_folder_names_the_folder(tmp_path, capsys, truth, command):
+    """`--observed DIR/segmentation.npy` was read as a scene text: "too large: ... a scene is at most 200000
+    characters" (helper-93). The file is refused before it is read, with the folder to give instead."""
+    path = tmp_path / "s.yaml"
+    path.write_text(dump(truth))
+    (tmp_path / "render").mkdir()
+    np.save(tmp_path / "render" / "segmentation.npy", np.zeros((2, 4, 6), np.int16))
+    observed = str(tmp_path / "render" / "segmentation.npy")
+    assert cli.main([command, str(path), "--observed", observed]) == 2
+    err = capsys.readouterr().err
+    assert f"{command}: --observed {observed!r} is a .npy file, not a scene" in err
+    assert f"the folder `aynamics render` wrote (here perhaps {str(tmp_path / 'render')!r})" in err
+
+
 # --------------------------------------------------------------------------------------------
 # Observed tracks
 # --------------------------------------------------------------------------------------------
