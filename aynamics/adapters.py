@@ -282,6 +282,12 @@ def checkpoint_stage(checkpoint: dict) -> str | None:
     return "pro" if "num_samples" in hp else "sft" if "warmup_steps" in hp else None
 
 
+def _suggested_checkpoint(folder: Path) -> str | None:
+    """The checkpoint of `folder` to name when a folder was given for one: last.ckpt, else the last by name."""
+    found = sorted(p.name for p in folder.glob("*.ckpt"))
+    return "last.ckpt" if "last.ckpt" in found else found[-1] if found else None
+
+
 def check_resume_checkpoint(path: str | Path, stage: str | None = None) -> None:
     """Refuse, before a model is built, a `ckpt_path` that Lightning could not resume from: a missing path, a file
     torch cannot read (as Lightning reads it: `weights_only`), a dict without Lightning's version key (Lightning
@@ -297,8 +303,7 @@ def check_resume_checkpoint(path: str | Path, stage: str | None = None) -> None:
     if path.is_dir():
         if (path / "latest").is_file():  # DeepSpeed's folder: its tag file, then the tag's shards
             return
-        found = sorted(p.name for p in path.glob("*.ckpt"))
-        pick = "last.ckpt" if "last.ckpt" in found else found[-1] if found else None
+        pick = _suggested_checkpoint(path)
         raise ValueError(
             f"ckpt_path = {str(path)!r}: a folder, not a checkpoint (nor DeepSpeed's checkpoint folder): give a .ckpt"
             + (f", e.g. ckpt_path={path / pick}" if pick else " file (OUT/checkpoints/last.ckpt)")
@@ -335,8 +340,7 @@ def adapter_from_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     """
     checkpoint = Path(checkpoint)
     if checkpoint.is_dir():  # OUT/checkpoints itself was "no such checkpoint", though the folder is there
-        found = sorted(p.name for p in checkpoint.glob("*.ckpt"))
-        pick = "last.ckpt" if "last.ckpt" in found else found[-1] if found else None
+        pick = _suggested_checkpoint(checkpoint)
         raise ValueError(
             f"{str(checkpoint)!r} is a folder, not a checkpoint: give a .ckpt file"
             + (f", e.g. {checkpoint / pick}" if pick else " (OUT/checkpoints/stepNNNNNN.ckpt or last.ckpt)")
