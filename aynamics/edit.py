@@ -212,14 +212,18 @@ def _quantity(text: str) -> tuple[Quantity, int | None]:
     raise EditError(f"quantity {text!r} not understood. {UNDERSTOOD}")
 
 
-def _targets(text: str | None, scene: Scene, previous: list[int] | str | None = None) -> list[int]:
+def _targets(
+    text: str | None, scene: Scene, previous: list[int] | str | None = None, gone: frozenset[int] = frozenset()
+) -> list[int]:
     """Indices of the objects a target phrase names; None or 'all objects' means every object; 'it' / 'them' the
-    objects of the clause before (`previous`), unless an object has that name ("stop it" stops an object named it)."""
+    objects of the clause before (`previous`), unless an object has that name ("stop it" stops an object named it).
+    Every object and the objects of a kind ('all boxes', 'the box') leave out those an earlier clause removed
+    (`gone`): "remove box_0 and double the mass of all objects" was refused as editing box_0."""
     lower = {n.lower(): i for i, n in enumerate(scene.names)}
     if text is not None and re.fullmatch(r"it|them", text) and text not in lower:
         return _previous(text, previous, scene)
     if text is None or re.fullmatch(r"(?:all|every|each)(?: (?:the )?objects?)?|everything|the objects", text):
-        return list(range(len(scene.objects)))
+        return [i for i in range(len(scene.objects)) if i not in gone]
     out: list[int] = []
     for part in re.split(r"\s*,\s*(?:and\s+)?|\s+and\s+", text.strip()):
         part = part.strip()
@@ -237,9 +241,10 @@ def _targets(text: str | None, scene: Scene, previous: list[int] | str | None = 
                 )
             raise EditError(f"object {part!r} not found; the scene has {list(scene.names)}. {UNDERSTOOD}")
         kind = {"boxes": "box", "spheres": "sphere", "cylinders": "cylinder"}.get(m.group(2), m.group(2))
-        idx = [i for i, o in enumerate(scene.objects) if o.type == kind]
+        idx = [i for i, o in enumerate(scene.objects) if o.type == kind and i not in gone]
         if not idx:
-            raise EditError(f"{part!r}: the scene has no {kind}; its objects are {list(scene.names)}")
+            left = [n for i, n in enumerate(scene.names) if i not in gone]
+            raise EditError(f"{part!r}: the scene has no {kind}{' left' if gone else ''}; its objects are {left}")
         singular = m.group(2) == kind and m.group(1) in (None, "the")
         if singular and len(idx) > 1:
             names = [scene.names[i] for i in idx]
@@ -568,14 +573,14 @@ def _clause(
             raise EditError(f"{clause!r}: a move takes a distance like '0.5 m', not {m.group('n')!r}")
         fn = _relative(q, comp, sign, amount, "abs", clause)
     elif m := re.fullmatch(r"(?:stop|freeze) (?P<t>.+)", c):
-        idx = _targets(m.group("t"), scene, previous)
+        idx = _targets(m.group("t"), scene, previous, _gone(items))
         _not_removed(items, idx, clause)
         for i in idx:
             items[i]["state"]["linear_velocity"] = [0.0, 0.0, 0.0]
             items[i]["state"]["angular_velocity"] = [0.0, 0.0, 0.0]
         return idx
-    elif m := re.fullmatch(r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the scene)?", c):
-        idx = _targets(m.group("t"), scene, previous)
+    elif m := re.fullmatch(_REMOVE, c):
+        idx = _targets(m.group("t"), scene, previous, _gone(items))
         _not_removed(items, idx, clause)
         for i in idx:
             items[i][_REMOVED] = True
@@ -585,13 +590,18 @@ def _clause(
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
         t_text = None  # "the field of view of the camera", "the gravity of the scene" name the item itself
     owner = re.match(r"(its|their) ", q_text) if t_text is None and q.scope == "object" else None
-    idx = _previous(owner.group(1), previous, scene) if owner else _targets(t_text, scene, previous)
+    idx = _previous(owner.group(1), previous, scene) if owner else _targets(t_text, scene, previous, _gone(items))
     for item in _items_of(q, items, idx, scene, t_text is not None or owner is not None):
         _edit_field(item, q, comp, fn, repr(clause))
     return idx if q.scope == "object" else clause if q.scope == "camera" else previous
 
 
 _REMOVED = "__removed__"  # marks an object item a clause removed; `apply_instruction` drops it at the end
+_REMOVE = r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the scene)?"  # a removal clause
+
+
+def _gone(items: list[dict]) -> frozenset[int]:
+    return frozenset(i for i, item in enumerate(items) if item.get(_REMOVED))
 
 
 def _not_removed(items: list[dict], idx: list[int], clause: str) -> None:
@@ -752,7 +762,8 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     Objects named in the text (or 'the box', 'all spheres') restrict the per-object fields; none named means
     every object, unless the camera is named ("rotate the camera": its fields, no object's; "toward the camera" is a
     direction, not the camera). A component named ('x-velocity') restricts a vector to that element. Moves name
-    positions, 'stop' names both velocities, 'remove' the whole object.
+    positions, 'stop' names both velocities; a removal clause ('remove box_0') names the object by its bare name,
+    which allows its removal and none of its fields (`aynamics.edit_llm.check_output`).
     """
     require_scene(scene, "named_fields: scene")
     if not isinstance(instruction, str):  # None / bytes failed on "'NoneType' object has no attribute 'lower'"
@@ -790,8 +801,21 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
         fields.update(f"{o}.state.position" for o in objs)
     if re.search(r"\b(?:stop|freeze)\b", text):
         fields.update(f"{o}.state.{k}" for o in objs for k in ("linear_velocity", "angular_velocity"))
-    if re.search(r"\b(?:remove|delete|take (?:away|out))\b", text):  # the whole object: its removal is one change
-        fields.update(objs)
+    # a removal names each object of a removal clause by its bare name: its removal, none of its fields
+    # (`check_output` keeps the two apart). "remove" anywhere named every field of every object the text named:
+    # "double the mass of cylinder_0 and remove box_0" let a free editor move cylinder_0, "remove the spin of box_0"
+    # delete box_0
+    for clause in _normalise(instruction, scene.names):
+        m = re.fullmatch(_REMOVE, clause)
+        if m is None:
+            continue
+        if re.fullmatch(r"it|them", m.group("t")) and m.group("t") not in lower:
+            fields.update(objs)  # "stop box_0 and remove it": the objects the text names
+            continue
+        try:
+            fields.update(scene.names[i] for i in _targets(m.group("t"), scene))
+        except EditError:  # "remove the spin of box_0" removes no object
+            pass
     return fields
 
 

@@ -53,7 +53,10 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
     if not changes:
         raise EditError(f"LLM edit refused: the model's answer changes nothing for {instruction!r}")
     allowed = named_fields(instruction, scene)
-    bad = outside(changes, allowed)
+    # an object's bare name allows its removal, not its fields ("double the mass of cylinder_0 and remove box_0"
+    # let the model keep box_0 and move it)
+    fields = allowed - set(scene.names)
+    bad = [c for c in changes if outside([c], allowed if c.removed else fields)]
     if bad:
         shown = "; ".join(str(c) for c in bad[:6]) + (f"; ... ({len(bad)} in all)" if len(bad) > 6 else "")
         raise EditError(

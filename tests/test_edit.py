@@ -812,3 +812,46 @@ def test_named_fields_of_the_camera(scene):
         check_output(scene, "rotate the camera by 10 degrees", spun)
     with pytest.raises(TypeError, match=r"named_fields: instruction is a NoneType, not a str"):
         named_fields(None, scene)
+
+
+def test_a_removal_allows_the_free_editor_no_other_change(scene):
+    """named_fields gave every field of every object the text named once "remove" was anywhere in it: a model that
+    kept box_0 and moved it, or moved cylinder_0, passed "double the mass of cylinder_0 and remove box_0", and one
+    that deleted box_0 passed "remove the spin of box_0". A removal clause now allows that object's removal alone."""
+    box, cyl = scene.objects
+    moved_box = box.model_copy(update={"state": box.state.model_copy(update={"position": [3.0, 3.0, 0.4]})})
+    moved_cyl = cyl.model_copy(update={"state": cyl.state.model_copy(update={"position": [3.0, 3.0, 0.3]})})
+
+    def answer(objects):
+        return f"```yaml\n{dump(scene.model_copy(update={'objects': objects}))}```"
+
+    instruction = "double the mass of cylinder_0 and remove box_0"
+    with pytest.raises(EditError, match=r"does not name: cylinder_0.state.position\[0\]"):
+        check_output(scene, instruction, answer([moved_cyl]))
+    with pytest.raises(EditError, match=r"does not name: box_0.state.position\[0\]"):
+        check_output(scene, instruction, answer([moved_box, cyl]))
+    with pytest.raises(EditError, match=r"does not name: box_0: removed \(box\)"):
+        check_output(scene, "remove the spin of box_0", answer([cyl]))
+    assert [c.path for c in check_output(scene, "stop cylinder_0 and remove it", answer([box])).changes] == [
+        "cylinder_0"
+    ]
+    assert named_fields("remove box_0", scene) == {"box_0"}
+
+
+def test_every_object_after_a_removal_is_every_object_left(scene):
+    """ "remove box_0 and double the mass of all objects" was refused ("box_0 was removed by an earlier clause"): every
+    object and the objects of a kind are those left; a removed object named again is still refused."""
+    for instruction in (
+        "remove box_0 and double the mass of all objects",
+        "remove box_0, then double the mass of everything",
+        "delete the box and double the mass",
+    ):
+        result = apply_instruction(scene, instruction)
+        assert [str(c) for c in result.changes] == ["box_0: removed (box)", "cylinder_0.physics.mass: 1.0 -> 2.0"]
+    stopped = apply_instruction(scene, "remove box_0 and stop everything")
+    assert stopped.scene.names == ("cylinder_0",)
+    assert tuple(stopped.scene.objects[0].state.linear_velocity) == (0.0, 0.0, 0.0)
+    with pytest.raises(EditError, match="'the box': the scene has no box left; its objects are"):
+        apply_instruction(scene, "remove box_0 and double the mass of the box")
+    with pytest.raises(EditError, match="box_0 was removed by an earlier clause"):
+        apply_instruction(scene, "remove box_0 and double the mass of box_0")
