@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -101,20 +102,26 @@ def _measure(args: tuple) -> dict:
     }
 
 
-def _dataset(path: str | None) -> str:
+def _dataset(path: str | None) -> tuple[str, Path | None]:
+    """The data set to measure on, and the scratch folder to delete afterwards when one was generated here."""
     if path:
-        return path
+        return path, None
     default = ROOT / "data" / "generated" / "make_train_plain"
     if (default / "dataset_dict.json").is_file():
-        return str(default)
+        return str(default), None
     from aynamics.generate import GenerateConfig, generate_dataset
 
-    out = Path(tempfile.mkdtemp(prefix="bench_train_")) / "data"
+    scratch = Path(tempfile.mkdtemp(prefix="bench_train_"))
+    out = scratch / "data"
     print(f"generating 12 scenes at 64x48 into {out} ...", flush=True)
-    generate_dataset(
-        out, num=12, seed=0, config=GenerateConfig(width=64, height=48, workers=0, splits=(0.5, 0.25, 0.25))
-    )
-    return str(out)
+    try:
+        generate_dataset(
+            out, num=12, seed=0, config=GenerateConfig(width=64, height=48, workers=0, splits=(0.5, 0.25, 0.25))
+        )
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    return str(out), scratch
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,7 +143,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.steps < 2:
         raise SystemExit(f"--steps = {args.steps}: need >= 2 (the first is a warm-up)")
-    data = _dataset(args.data)
+    data, scratch = _dataset(args.data)
+    try:
+        return _run(args, data)
+    finally:  # the scenes generated for lack of a data set (each run left a bench_train_* folder in /tmp)
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _run(args, data: str) -> int:
     overrides = [*args.overrides]
     overrides += [f"data.batch_size={args.batch_size}"] if args.batch_size else []
     overrides += [f"data.num_frames={args.frames}"] if args.frames else []

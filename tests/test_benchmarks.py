@@ -4,6 +4,7 @@ failed: bench_generate.py had been broken by a change of a worker's job tuple, a
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -51,6 +52,8 @@ def test_benchmark_runs_to_its_end(script):
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip(), "printed nothing"
+    for scratch in re.findall(r"generating \d+ scenes at \d+x\d+ into (\S+) \.\.\.", done.stdout):
+        assert not Path(scratch).exists(), f"{script} left its generated data in {scratch}"
 
 
 def _die(args):  # a measuring process killed by the kernel (out of memory), as bench_train's _measure
