@@ -10,7 +10,6 @@ import json
 import math
 import re
 import sys
-import tempfile
 import types
 from pathlib import Path
 
@@ -140,7 +139,7 @@ def test_split_is_by_whole_trajectory_and_initial_state_recovers_a_parabola(tmp_
     np.testing.assert_allclose(slow["position"], [0.1, 0.0, 1.0], atol=1e-6)  # positions do not scale
 
 
-def test_lagging_measured_velocities_are_corrected_by_the_early_flight():
+def test_lagging_measured_velocities_are_corrected_by_the_early_flight(tmp_path):
     """The cube tosses' velocities are backward differences of the tracked poses: at t = 0 vz reads g·dt/2 =
     0.033 m/s above the true one (checked on the file: v[k] = (p[k] - p[k-1]) · 148 to 0.06 m/s). The audit starts
     from them and corrects the initial position and velocity once by the model's own early residual
@@ -154,7 +153,7 @@ def test_lagging_measured_velocities_are_corrected_by_the_early_flight():
     z_prev = np.r_[z0 - vz0 * dt - 4.905 * dt * dt, z[:-1]]
     rows = ["trajectory,t,object,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz"]
     rows += [f"0,{t[k]},cube,0,0,{z[k]},1,0,0,0,0,0,{(z[k] - z_prev[k]) / dt},0,0,0" for k in range(40)]
-    path = Path(tempfile.mkdtemp()) / "toss.csv"
+    path = tmp_path / "toss.csv"
     path.write_text("\n".join(rows))
     track = read_csv(str(path)).tracks["0"]
     assert track.velocity[0, 0, 2] == pytest.approx(vz0 + 9.81 / 296, abs=1e-9)  # the lagging measurement
@@ -166,7 +165,7 @@ def test_lagging_measured_velocities_are_corrected_by_the_early_flight():
         assert bound[0] <= err <= bound[1], (refine, err)
 
 
-def test_early_flight_correction_on_the_time_scale_candidates_clock():
+def test_early_flight_correction_on_the_time_scale_candidates_clock(tmp_path):
     """The same lagging toss recorded at time_scale s = 1.25 (frame t shows the physical instant 1.25 t): x =
     0.8 τ, z = 0.4 - 0.3 τ - 4.905 τ², τ = s t. The velocity columns are backward differences on the data clock, so
     vz(0) reads s·vz0 + g s² dt / 2 = -0.375 + 9.81 · 1.5625 / 296 = -0.32322 (data m/s). Simulated under the
@@ -187,7 +186,7 @@ def test_early_flight_correction_on_the_time_scale_candidates_clock():
         f"0,{t[k]},cube,{x[k]},0,{z[k]},1,0,0,0,{(x[k] - x_prev[k]) / dt},0,{(z[k] - z_prev[k]) / dt},0,0,0"
         for k in range(40)
     ]
-    path = Path(tempfile.mkdtemp()) / "toss.csv"
+    path = tmp_path / "toss.csv"
     path.write_text("\n".join(rows))
     track = read_csv(str(path)).tracks["0"]
     assert track.velocity[0, 0, 2] == pytest.approx(-0.32322, abs=1e-5)
