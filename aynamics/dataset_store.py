@@ -15,6 +15,7 @@ and splits the rows by their `split` column into the DatasetDict that `datasets.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import re
@@ -23,6 +24,15 @@ from pathlib import Path
 
 FORMAT_VERSION = 1
 SPLITS = ("train", "validation", "test")
+
+
+def split_of(seed: int, index: int, shares: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> str:
+    """The split of scene `index`: a hash of (seed, index), so independent of sharding and order."""
+    digest = hashlib.sha256(f"{seed}:{index}".encode()).digest()
+    u = int.from_bytes(digest[:8], "big") / 2**64
+    return SPLITS[0] if u < shares[0] else SPLITS[1] if u < shares[0] + shares[1] else SPLITS[2]
+
+
 MANIFEST = "generate.json"
 
 

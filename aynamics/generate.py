@@ -50,15 +50,10 @@ Columns (one row per scene; T = 31 states at 30 FPS, F = 10 sampled frames, N ob
 from __future__ import annotations
 
 import dataclasses
-import errno
-import hashlib
-import json
 import multiprocessing as mp
 import os
 import shlex
-import warnings
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -78,380 +73,35 @@ from aynamics.dataset_store import (  # noqa: F401 - re-exported: the storage ha
     features,
     remove_partial_chunks,
     shard_chunks,
+    split_of,
     write_chunk,
     write_manifest,
 )
+from aynamics.generate_config import (  # noqa: F401 - re-exported: generate's settings
+    LABELS_VERSION,
+    GenerateConfig,
+    apply_overrides,
+    config_from_dict,
+    load_config,
+)
 from aynamics.png_encode import png_bytes
-from aynamics.scene import Scene, SceneError, dump, parse
-from aynamics.simulate import PHYSICS_VERSION, Rollout, SimConfig, bounding_radius, simulate
+from aynamics.scene import Scene, dump, parse
+from aynamics.scene_files import (  # noqa: F401 - re-exported: the scenes of `generate --scenes`
+    SceneFile,
+    check_scene_run,
+    scene_files,
+    split_of_folder,
+    warn_repeated_scenes,
+)
+from aynamics.simulate import Rollout, bounding_radius, simulate
 
 if TYPE_CHECKING:  # rendering is imported inside the workers only
     from aynamics.render import Frames, Renderer
 
 
-# Raise when the same rollout gets other labels (rest_time, reasoning text): a run whose chunks were labelled by
-# other code is neither resumed nor assembled with this one (absent: 1). 2: rest from the frame's mean speed (a
-# resting object's contact jitter is not motion), occlusion told apart from leaving the view, heights above the
-# floor plane.
-LABELS_VERSION = 2
-
-
-@dataclass(frozen=True)
-class GenerateConfig:
-    """How records are made (not which ones: that is `seed` and `num`).
-
-    Attributes:
-        sampler: scene sampler ranges and shares.
-        width, height: image size in pixels.
-        duration, fps, substeps: simulation timing (1 s at 30 FPS gives 31 states, a 30-frame video; substeps
-            None: round(240 / fps), a physics step near 1/240 s).
-        stride: every `stride`-th video frame is sampled (3: 10 of 30).
-        splits: train / validation / test shares, summing to 1.
-        chunk_size: scenes per stored chunk (the unit of resume and sharding).
-        max_attempts: resamples of one index whose simulation diverged before giving up.
-        textures_dir: folder of photographs for floor and sky (None: scikit-image's samples).
-        backdrop: "photos" (floor and sky photographs) or "plain" (a random flat colour each).
-        workers: processes rendering in parallel (each holds one OpenGL context); 0 = in this process.
-        min_pixels: mask pixels for an object to count as visible in a frame.
-    """
-
-    sampler: smp.SamplerConfig = field(default_factory=smp.SamplerConfig)
-    width: int = 480
-    height: int = 320
-    duration: float = 1.0
-    fps: int = 30
-    substeps: int | None = None
-    stride: int = 3
-    splits: tuple[float, float, float] = (0.8, 0.1, 0.1)
-    chunk_size: int = 16
-    max_attempts: int = 10
-    textures_dir: str | None = None
-    backdrop: str = "photos"
-    workers: int = 2
-    min_pixels: int = 1
-
-    def __post_init__(self):
-        if not (8 <= self.width <= 4096 and 8 <= self.height <= 4096):
-            raise ValueError(f"width = {self.width}, height = {self.height}: must be in [8, 4096] pixels")
-        SimConfig(self.duration, self.fps, self.substeps)  # raises ValueError naming the bad value
-        if self.stride < 1 or self.chunk_size < 1 or self.max_attempts < 1 or self.min_pixels < 1:
-            raise ValueError(
-                f"stride = {self.stride}, chunk_size = {self.chunk_size}, max_attempts = {self.max_attempts}, "
-                f"min_pixels = {self.min_pixels}: must be >= 1"
-            )
-        if len(self.splits) != 3 or min(self.splits) < 0 or abs(sum(self.splits) - 1) > 1e-6:
-            raise ValueError(f"splits = {list(self.splits)}: need 3 shares (train, validation, test) >= 0 summing to 1")
-        if not 0 <= self.workers <= 64:
-            raise ValueError(f"workers = {self.workers}: must be in [0, 64]")
-        if self.backdrop not in ("photos", "plain"):
-            raise ValueError(f"backdrop = {self.backdrop!r}: must be 'photos' or 'plain'")
-        if abs(self.sampler.aspect - self.width / self.height) > 1e-6 or self.sampler.duration != self.duration:
-            object.__setattr__(
-                self,
-                "sampler",
-                dataclasses.replace(self.sampler, aspect=self.width / self.height, duration=self.duration),
-            )
-
-    @property
-    def sim(self) -> SimConfig:
-        return SimConfig(self.duration, self.fps, self.substeps)
-
-    def to_json(self) -> dict:
-        """The fields that decide the records (not `workers`, which only changes speed)."""
-        data = dataclasses.asdict(self)
-        data.pop("workers")
-        data["substeps"] = self.sim.substeps  # the steps the records were made with (None: from fps)
-        data["physics"] = PHYSICS_VERSION  # chunks simulated by other code are not mixed in (absent: before 2)
-        data["labels"] = LABELS_VERSION  # chunks whose rest times / reasoning were derived otherwise are not mixed in
-        return data
-
-
-# --------------------------------------------------------------------------------------------
-# Config from a file and Hydra-style overrides (plain dataclasses; the package never imports Hydra)
-# --------------------------------------------------------------------------------------------
-def _is_number(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-OPTIONAL_INTEGERS = ("substeps",)  # config fields that are an integer or None (the others None by default: paths)
-
-
-def _typed(name: str, old, value):
-    """`value` for a config field whose current value is `old`, checked to be of the same kind (a number, an
-    integer, a flag, text, or a list of as many numbers), as a tuple for lists.
-
-    Raises:
-        ValueError: naming the field, the value and what it must be.
-    """
-    if isinstance(old, tuple):
-        if not (isinstance(value, list | tuple) and len(value) == len(old) and all(map(_is_number, value))):
-            raise ValueError(f"{name} = {value!r}: must be a list of {len(old)} numbers, e.g. {list(old)}")
-        return tuple(value)
-    if isinstance(old, bool):
-        ok, kind = isinstance(value, bool), "true or false"
-    elif isinstance(old, int):
-        ok, kind = isinstance(value, int) and not isinstance(value, bool), "an integer"
-    elif isinstance(old, float):
-        ok, kind = _is_number(value), "a number"
-    elif isinstance(old, str):
-        ok, kind = isinstance(value, str), "text"
-    elif name.rsplit(".", 1)[-1] in OPTIONAL_INTEGERS:
-        ok, kind = value is None or (isinstance(value, int) and not isinstance(value, bool)), "an integer or null"
-    else:  # optional fields (None by default): a path or None
-        ok, kind = value is None or isinstance(value, str), "a path or null"
-    if not ok:
-        raise ValueError(f"{name} = {value!r}: must be {kind}")
-    return float(value) if isinstance(old, float) else value
-
-
-def config_from_dict(data: dict, base: GenerateConfig | None = None, where: str = "config") -> GenerateConfig:
-    """A config from a nested mapping ({width: 96, sampler: {max_objects: 2}}), on top of `base`.
-
-    Raises:
-        ValueError: an unknown key (named, with the allowed ones) or a bad value.
-    """
-    base = base or GenerateConfig()
-    if not isinstance(data, dict):
-        raise ValueError(f"{where}: must be a mapping of config keys, got {type(data).__name__}")
-    top = {f.name for f in dataclasses.fields(GenerateConfig)}
-    sub = {f.name for f in dataclasses.fields(smp.SamplerConfig)}
-    updates, sampler_updates = {}, {}
-    for key, value in data.items():
-        if key == "sampler":
-            if not isinstance(value, dict):
-                raise ValueError(f"{where}.sampler = {value!r}: must be a mapping")
-            for k, v in value.items():
-                if k not in sub:
-                    raise ValueError(f"{where}.sampler.{k}: unknown key; allowed: {', '.join(sorted(sub))}")
-                sampler_updates[k] = _typed(f"{where}.sampler.{k}", getattr(base.sampler, k), v)
-        elif key not in top:
-            raise ValueError(f"{where}.{key}: unknown key; allowed: {', '.join(sorted(top))}")
-        else:
-            updates[key] = _typed(f"{where}.{key}", getattr(base, key), value)
-    try:
-        sampler = dataclasses.replace(base.sampler, **sampler_updates)
-        config = dataclasses.replace(base, sampler=sampler, **updates)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{where}: {e}") from None
-    derived = {"aspect": (config.width / config.height, "width / height"), "duration": (config.duration, "duration")}
-    for key, (value, source) in derived.items():  # the sampler's copies follow these (it was silently replaced)
-        if key in sampler_updates and abs(sampler_updates[key] - value) > 1e-6:
-            raise ValueError(
-                f"{where}.sampler.{key} = {sampler_updates[key]:g}: it is set from {source} ({value:g}); "
-                f"set {source} instead"
-            )
-    return config
-
-
-def apply_overrides(config: GenerateConfig, overrides: list[str]) -> GenerateConfig:
-    """Apply `key=value` overrides (`width=96`, `sampler.max_objects=2`, `sampler.speed=[0.5,3]`); values are YAML,
-    with YAML 1.2 numbers as in scenes (`duration=5e-1` is a number)."""
-    from aynamics.scene_text import load_yaml
-
-    data: dict = {}
-    for text in overrides:
-        key, sep, raw = text.partition("=")
-        if not sep or not key:
-            raise ValueError(f"override {text!r}: must be key=value, e.g. sampler.max_objects=3")
-        try:
-            value = load_yaml(raw)
-        except SceneError:
-            raise ValueError(f"override {text!r}: value {raw!r} is not valid YAML") from None
-        parts = key.split(".")
-        node = data
-        for k, p in enumerate(parts[:-1]):
-            node = node.setdefault(p, {})
-            if not isinstance(node, dict):
-                raise ValueError(f"override {text!r}: {'.'.join(parts[: k + 1])} is a value, not a group of keys")
-        node[parts[-1]] = value
-    return config_from_dict(data, config, where="override")
-
-
-def load_config(path: str | os.PathLike) -> GenerateConfig:
-    """A config from a YAML file (see conf/generate/default.yaml); a missing file raises FileNotFoundError.
-
-    Raises:
-        ValueError: the path is a folder or unreadable, or the file is not valid YAML or not a config.
-    """
-    from aynamics.scene_text import load_yaml
-
-    if Path(path).is_dir():
-        raise ValueError(f"--config {str(path)!r} is a folder: give a YAML file (see conf/generate/default.yaml)")
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = load_yaml(f.read()) or {}  # YAML 1.2 numbers, as in scenes: `duration: 5e-1` is a number
-    except FileNotFoundError:
-        raise
-    except SceneError as e:
-        raise ValueError(f"--config {str(path)!r}: invalid YAML: {e.problems[0].message}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ValueError(f"--config {str(path)!r}: cannot read: {getattr(e, 'strerror', None) or e}") from None
-    return config_from_dict(data, where=str(path))
-
-
 # --------------------------------------------------------------------------------------------
 # One record
 # --------------------------------------------------------------------------------------------
-def split_of(seed: int, index: int, shares: tuple[float, float, float] = (0.8, 0.1, 0.1)) -> str:
-    """The split of scene `index`: a hash of (seed, index), so independent of sharding and order."""
-    digest = hashlib.sha256(f"{seed}:{index}".encode()).digest()
-    u = int.from_bytes(digest[:8], "big") / 2**64
-    return SPLITS[0] if u < shares[0] else SPLITS[1] if u < shares[0] + shares[1] else SPLITS[2]
-
-
-@dataclass(frozen=True)
-class SceneFile:
-    """One of your own scenes for `generate(scenes=...)` (`aynamics generate --scenes`).
-
-    Attributes:
-        path: the file, as found (named in messages).
-        text: its scene in canonical YAML (`scene.dump`).
-        split: "train", "validation" or "test" when the file's folder has that name (in any case); None: the hash
-            split (`split_of`).
-    """
-
-    path: str
-    text: str
-    split: str | None = None
-
-    @property
-    def sha256(self) -> str:
-        """The hash of the scene (its canonical YAML: comments and formatting of the file aside)."""
-        return hashlib.sha256(self.text.encode()).hexdigest()
-
-
-SCENE_SUFFIXES = (".yaml", ".yml")
-MAX_LISTED = 10  # problems of scene files named in one error
-
-
-def _is_scene_file(path: Path) -> bool:
-    return path.is_file() and path.suffix.lower() in SCENE_SUFFIXES and not path.name.startswith(".")
-
-
-def split_of_folder(path: Path) -> str | None:
-    """The split a scene file's folder names ("train", "validation", "test", in any case), else None. The folder
-    is taken from the absolute path, so `c.yaml` typed inside `test/` and `scenes/test/c.yaml` agree."""
-    name = Path(os.path.abspath(path)).parent.name.lower()
-    return name if name in SPLITS else None
-
-
-def _hidden(path: Path, root: Path) -> bool:
-    return any(part.startswith(".") for part in path.relative_to(root).parts)
-
-
-def _scene_paths(paths: Sequence[str | os.PathLike]) -> list[Path]:
-    """The files of `paths`: a file as given; a folder's scene files (*.yaml / *.yml, not hidden) and then those of
-    its train/, validation/ and test/ subfolders (any case; in that order), each sorted by name. A scene file
-    under a given folder that none of the paths reads (another subfolder) is refused rather than left out unseen."""
-    found: list[Path] = []
-    folders: list[Path] = []
-    for given in paths:
-        path = Path(given)
-        if not path.exists():
-            raise FileNotFoundError(errno.ENOENT, f"--scenes {str(path)!r} does not exist", str(path))
-        if path.is_file():
-            found.append(path)
-            continue
-        subfolders = [d for d in path.iterdir() if d.is_dir() and d.name.lower() in SPLITS]
-        subfolders.sort(key=lambda d: (SPLITS.index(d.name.lower()), d.name))
-        files = [f for d in (path, *subfolders) for f in sorted(d.iterdir()) if _is_scene_file(f)]
-        if not files:
-            raise ValueError(
-                f"--scenes {str(path)!r} holds no scene files (*.yaml, *.yml; also looked in its "
-                f"{', '.join(s + '/' for s in SPLITS)} subfolders)"
-            )
-        found += files
-        folders.append(path)
-    read = {f.resolve() for f in found}
-    for folder in folders:
-        unread = sorted(
-            f for f in folder.rglob("*") if _is_scene_file(f) and not _hidden(f, folder) and f.resolve() not in read
-        )
-        if unread:
-            raise ValueError(
-                f"--scenes {str(folder)!r}: {str(unread[0])!r} is in a subfolder that is not train/, validation/ or "
-                f"test/ ({len(unread)} such file(s)); move them, or give their folder as a --scenes path too"
-            )
-    first: dict[Path, Path] = {}
-    for p in found:
-        other = first.setdefault(p.resolve(), p)
-        if other is not p:
-            raise ValueError(f"--scenes lists the file {str(p)!r} twice (as {str(other)!r} too): each scene once")
-    return found
-
-
-def scene_files(paths: Sequence[str | os.PathLike], config: GenerateConfig | None = None) -> list[SceneFile]:
-    """Your own scenes for a data set: each path a scene YAML file or a folder of them (its *.yaml / *.yml files,
-    then those of its train/, validation/ and test/ subfolders). A file in a folder named train, validation or
-    test is in that split; the others take the hash split.
-
-    Every file is read, validated and simulated (`config`'s timing) before anything is written, so a bad one
-    cannot stop a run half-way.
-
-    Raises:
-        FileNotFoundError: a path does not exist.
-        ValueError: no scene file, a file listed twice, a scene file in a subfolder that is not a split's, or files
-            that do not load or whose rollout is invalid (diverged, objects starting inside each other): up to
-            `MAX_LISTED` named at once, each with the field, value and what is allowed, or the rollout's reason.
-    """
-    config = config or GenerateConfig()
-    from aynamics.scene import load
-
-    out: list[SceneFile] = []
-    problems: list[str] = []
-    for path in _scene_paths(paths):
-        try:
-            scene = load(str(path))
-        except SceneError as e:
-            problems.append(f"{path}: {e}")
-            continue
-        rollout = simulate(scene, config.sim)
-        if not rollout.valid:
-            problems.append(f"{path}: the rollout is invalid: {rollout.reason}")
-            continue
-        out.append(SceneFile(str(path), dump(scene), split_of_folder(path)))
-    if problems:
-        more = f" (and {len(problems) - MAX_LISTED} more)" if len(problems) > MAX_LISTED else ""
-        raise ValueError(f"{len(problems)} scene file(s) cannot be used{more}: " + "; ".join(problems[:MAX_LISTED]))
-    return out
-
-
-def warn_repeated_scenes(scenes: Sequence[SceneFile], seed: int, config: GenerateConfig) -> None:
-    """Warn when one scene lands in two splits (a test scene seen in training), by the split each record gets."""
-    seen: dict[str, tuple[SceneFile, str]] = {}
-    for i, f in enumerate(scenes):
-        split = f.split or split_of(seed, i, config.splits)
-        other, other_split = seen.setdefault(f.sha256, (f, split))
-        if other is not f and other_split != split:
-            warnings.warn(
-                f"--scenes: {other.path!r} ({other_split} split) and {f.path!r} ({split} split) hold the same scene",
-                stacklevel=2,
-            )
-
-
-def check_scene_run(out: Path, scenes: Sequence[SceneFile] | None) -> None:
-    """Refuse to add records to a run in `out` made from other scenes: sampled ones (`scenes` None) to a run of
-    scene files or the reverse, or scene files to a run of others, naming the first whose content or split differs
-    (the manifest keeps each scene's hash and split by position, not its path, so the same files typed another
-    way, from another folder or on another machine's mount resume)."""
-    path = out / MANIFEST
-    if not path.is_file():
-        return
-    old = json.loads(path.read_text())
-    stored = old.get("config", {}).get("scenes")
-    if (stored is None) != (scenes is None):
-        was, now = ("sampled scenes", "scene files") if stored is None else ("scene files", "sampled scenes")
-        raise ValueError(f"--out {str(out)!r} holds a run of {was}, this run makes {now}; use another folder")
-    names = old.get("scene_files", [])
-    for i, (was, f) in enumerate(zip(stored or [], scenes or [], strict=False)):
-        if was != {"sha256": f.sha256, "split": f.split}:
-            where = f" ({names[i]!r} then)" if i < len(names) else ""
-            raise ValueError(
-                f"--out {str(out)!r} holds a run whose scene {i}{where} had another content or split than "
-                f"{f.path!r} now; use another folder, or the same scene files to resume"
-            )
-
-
 def sample_simulated(index: int, seed: int, config: GenerateConfig) -> tuple[Scene, Rollout, int]:
     """Scene `index` and its rollout; resampled (attempt 1, 2, ...) when placement fails or the simulation diverges.
 
