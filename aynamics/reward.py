@@ -253,15 +253,19 @@ def evaluation_modes(
     """The paper's Table 10 modes averaged over B videos: greedy, Best@1 (mean over samples), Best@N.
 
     Best@N takes, per video, the sample with the highest simulator reward (`rewards`, (B, N)) and reports its
-    metrics. EPE keys are present only when every score has flow. Invalid samples count with IoU 0 and
-    EPE `scorer.EPE_INVALID`.
+    metrics; among samples tied on the reward a valid one is taken (an IoU reward ties a valid scene of IoU 0 with
+    an invalid one, whose EPE of 100 px was then reported when it came first). EPE keys are present only when
+    every score has flow. Invalid samples count with IoU 0 and EPE `scorer.EPE_INVALID`.
 
     Returns:
         {"greedy/iou_first": ..., "best1/epe_full": ..., "bestN/iou_full": ...}
     """
     if len(greedy) != len(samples) or rewards.shape[0] != len(samples):
         raise ValueError(f"{len(greedy)} greedy scores, {len(samples)} sample lists, rewards {tuple(rewards.shape)}")
-    best = rewards.argmax(dim=1).tolist()
+    best = []
+    for row, scores in zip(rewards.tolist(), samples, strict=True):
+        tied = [k for k, r in enumerate(row) if r == max(row)]
+        best.append(next((k for k in tied if scores[k].valid), tied[0]))
     out: dict[str, float] = {}
     for name in SCORE_FIELDS:
         g = [getattr(s, name) for s in greedy]

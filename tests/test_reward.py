@@ -365,6 +365,12 @@ def test_evaluation_modes_hand_worked():
         [Score(0.3, 0.3, None, None, True)], [[Score(0.1, 0.1, None, None, True)]], torch.tensor([[0.1]])
     )
     assert set(no_flow) == {f"{m}/{k}" for m in rw.MODES for k in ("iou_first", "iou_full")}
+    # rewards tied at 0: an invalid sample (IoU 0, EPE 100) first, a valid one of IoU 0 and EPE 4 second; Best@N
+    # takes the valid one (it reported EPE 100 by sampling order)
+    tied = rw.evaluation_modes(
+        [s(0.0, 5.0)], [[Score(0.0, 0.0, 100.0, 100.0, False, "diverged"), s(0.0, 4.0)]], torch.tensor([[0.0, 0.0]])
+    )
+    assert tied["bestN/epe_full"] == pytest.approx(4.0) and tied["bestN/iou_full"] == 0.0
 
 
 def test_open_videos_errors(tmp_path):
