@@ -5,8 +5,9 @@ name when a hub is reachable) gets the scene's YAML and the instruction, and ans
 answer is trusted for nothing:
 
 1. it must parse and validate as a scene (`aynamics.scene.parse`, which also strips fences and prose);
-2. it must keep the objects (count, names, shapes) and change at least one number;
-3. every changed field must be one the instruction names (`aynamics.edit.named_fields`): "double the mass of
+2. it must keep the objects (names, shapes, order) and change something; it may remove the objects the instruction
+   removes and add as many objects of a kind as its 'add' clauses do (`named_additions`);
+3. every changed field must be one the instruction names (`named_fields`): "double the mass of
    box_0" lets it change `box_0.physics.mass` and nothing else.
 
     editor = LLMEditor("Qwen/Qwen2.5-0.5B-Instruct")
@@ -15,16 +16,29 @@ answer is trusted for nothing:
 
 from __future__ import annotations
 
-from aynamics.edit import EditError, EditResult, diff, named_fields, outside
-from aynamics.scene import Scene, SceneError, dump, parse
+import re
+
+from aynamics.edit import (
+    ADD_CLAUSE,
+    KINDS,
+    REMOVE_CLAUSE,
+    Change,
+    EditError,
+    EditResult,
+    diff,
+    find_targets,
+    split_clauses,
+)
+from aynamics.edit_words import DIRECTIONS, QUANTITIES
+from aynamics.scene import Scene, SceneError, dump, parse, require_scene
 
 SYSTEM_PROMPT = (
     "You edit physics scenes written in YAML. Each object has a state (position in m, orientation as a wxyz "
     "quaternion, linear_velocity in m/s and angular_velocity in rad/s, world frame, z up) and physics (friction "
     "[sliding, rolling], mass in kg, damping as log10 of a decay rate in 1/s, optional restitution). Directions: "
     "left is -x, right +x, forward/away from the camera +y, back/toward the camera -y, up +z. Apply the user's "
-    "instruction and change nothing else: keep every object (unless the instruction removes it), name and number "
-    "the instruction does not mention. "
+    "instruction and change nothing else: keep every object (unless the instruction removes it; an object it adds "
+    "goes after the others), name and number the instruction does not mention. "
     "Answer with the complete edited scene as YAML in a ```yaml block and nothing else."
 )
 
@@ -56,7 +70,12 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
     # an object's bare name allows its removal, not its fields ("double the mass of cylinder_0 and remove box_0"
     # let the model keep box_0 and move it)
     fields = allowed - set(scene.names)
-    bad = [c for c in changes if outside([c], allowed if c.removed else fields)]
+    bad = [c for c in changes if not c.added and outside([c], allowed if c.removed else fields)]
+    may_add = named_additions(instruction)
+    for kind in sorted({c.after for c in changes if c.added}):
+        added = [c for c in changes if c.added and c.after == kind]
+        if len(added) > may_add.get(kind, 0):  # "add a sphere" let it add two, or a box
+            bad.extend(added[may_add.get(kind, 0) :])
     if bad:
         shown = "; ".join(str(c) for c in bad[:6]) + (f"; ... ({len(bad)} in all)" if len(bad) > 6 else "")
         raise EditError(
@@ -64,6 +83,140 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
             f"The instruction names: {sorted(allowed) or 'no field the editor knows'}"
         )
     return EditResult(edited, tuple(changes))
+
+
+# --------------------------------------------------------------------------------------------
+# What an instruction names (the check of a free editor's answer)
+# --------------------------------------------------------------------------------------------
+# Words a free-form instruction uses for a quantity without naming it (for `named_fields` only: the deterministic
+# edit language names quantities)
+DESCRIBED: tuple[tuple[str, tuple[str, ...]], ...] = (
+    (r"heav(?:y|ier|iest)|light(?:er|est)?|weigh(?:s|t)?|massive", ("physics.mass",)),
+    (r"fast(?:er|est)?|slow(?:er|est)?|quick(?:er|ly)?|rapid(?:ly)?", ("state.linear_velocity",)),
+    (r"spin(?:s|ning)?|rotat(?:e|es|ing|ion)|roll(?:s|ing)?", ("state.angular_velocity",)),
+    (r"bounc(?:e|es|y|ier|iest|ing)|elastic", ("physics.restitution",)),
+    (r"slipp(?:ery|erier)|grip(?:py|pier)?|sticky|stickier|rough(?:er)?|smooth(?:er)?", ("physics.friction",)),
+    (
+        r"big(?:ger)?|large(?:r)?|small(?:er)?|tiny|tall(?:er)?|short(?:er)?|wide(?:r)?|grow|shrink",
+        ("size", "radius", "height"),
+    ),
+)
+
+
+# Words for the camera's fields once the camera is named ("rotate the camera", "move the camera back"); "zoom" names
+# the field of view wherever it stands
+CAMERA_WORDS: tuple[tuple[str, str], ...] = (
+    (
+        r"mov(?:e|es|ing)|shift|push|pull|translat\w*|rais(?:e|es|ing)|lower|higher|closer|further|farther|"
+        r"position|location|place|put",
+        "camera.position",
+    ),
+    (r"rotat\w*|tilt\w*|pitch\w*|turn\w*|angle\w*|orientation|look\w*|point\w*|aim\w*", "camera.orientation"),
+)
+
+
+def named_fields(instruction: str, scene: Scene) -> set[str]:
+    """Path prefixes of the fields an instruction names (the edit language's words and those above), for checking
+    a free editor.
+
+    Objects named in the text (or 'the box', 'all spheres') restrict the per-object fields; none named means
+    every object, unless the camera is named ("rotate the camera": its fields, no object's; "toward the camera" is a
+    direction, not the camera). A component named ('x-velocity') restricts a vector to that element. Moves name
+    positions, 'stop' names both velocities; a removal clause ('remove box_0') names the object by its bare name,
+    which allows its removal and none of its fields (`aynamics.edit_llm.check_output`).
+    """
+    require_scene(scene, "named_fields: scene")
+    if not isinstance(instruction, str):  # None / bytes failed on "'NoneType' object has no attribute 'lower'"
+        raise TypeError(f"named_fields: instruction is a {type(instruction).__name__}, not a str")
+    text = " ".join(instruction.lower().split())
+    clauses = split_clauses(instruction, scene.names)
+    if any(re.fullmatch(ADD_CLAUSE, c) for c in clauses):  # an added object is no field ("add a sphere like box_0
+        # of mass 2 kg" named box_0's mass); `named_additions` counts it
+        text = "; ".join(c for c in clauses if not re.fullmatch(ADD_CLAUSE, c))
+    lower = {n.lower(): n for n in scene.names}
+    objs = [n for low, n in lower.items() if re.search(rf"(?<![\w]){re.escape(low)}(?![\w])", text)]
+    for kind in ("box", "sphere", "cylinder"):
+        if re.search(rf"\b{kind}(?:e?s)?\b", text):
+            objs.extend(o.name for o in scene.objects if o.type == kind)
+    # "rotate the camera" named every object's spin and "move the camera back" every position (a free editor that
+    # spun the box passed the check, one that turned the camera was refused)
+    camera = re.search(r"\bcamera\b", re.sub(r"\b(?:towards?|away from) the camera\b", " ", text)) is not None
+    every = re.search(r"\b(?:all|every|each|everything|objects)\b", text) is not None
+    objs = sorted(set(objs)) or ([] if camera and not every else list(scene.names))
+    fields: set[str] = set()
+    if re.search(r"\bzoom\w*", text):
+        fields.add("camera.fovy")
+    if camera:
+        fields.update(path for words, path in CAMERA_WORDS if re.search(rf"\b(?:{words})\b", text))
+        if any(re.search(rf"\b{re.escape(d)}\b", text) for d in DIRECTIONS):
+            fields.add("camera.position")
+    for q in QUANTITIES:
+        for m in re.finditer(rf"(?:\b(?P<c>[xyz])[- ]?)?\b(?:{q.words})\b", text):
+            text_q = m.group(0)
+            comp = m.group("c")
+            suffix = f"[{q.index}]" if q.index is not None else (f"[{'xyz'.index(comp)}]" if comp else "")
+            field = ".".join(q.path) + suffix
+            fields.update(f"{h}.{field}" for h in (objs if q.scope == "object" else [q.scope]))
+            text = text.replace(text_q, " ")  # "angular velocity" must not also count as "velocity"
+    for words, paths in DESCRIBED:
+        if re.search(rf"\b(?:{words})\b", text):
+            fields.update(f"{o}.{path}" for o in objs for path in paths)
+    if re.search(r"\b(?:move|shift|push|translate)\b", text) or any(f" {d}" in text for d in DIRECTIONS):
+        fields.update(f"{o}.state.position" for o in objs)
+    if re.search(r"\b(?:stop|freeze)\b", text):
+        fields.update(f"{o}.state.{k}" for o in objs for k in ("linear_velocity", "angular_velocity"))
+    # a removal names each object of a removal clause by its bare name: its removal, none of its fields
+    # (`check_output` keeps the two apart). "remove" anywhere named every field of every object the text named:
+    # "double the mass of cylinder_0 and remove box_0" let a free editor move cylinder_0, "remove the spin of box_0"
+    # delete box_0
+    for clause in clauses:
+        m = re.fullmatch(REMOVE_CLAUSE, clause)
+        if m is None:
+            continue
+        if re.fullmatch(r"it|them", m.group("t")) and m.group("t") not in lower:
+            fields.update(objs)  # "stop box_0 and remove it": the objects the text names
+            continue
+        try:
+            fields.update(scene.names[i] for i in find_targets(m.group("t"), scene))
+        except EditError:  # "remove the spin of box_0" removes no object
+            pass
+    return fields
+
+
+def named_additions(instruction: str) -> dict[str, int]:
+    """How many objects of each kind the instruction's 'add' clauses add ('add a sphere at [1, 0]' -> {'sphere': 1}),
+    for checking a free editor: it may add those and no more."""
+    if not isinstance(instruction, str):
+        raise TypeError(f"named_additions: instruction is a {type(instruction).__name__}, not a str")
+    out: dict[str, int] = {}
+    for clause in split_clauses(instruction):
+        if m := re.fullmatch(ADD_CLAUSE, clause):
+            kind = KINDS[m.group("k")]
+            out[kind] = out.get(kind, 0) + 1
+    return out
+
+
+_PATHS = "set of str field paths (named_fields gives one)"
+
+
+def outside(changes: list[Change] | tuple[Change, ...], allowed: set[str]) -> list[Change]:
+    """The changes whose path does not start with one of the allowed prefixes.
+
+    Raises:
+        TypeError: `changes` is not a list of `Change`s, or `allowed` not a collection of str path prefixes (a str
+            was read as its letters: every change was outside "box_0.mass", and "b.x" inside "box_0").
+    """
+    for name, value, want in (("changes", changes, "list of Changes (diff gives one)"), ("allowed", allowed, _PATHS)):
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
+            raise TypeError(f"outside: {name} is a {type(value).__name__} {value!r:.60}: must be a {want}")
+    changes, allowed = list(changes), tuple(allowed)  # a generator of paths was spent on the first change
+    for k, c in enumerate(changes):
+        if not isinstance(c, Change):
+            raise TypeError(f"outside: changes[{k}] is a {type(c).__name__} {c!r:.60}: must be a Change")
+    for a in allowed:
+        if not isinstance(a, str):
+            raise TypeError(f"outside: allowed holds a {type(a).__name__} {a!r:.60}: must be a {_PATHS}")
+    return [c for c in changes if not any(c.path == a or c.path.startswith((a + ".", a + "[")) for a in allowed)]
 
 
 class LLMEditor:

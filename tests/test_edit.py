@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from aynamics import cli
-from aynamics.edit import EditError, apply_instruction, diff, named_fields, outside
-from aynamics.edit_llm import LLMEditor, build_messages, check_output
+from aynamics.edit import EditError, apply_instruction, diff
+from aynamics.edit_llm import LLMEditor, build_messages, check_output, named_fields, outside
 from aynamics.scene import dump, load, to_items
 
 ASSET = Path(__file__).parent / "assets" / "paper_example.yaml"
@@ -855,3 +855,135 @@ def test_every_object_after_a_removal_is_every_object_left(scene):
         apply_instruction(scene, "remove box_0 and double the mass of the box")
     with pytest.raises(EditError, match="box_0 was removed by an earlier clause"):
         apply_instruction(scene, "remove box_0 and double the mass of box_0")
+
+
+# --------------------------------------------------------------------------------------------
+# Adding objects
+# --------------------------------------------------------------------------------------------
+def test_add_an_object_resting_on_the_floor(scene):
+    """'add a sphere at [1, 2]': the scene has no sphere, so the defaults (radius 0.2 m, 1 kg, friction
+    [0.5, 0.05], damping -4), upright at rest with its centre one radius above the floor (z = 0.2); the other
+    objects keep every number, and the rollout is valid with the sphere still there (nothing pushes it)."""
+    from aynamics.simulate import simulate
+
+    result = apply_instruction(scene, "add a sphere at [1, 2]")
+    assert [str(c) for c in result.changes] == ["sphere_0: added (sphere)"] and result.changes[0].added
+    assert result.scene.names == ("box_0", "cylinder_0", "sphere_0")
+    assert result.scene.objects[:2] == scene.objects
+    sphere = result.scene.object("sphere_0")
+    assert sphere.radius == 0.2
+    assert sphere.state.position == (1.0, 2.0, 0.2) and sphere.state.orientation == (1.0, 0.0, 0.0, 0.0)
+    assert sphere.state.linear_velocity == (0.0, 0.0, 0.0) == sphere.state.angular_velocity
+    assert (sphere.physics.mass, sphere.physics.friction, sphere.physics.damping) == (1.0, (0.5, 0.05), -4.0)
+    rollout = simulate(result.scene)
+    assert rollout.valid, rollout.reason
+    np.testing.assert_allclose(rollout.position[-1, 2], [1.0, 2.0, 0.2], atol=2e-3)
+
+
+def test_add_takes_shape_physics_and_motion_from_the_clause(scene):
+    """'like box_0' (or a first object of the kind) gives the shape and physics, never the state; the phrases
+    override them; 'it' in the next clause is the new object; a removed object is no template."""
+    box = apply_instruction(scene, "add another box at [3, 1] like box_0 moving at [-1, 0, 0] m/s").scene.objects[-1]
+    assert (box.name, box.size, box.physics.friction) == ("box_1", (1.0, 0.5, 0.4), (1.1, 0.3))
+    assert box.state.position == (3.0, 1.0, 0.4)  # half-height 0.4 above the floor
+    assert box.state.linear_velocity == (-1.0, 0.0, 0.0) and box.state.orientation == (1.0, 0.0, 0.0, 0.0)
+    result = apply_instruction(scene, "add a cylinder at [0, 0, 1] of radius 10 cm and mass 2 kg")
+    cyl = result.scene.object("cylinder_1")  # cylinder_0's height 0.5 and friction, the radius and mass given
+    assert (cyl.radius, cyl.height, cyl.physics.mass, cyl.physics.friction) == (0.1, 0.5, 2.0, (1.1, 0.3))
+    assert cyl.state.position == (0.0, 0.0, 1.0)
+    result = apply_instruction(scene, "add a ball at [0, 2] named ball and make it twice as heavy")
+    assert [str(c) for c in result.changes] == ["ball: added (sphere)"]  # the doubling is the new object's own mass
+    assert result.scene.object("ball").physics.mass == 2.0
+    both = apply_instruction(scene, "add a sphere at [1, 2]; double the mass of all objects").scene
+    assert [o.physics.mass for o in both.objects] == [2.0, 2.0, 2.0]
+    swap = apply_instruction(scene, "remove box_0 and add a box at [0, 2]")
+    assert [str(c) for c in swap.changes] == ["box_0: removed (box)", "box_1: added (box)"]
+    assert swap.scene.objects[-1].size == (0.2, 0.2, 0.2)  # the default: the scene's box was removed
+    cube = apply_instruction(scene, "add a cube at [0, 1] of size [10, 10, 10] cm").scene.objects[-1]
+    assert cube.size == (0.1, 0.1, 0.1) and cube.state.position == (0.0, 1.0, 0.1)
+    cube = apply_instruction(scene, "add a cube at [0, 1]").scene.objects[-1]  # box_0 is no cube: 0.2 m, its physics
+    assert (cube.size, cube.physics.friction) == ((0.2, 0.2, 0.2), (1.1, 0.3))
+
+
+def test_add_rests_on_a_tilted_floor(scene):
+    """Floor tilted 10° about x: its normal is n = (0, -sin 10°, cos 10°), and the plane passes below (0, 1) at
+    z = tan 10° = 0.17633. A sphere of radius 0.2 added 'at [0, 1]' touches it there: its centre is
+    (0, 1, 0.17633) + 0.2 n = (0, 0.96527, 0.37329), 0.2 m above the floor along the normal, leaning with it."""
+    from aynamics.reasoning import floor_heights
+    from aynamics.scene import from_items
+
+    tilted = from_items([*to_items(scene), {"type": "environment", "floor_tilt": [10.0, 0.0]}])
+    sphere = apply_instruction(tilted, "add a sphere at [0, 1]").scene.objects[-1]
+    np.testing.assert_allclose(sphere.state.position, [0.0, 0.96527, 0.37329], atol=5e-5)  # scenes keep 4 decimals
+    assert float(floor_heights(tilted, np.array(sphere.state.position))) == pytest.approx(0.2, abs=1e-4)
+
+
+@pytest.mark.parametrize(
+    "instruction, message",
+    [
+        ("add a sphere", r"'add a sphere': say where the sphere goes: 'at \[x, y\]'"),
+        ("add a sphere at [1, 2] painted red", r"'painted red' not understood. 'add a\|another box"),
+        ("add a box at [1, 2] of radius 0.2", "a box has no radius"),
+        ("add a sphere at [1, 2] named box_0", "the scene already has an object named 'box_0'"),
+        ("add a sphere at [1, 2] like box_0", r"'like box_0' must name one sphere, not \['box_0'\]"),
+        ("add a cube at [0, 1] of size [0.1, 0.2, 0.1]", "a cube has equal half-extents"),
+        ("add a sphere at [1, 2, 3, 4]", r"a position is \[x, y\] \(resting on the floor\) or \[x, y, z\]"),
+        ("add a sphere at [1, 2] of radius 2 kg", "unit 'kg' does not fit radius"),
+        ("add a box at [1, 2] of size [1, 1, 1] kg", "unit 'kg' does not fit size"),
+        ("add a sphere at [1, 2] of mass 1 kg of mass 2 kg", "the mass is given twice"),
+        (
+            "add a sphere at [1, 2] of radius -1",
+            r"makes the scene invalid: .*objects\[2\]\.radius = -1\.0: must be > 0",
+        ),
+    ],
+)
+def test_add_refusals_name_the_problem(scene, instruction, message):
+    with pytest.raises(EditError, match=message):
+        apply_instruction(scene, instruction)
+
+
+def test_diff_and_the_free_editor_check_additions(scene):
+    """diff names an added object once; the free editor may add what the 'add' clauses add (kind and count), no
+    more, and still change nothing else; reordering the kept objects is still refused."""
+    added = apply_instruction(scene, "add a sphere at [1, 2]").scene
+    assert [str(c) for c in diff(scene, added)] == ["sphere_0: added (sphere)"]
+    answer = f"```yaml\n{dump(added)}```"
+    assert [str(c) for c in check_output(scene, "add a sphere at [1, 2]", answer).changes] == [
+        "sphere_0: added (sphere)"
+    ]
+    with pytest.raises(EditError, match=r"does not name: sphere_0: added \(sphere\)"):
+        check_output(scene, "double the mass of box_0", answer)
+    with pytest.raises(EditError, match=r"does not name: sphere_0: added \(sphere\)"):
+        check_output(scene, "add a box at [1, 2]", answer)
+    two = apply_instruction(scene, "add a sphere at [1, 2]; add a sphere at [2, 2]").scene
+    with pytest.raises(EditError, match=r"does not name: sphere_1: added \(sphere\)\. The instruction names"):
+        check_output(scene, "add a sphere at [1, 2]", f"```yaml\n{dump(two)}```")
+    heavier = apply_instruction(scene, "add a cylinder at [1, 2] like cylinder_0; double the mass of cylinder_0")
+    with pytest.raises(EditError, match=r"does not name: cylinder_0.physics.mass: 1.0 -> 2.0"):  # 'like' names no field
+        check_output(scene, "add a cylinder at [1, 2] like cylinder_0 of mass 2 kg", dump(heavier.scene))
+    moved = apply_instruction(scene, "add a sphere at [1, 2]; move box_0 1 m left").scene
+    with pytest.raises(EditError, match=r"box_0.state.position\[0\]"):
+        check_output(scene, "add a sphere at [1, 2]", f"```yaml\n{dump(moved)}```")
+    from aynamics.scene import from_items
+
+    items = to_items(added)
+    reordered = from_items([items[2], items[0], items[1], *items[3:]])  # the new sphere first is an addition too
+    assert [str(c) for c in diff(scene, reordered)] == ["sphere_0: added (sphere)"]
+    with pytest.raises(EditError, match="changed the objects"):
+        diff(scene, from_items([items[1], items[0], *items[2:]]))
+
+
+def test_cli_edit_adds_and_renders(tmp_path, capsys):
+    from aynamics.render import gl_available
+
+    ok, why = gl_available()
+    if not ok:
+        pytest.skip(why)
+    out = tmp_path / "whatif"
+    argv = ["edit", str(ASSET), "add a sphere at [-3, 0.5] moving at [2, 0, 0]", "--render", str(out), "--json"]
+    argv += ["--width", "48", "--height", "32"]
+    assert cli.main(argv) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["changes"] == [{"path": "sphere_0", "before": None, "after": "sphere"}]
+    assert report["edited_valid"] and report["original_valid"]
+    assert load(str(out / "edited.yaml")).names == ("box_0", "cylinder_0", "sphere_0")
