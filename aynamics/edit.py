@@ -307,10 +307,13 @@ _MOVE = r"(?:move|shift|push|translate)"
 _DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
 
 
-def _clause(clause: str, items: list[dict], previous: list[int] | str | None = None) -> list[int] | str | None:
+def _clause(
+    clause: str, items: list[dict], previous: list[int] | str | None = None, raw: str = ""
+) -> list[int] | str | None:
     """Apply one clause to the items (in place); the objects it edited or added, which 'it', 'its', 'them' and
     'their' in the next clause refer to (`previous`: the last clause's). A clause that edited the gravity passes
-    `previous` on; one that edited the camera gives its own text, which a pronoun after it is refused with."""
+    `previous` on; one that edited the camera gives its own text, which a pronoun after it is refused with. `raw`: the
+    instruction as typed (the clauses are lower-cased), where an added object's name keeps its case."""
     c, q_text = clause, ""
     scene = _objects(items)  # names and types as the clauses before left them (added objects included)
     if m := re.fullmatch(rf"(?:set|change) (?:the )?gravity to {PLANET}(?: gravity)?", c) or re.fullmatch(
@@ -404,7 +407,7 @@ def _clause(clause: str, items: list[dict], previous: list[int] | str | None = N
             items[i][_REMOVED] = True
         return idx
     elif m := re.fullmatch(ADD_CLAUSE, c):
-        return [_add(m.group("k"), m.group("rest"), items, clause)]
+        return [_add(m.group("k"), m.group("rest"), items, clause, previous, raw)]
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
@@ -423,16 +426,22 @@ KINDS = {"box": "box", "cube": "box", "sphere": "sphere", "ball": "sphere", "cyl
 # "add a sphere ...", "add another box ...": the kind, then the phrases of `_ADD_PHRASES` in any order
 ADD_CLAUSE = rf"(?:add|insert) (?:a|an|another|one more|a new|a second|a third) (?P<k>{'|'.join(KINDS)})(?P<rest>.*)"
 _VEC = r"\[[^\]]*\]"
-_AMOUNT = rf"{NUM} ?[a-z/]*"
+# a number and its unit; the word after a bare number is the next phrase's ("of radius 0.1 and height 0.3" read
+# "and" as the radius' unit)
+_NEXT = r"(?:and|with|of|a|an|named|called|like|copied|at|moving|going|travell?ing|sliding|rolling|velocity|radius|"
+_NEXT += r"height|size|half-extents|mass|weighing)\b"
+_AMOUNT = rf"{NUM}(?: ?(?!{_NEXT})[a-z/]+)?"
+_UNIT_WORDS = "|".join(sorted({re.escape(u) for table in UNITS.values() for u in table}, key=len, reverse=True))
+_VEC_UNIT = rf"{_VEC}(?: ?(?:{_UNIT_WORDS}))?"  # "[1, 0, 0] cm/s", "[10, 10, 10] cm", "[1, 2]"
 _ADD_PHRASES: tuple[tuple[str, str], ...] = (  # (what, regex of its value `v`), matched at the start of the rest
     ("name", r"(?:named|called) (?P<v>[a-z_][\w.-]*)"),
-    ("like", r"(?:like|copied from) (?P<v>[\w.-]+)"),
-    ("position", rf"at (?:position )?(?P<v>{_VEC})"),
-    ("velocity", rf"(?:moving|going|travell?ing|sliding|rolling) (?:at |with )?(?P<v>{_VEC}(?: ?m/s)?)"),
-    ("velocity", rf"(?:with )?(?:a |an initial )?velocity (?:of )?(?P<v>{_VEC}(?: ?m/s)?)"),
+    ("like", r"(?:like|copied from) (?P<v>(?:the )?[\w.-]+)"),  # "like box_0", "like the box", "like it"
+    ("position", rf"at (?:position )?(?P<v>{_VEC_UNIT})"),
+    ("velocity", rf"(?:moving|going|travell?ing|sliding|rolling) (?:at |with )?(?P<v>{_VEC_UNIT})"),
+    ("velocity", rf"(?:with )?(?:a |an initial )?velocity (?:of )?(?P<v>{_VEC_UNIT})"),
     ("radius", rf"(?:of |with )?(?:a )?radius (?:of )?(?P<v>{_AMOUNT})"),
     ("height", rf"(?:of |with )?(?:a )?height (?:of )?(?P<v>{_AMOUNT})"),
-    ("size", rf"(?:of |with )?(?:a )?(?:size|half-extents) (?:of )?(?P<v>{_VEC}(?: ?[a-z]+)?)"),
+    ("size", rf"(?:of |with )?(?:a )?(?:size|half-extents) (?:of )?(?P<v>{_VEC_UNIT})"),
     ("mass", rf"(?:of |with )?(?:a )?mass (?:of )?(?P<v>{_AMOUNT})"),
     ("mass", rf"weighing (?P<v>{_AMOUNT})"),
 )
@@ -450,8 +459,11 @@ ADD_WORDS = (
 )
 
 
-def _add(kind_word: str, rest: str, items: list[dict], clause: str) -> int:
-    """Insert the object an 'add' clause describes after the objects (in place); its index."""
+def _add(
+    kind_word: str, rest: str, items: list[dict], clause: str, previous: list[int] | str | None = None, raw: str = ""
+) -> int:
+    """Insert the object an 'add' clause describes after the objects (in place); its index. 'like it' is the object
+    of the clause before (`previous`); 'named NAME' keeps the case NAME has in `raw`, the instruction as typed."""
     kind = KINDS[kind_word]
     given: dict[str, str] = {}
     rest = rest.strip(" ,")
@@ -470,7 +482,7 @@ def _add(kind_word: str, rest: str, items: list[dict], clause: str) -> int:
     if "position" not in given:
         raise EditError(f"{clause!r}: say where the {kind} goes: 'at [x, y]' (resting on the floor) or 'at [x, y, z]'")
     if "like" in given:
-        like = find_targets(given["like"], objs, None, _gone(items))
+        like = find_targets(given["like"], objs, previous, _gone(items))
         if len(like) != 1 or objs.structure[like[0]] != kind:
             names = [objs.names[i] for i in like]
             raise EditError(f"{clause!r}: 'like {given['like']}' must name one {kind}, not {names}")
@@ -478,7 +490,8 @@ def _add(kind_word: str, rest: str, items: list[dict], clause: str) -> int:
     else:
         template = next((it for it in items if it["type"] == kind and not it.get(_REMOVED)), None)
     if template is None:
-        item = {"type": kind, **copy.deepcopy(ADD_DEFAULTS[kind]), "physics": dict(ADD_DEFAULTS["physics"])}
+        # deep copies: "set its friction to 0.9" wrote 0.9 into ADD_DEFAULTS' friction list (every later default too)
+        item = {"type": kind, **copy.deepcopy(ADD_DEFAULTS[kind]), "physics": copy.deepcopy(ADD_DEFAULTS["physics"])}
     else:
         item = {k: copy.deepcopy(v) for k, v in template.items() if k not in ("name", "state", _REMOVED)}
     if kind_word == "cube" and "size" not in given and len(set(item["size"])) != 1:  # the scene's box is no cube
@@ -489,25 +502,32 @@ def _add(kind_word: str, rest: str, items: list[dict], clause: str) -> int:
         q = BY_KEY[what]
         if q.path[0] != "physics" and q.path[-1] not in item:
             raise EditError(f"{clause!r}: a {kind} has no {what}")
-        vector, unit = re.fullmatch(r"(\[.*\])\s*([a-z]*)|.*", given[what]).groups()  # "[10, 10, 10] cm"
+        vector, unit = re.fullmatch(r"(\[.*\])\s*([a-z/]*)|.*", given[what]).groups()  # "[10, 10, 10] cm"
         value, unit_kind = read_value(vector or given[what], q)
         if unit_kind != "abs":
             raise EditError(f"{clause!r}: the {what} takes a value, not {given[what]!r}")
         if unit:
-            if unit not in UNITS["length"]:
-                raise EditError(f"{clause!r}: unit {unit!r} does not fit size: allowed {', '.join(UNITS['length'])}")
-            value = [v * UNITS["length"][unit] for v in value]
+            value = [v * _unit(unit, "length", what, clause) for v in value]
         if kind_word == "cube" and what == "size" and len(set(value)) != 1:
             raise EditError(f"{clause!r}: a cube has equal half-extents, not {value}; say 'a box'")
         (item["physics"] if what == "mass" else item)[q.path[-1]] = value
     taken = {it["name"].lower() for it in items if it["type"] in OBJECT_TYPES}
     name = given.get("name") or next(f"{kind}_{k}" for k in range(len(taken) + 1) if f"{kind}_{k}" not in taken)
-    if name in taken:
+    if "name" in given and (typed := re.search(rf"\b(?:named|called)\s+({re.escape(name)})(?![\w.-])", raw, re.I)):
+        name = typed.group(1)  # "named Ball" named it ball
+    if name.lower() in ("camera", "gravity", "environment"):  # diff read the camera's fields as removed
+        raise EditError(
+            f"{clause!r}: {name!r} is the name of the scene's {name.lower()} item; name the {kind} otherwise"
+        )
+    if name.lower() in taken:
         raise EditError(f"{clause!r}: the scene already has an object named {name!r} (its objects: {list(objs.names)})")
     position, orientation = _placement(given["position"], item, items, clause)
     velocity = [0.0, 0.0, 0.0]
-    if "velocity" in given:
-        velocity = read_value(re.sub(r"\s*m/s$", "", given["velocity"]), BY_KEY["linear_velocity"])[0]
+    if "velocity" in given:  # "[1, 0, 0] cm/s" was "'cm/s' not understood"
+        vector, unit = re.fullmatch(r"(\[.*\])\s*([a-z/]*)", given["velocity"]).groups()
+        velocity = [
+            v * _unit(unit, "velocity", "velocity", clause) for v in read_value(vector, BY_KEY["linear_velocity"])[0]
+        ]
     state = {"angular_velocity": [0.0, 0.0, 0.0], "linear_velocity": velocity}
     item = {"type": kind, "name": name, **item, "state": state | {"orientation": orientation, "position": position}}
     at = len(objs.names)  # objects come first in the items, the camera and the rest after them
@@ -515,12 +535,21 @@ def _add(kind_word: str, rest: str, items: list[dict], clause: str) -> int:
     return at
 
 
+def _unit(unit: str, kind: str, what: str, clause: str) -> float:
+    """The SI factor of a unit of `UNITS[kind]` ('' is SI)."""
+    if unit and unit not in UNITS[kind]:
+        raise EditError(f"{clause!r}: unit {unit!r} does not fit {what}: allowed {', '.join(UNITS[kind])}")
+    return UNITS[kind][unit] if unit else 1.0
+
+
 def _placement(text: str, item: dict, items: list[dict], clause: str) -> tuple[list[float], list[float]]:
     """The position and orientation of an added object: '[x, y, z]' upright there, '[x, y]' resting upright on the
     floor plane (`environment.floor_offset`, tilted by `floor_tilt`: the object then leans with the floor) with
-    its lowest point at x, y."""
+    its lowest point at x, y; a length unit may follow ('[100, 50] cm')."""
+    text, unit = re.fullmatch(r"(\[.*\])\s*([a-z/]*)", text).groups()
+    factor = _unit(unit, "length", "position", clause)
     try:
-        at = [float(v) for v in text.strip("[] ").split(",")]
+        at = [float(v) * factor for v in text.strip("[] ").split(",")]
     except ValueError:
         raise EditError(f"{clause!r}: a position is [x, y] or [x, y, z] numbers, not {text}") from None
     if len(at) == 3:
@@ -592,7 +621,7 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
     items = copy.deepcopy(to_items(scene))
     previous = None  # the objects the last clause edited ("its", "it", "their", "them"), or a camera clause
     for clause in clauses:
-        previous = _clause(clause, items, previous)
+        previous = _clause(clause, items, previous, instruction)
     return finish(scene, [it for it in items if not it.get(_REMOVED)], instruction)
 
 

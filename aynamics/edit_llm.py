@@ -123,18 +123,43 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     every object, unless the camera is named ("rotate the camera": its fields, no object's; "toward the camera" is a
     direction, not the camera). A component named ('x-velocity') restricts a vector to that element. Moves name
     positions, 'stop' names both velocities; a removal clause ('remove box_0') names the object by its bare name,
-    which allows its removal and none of its fields (`aynamics.edit_llm.check_output`).
+    which allows its removal and none of its fields (`aynamics.edit_llm.check_output`). An added object has no
+    fields here: the 'add' clauses, the clauses after them that say 'it'/'its'/'them'/'their' (and no object of the
+    scene) and the added objects' names ('sphere_0', 'named NAME', 'the sphere' where the scene has none) name no
+    object of the scene, so not every object either.
     """
     require_scene(scene, "named_fields: scene")
     if not isinstance(instruction, str):  # None / bytes failed on "'NoneType' object has no attribute 'lower'"
         raise TypeError(f"named_fields: instruction is a {type(instruction).__name__}, not a str")
     text = " ".join(instruction.lower().split())
     clauses = split_clauses(instruction, scene.names)
-    if any(re.fullmatch(ADD_CLAUSE, c) for c in clauses):  # an added object is no field ("add a sphere like box_0
-        # of mass 2 kg" named box_0's mass); `named_additions` counts it
-        text = "; ".join(c for c in clauses if not re.fullmatch(ADD_CLAUSE, c))
     lower = {n.lower(): n for n in scene.names}
-    objs = [n for low, n in lower.items() if re.search(rf"(?<![\w]){re.escape(low)}(?![\w])", text)]
+
+    def names_object_in(low: str, s: str) -> bool:
+        return re.search(rf"(?<![\w]){re.escape(low)}(?![\w])", s) is not None
+
+    # "add a sphere at [1, 2] and double its mass" named every object's mass (the clause names no object), and a free
+    # editor that doubled box_0's passed; so did one that removed box_0 for "... and remove it"
+    new_names, new_kinds, kept, after_add = set(), set(), [], False
+    for clause in clauses:
+        if m := re.fullmatch(ADD_CLAUSE, clause):
+            after_add = True
+            new_kinds.add(KINDS[m.group("k")])
+            new_names.update(re.findall(r"\b(?:named|called) ([a-z_][\w.-]*)", m.group("rest")))
+        elif not (
+            after_add
+            and re.search(r"\b(?:it|its|them|their)\b", clause)
+            and not any(names_object_in(low, clause) for low in lower)
+        ):
+            after_add = False
+            kept.append(clause)
+    new_ref = False  # the text names an added object ("double the mass of sphere_0", "... of the sphere")
+    if new_kinds:  # an added object is no field ("add a sphere like box_0 of mass 2 kg" named box_0's mass);
+        text, clauses = "; ".join(kept), kept  # `named_additions` counts it
+        new_names.update(re.findall(r"\b(?:box|sphere|cylinder)_\d+\b", text))
+        new_ref = any(n not in lower and names_object_in(n, text) for n in new_names)
+        new_ref |= any(re.search(rf"\b{k}(?:e?s)?\b", text) and k not in scene.structure for k in new_kinds)
+    objs = [n for low, n in lower.items() if names_object_in(low, text)]
     for kind in ("box", "sphere", "cylinder"):
         if re.search(rf"\b{kind}(?:e?s)?\b", text):
             objs.extend(o.name for o in scene.objects if o.type == kind)
@@ -142,7 +167,7 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     # spun the box passed the check, one that turned the camera was refused)
     camera = re.search(r"\bcamera\b", re.sub(r"\b(?:towards?|away from) the camera\b", " ", text)) is not None
     every = re.search(r"\b(?:all|every|each|everything|objects)\b", text) is not None
-    objs = sorted(set(objs)) or ([] if camera and not every else list(scene.names))
+    objs = sorted(set(objs)) or ([] if (camera or new_ref) and not every else list(scene.names))
     fields: set[str] = set()
     if re.search(r"\bzoom\w*", text):
         fields.add("camera.fovy")

@@ -987,3 +987,101 @@ def test_cli_edit_adds_and_renders(tmp_path, capsys):
     assert report["changes"] == [{"path": "sphere_0", "before": None, "after": "sphere"}]
     assert report["edited_valid"] and report["original_valid"]
     assert load(str(out / "edited.yaml")).names == ("box_0", "cylinder_0", "sphere_0")
+
+
+def test_add_defaults_are_not_changed_by_an_edit_of_the_added_object(scene):
+    """'add a sphere ...; set its friction to 0.9' edited the friction list of `ADD_DEFAULTS` in place (a shallow
+    copy): every later default sphere had friction 0.9."""
+    from aynamics.edit import ADD_DEFAULTS
+
+    edited = apply_instruction(scene, "add a sphere at [1, 2] and set its friction to 0.9").scene.objects[-1]
+    assert edited.physics.friction == (0.9, 0.05)
+    assert ADD_DEFAULTS["physics"]["friction"] == [0.5, 0.05]
+    assert apply_instruction(scene, "add a sphere at [3, 2]").scene.objects[-1].physics.friction == (0.5, 0.05)
+
+
+@pytest.mark.parametrize(
+    "instruction",
+    [
+        "add a cylinder at [1, 2] of radius 0.1 and height 0.3",
+        "add a cylinder at [1, 2] of radius 0.1 with height 0.3",
+        "add a cylinder at [1, 2] of height 0.3 m and radius 10 cm",
+        "add a cylinder at [1, 2] of radius 0.1 height 0.3",
+    ],
+)
+def test_add_a_bare_number_leaves_the_next_phrase_alone(scene, instruction):
+    """'of radius 0.1 and height 0.3' was refused with "unit 'and' does not fit radius": a bare number took the
+    next word as its unit."""
+    cyl = apply_instruction(scene, instruction).scene.objects[-1]
+    assert (cyl.radius, cyl.height) == (0.1, 0.3)
+    with pytest.raises(EditError, match="unit 'kg' does not fit radius"):
+        apply_instruction(scene, "add a cylinder at [1, 2] of radius 2 kg and height 0.3")
+
+
+def test_add_like_it_and_like_the_kind(scene):
+    """'like it' after a clause is its object ("'it' refers to no object named before it"), and 'like the box' the
+    scene's box ("'box' not understood")."""
+    two = apply_instruction(scene, "add a sphere at [1, 2] of radius 0.1 then add another sphere at [2, 2] like it")
+    assert [o.radius for o in two.scene.objects[2:]] == [0.1, 0.1]
+    box = apply_instruction(scene, "add a box at [1, 2] like the box").scene.objects[-1]
+    assert (box.name, box.size) == ("box_1", (1.0, 0.5, 0.4))
+    with pytest.raises(EditError, match="'like it' must name one box, not \\['cylinder_0'\\]"):
+        apply_instruction(scene, "stop cylinder_0 and add a box at [1, 2] like it")
+
+
+def test_add_vectors_take_units(scene):
+    """'moving at [50, 0, 0] cm/s' was "'cm/s' not understood" (only m/s was read), 'at [100, 200] cm' "'cm' not
+    understood", and 'of size [0.3, 0.3, 0.3] named b' read "named" as the size's unit ("'b' not understood")."""
+    result = apply_instruction(scene, "add a sphere at [100, 200] cm moving at [50, 0, 0] cm/s named b")
+    ball = result.scene.object("b")
+    assert ball.state.position == (1.0, 2.0, 0.2) and ball.state.linear_velocity == (0.5, 0.0, 0.0)
+    fast = apply_instruction(scene, "add a sphere at [1, 2, 0.5] m moving at [36, 0, 0] km/h").scene.objects[-1]
+    assert fast.state.position == (1.0, 2.0, 0.5) and fast.state.linear_velocity == pytest.approx((10.0, 0.0, 0.0))
+    box = apply_instruction(scene, "add a box at [1, 2] of size [0.3, 0.3, 0.3] named b").scene.object("b")
+    assert box.size == (0.3, 0.3, 0.3)
+    with pytest.raises(EditError, match="unit 'kg' does not fit position: allowed m, "):
+        apply_instruction(scene, "add a sphere at [1, 2] kg")
+    with pytest.raises(EditError, match="unit 'm' does not fit velocity: allowed m/s, cm/s, km/h"):
+        apply_instruction(scene, "add a sphere at [1, 2] moving at [1, 0, 0] m")
+
+
+def test_add_named_keeps_the_case_and_refuses_the_scene_items_names(scene):
+    """'named Ball' named the sphere ball (the clauses are lower-cased); 'named camera' added a sphere whose fields
+    hid the camera's in `diff` ("camera.fovy: 45.0 -> None")."""
+    result = apply_instruction(scene, "add a ball at [1, 2] named Ball and double the mass of ball")
+    assert [str(c) for c in result.changes] == ["Ball: added (sphere)"]
+    assert result.scene.object("Ball").physics.mass == 2.0
+    with pytest.raises(EditError, match="already has an object named 'Box_0'"):
+        apply_instruction(scene, "add a box at [1, 2] named Box_0")
+    for name in ("camera", "Gravity", "environment"):
+        with pytest.raises(EditError, match=f"'{name}' is the name of the scene's {name.lower()} item"):
+            apply_instruction(scene, f"add a sphere at [1, 2] named {name}")
+
+
+@pytest.mark.parametrize(
+    "instruction, unasked",
+    [
+        ("add a sphere at [1, 2] and double its mass", "double the mass of box_0"),
+        ("add a sphere at [1, 2] and make it twice as heavy", "make cylinder_0 twice as heavy"),
+        ("add a sphere at [1, 2] then move it 1 m left", "move box_0 1 m left"),
+        ("add a sphere at [1, 2]; add a box at [3, 3]; stop them", "stop box_0"),
+        ("add a ball at [1, 2] named b; double the mass of b", "double the mass of cylinder_0"),
+        ("add a sphere at [1, 2]; double the mass of sphere_0", "double the mass of cylinder_0"),
+        ("add a sphere at [1, 2]; double the mass of the sphere", "double the mass of cylinder_0"),
+        ("add a sphere at [1, 2] and remove it", "remove box_0"),
+    ],
+)
+def test_the_free_editor_check_reads_pronouns_and_names_of_added_objects(scene, instruction, unasked):
+    """A clause after an 'add' that edits the new object ('its', 'it', its name, 'the sphere' where the scene has
+    none) named no object, so every object: a free editor's answer that also edited box_0 (or removed it) passed.
+    The answer the instruction asks for still passes; so do edits of objects the text names or 'all objects'."""
+    if "remove it" not in instruction:  # that one changes nothing
+        check_output(scene, instruction, dump(apply_instruction(scene, instruction).scene))
+    head = instruction.split(" and ")[0].split(" then ")[0].split(";")[0]
+    answer = apply_instruction(scene, f"{head}; {unasked}").scene
+    with pytest.raises(EditError, match="does not name: (box_0|cylinder_0)"):
+        check_output(scene, instruction, dump(answer))
+    for fine in ("add a sphere at [1, 2]; double the mass of all objects", "add a sphere at [1, 2]; double the mass"):
+        check_output(scene, fine, dump(apply_instruction(scene, fine).scene))
+    kept = "add a sphere at [1, 2]; double the mass of box_0 and halve its friction"
+    check_output(scene, kept, dump(apply_instruction(scene, kept).scene))
