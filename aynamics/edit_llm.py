@@ -18,18 +18,9 @@ from __future__ import annotations
 
 import re
 
-from aynamics.edit import (
-    ADD_CLAUSE,
-    KINDS,
-    REMOVE_CLAUSE,
-    Change,
-    EditError,
-    EditResult,
-    diff,
-    find_targets,
-    split_clauses,
-)
-from aynamics.edit_words import DIRECTIONS, QUANTITIES
+from aynamics.edit import ADD_CLAUSE, KINDS, REMOVE_CLAUSE, EditResult, find_targets, split_clauses
+from aynamics.edit_diff import Change, diff
+from aynamics.edit_words import DIRECTIONS, QUANTITIES, EditError
 from aynamics.scene import Scene, SceneError, dump, parse, require_scene
 
 SYSTEM_PROMPT = (
