@@ -24,7 +24,7 @@ def readme_block(heading: str) -> str:
 def test_the_python_api_block_runs_and_prints_its_comments(monkeypatch, capsys):
     """The block simulates, renders, computes the flow, scores, refines and edits the paper's scene: refinement
     moves the box that starts 1.1 m off to IoU 0.87 (its comment), the truth scores 1, and the edit cuts box_0's
-    x-velocity from 4.3 to 0.86 m/s."""
+    x-velocity from 4.3 to 0.86 m/s; a ball added to it simulates."""
     code = readme_block("## Python API")
     monkeypatch.chdir(ROOT)
     scope: dict = {}
@@ -38,6 +38,7 @@ def test_the_python_api_block_runs_and_prints_its_comments(monkeypatch, capsys):
     assert scope["flow"].shape == (29, 80, 120, 2) and scope["video"].rgb.shape == (30, 80, 120, 3)
     assert scope["rollout"].position.shape == (31, 2, 3)
     assert "linear_velocity: [0.86, 2.5, 0.0]" in out
+    assert "('box_0', 'cylinder_0', 'sphere_0') True" in out  # the added ball's rollout is valid
 
 
 def readme_shell_lines() -> list[str]:
