@@ -42,6 +42,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     from aynamics.callbacks import (
         SceneEvaluation,
+        format_reasons,
         format_table,
         json_safe,
         progress_bar,
@@ -169,6 +170,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 rows["average scene"] = evaluation.last_baseline
             print(f"\nValidation ({evaluation.evaluated} held-out scenes, step {evaluation.step}):")
             print(format_table(rows))
+            if why := format_reasons(evaluation.last_reasons, evaluation.evaluated):
+                print(why)
             adapter = ((cfg.get("callbacks") or {}).get("adapter") or {}).get("dirpath")
             if adapter and cfg.get("data", {}).get("dir"):  # the split training never read, in the same settings
                 command = ["aynamics", "evaluate", "--adapter", adapter, "--data", cfg.data.dir]

@@ -21,9 +21,11 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 import signal
 import threading
 import warnings
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -97,6 +99,35 @@ def evaluate_texts(texts: Sequence[str], targets: Sequence[Scene] | None, observ
 def summarize(per_item: dict[str, list]) -> dict[str, float]:
     """Mean of each metric list of `evaluate_texts` (None entries skipped)."""
     return {k: metrics.mean_finite(per_item[k]) for k in METRIC_KEYS if k in per_item}
+
+
+_INVALID_LABELS = {"no_yaml": "no YAML", "invalid_scene": "invalid fields", "truncated": "cut off at max_new_tokens"}
+
+
+def invalid_reasons(reasons: Sequence[str | None]) -> dict[str, int]:
+    """How many responses fail for each kind of reason (`evaluate_texts`' "reason"; None is valid), most first:
+    "no YAML" (none, a syntax error or not a list of items), "invalid fields" (missing or out of range), "cut off at
+    max_new_tokens", and for a scene that does not simulate the simulation's own words ("overlapping start",
+    "blew up", "diverged", "tunnelled", "camera inside")."""
+    from aynamics.reward import reason_kind
+
+    counts: Counter[str] = Counter()
+    for r in reasons:
+        kind = reason_kind(r)
+        if kind == "simulation":
+            rest = r.removeprefix("sim:").strip()
+            counts[re.match(r"camera inside|[^:]*", rest).group(0).strip() or "simulation"] += 1
+        elif kind != "valid":
+            counts[_INVALID_LABELS.get(kind, kind)] += 1
+    return dict(counts.most_common())
+
+
+def format_reasons(counts: dict[str, int], total: int) -> str:
+    """The line under a table that says why the model's scenes fail ("" when every one simulates)."""
+    if not counts:
+        return ""
+    bad = sum(counts.values())
+    return f"Why {bad} of {total} scenes do not simulate: " + ", ".join(f"{k} {v}" for k, v in counts.items())
 
 
 def format_table(rows: dict[str, dict[str, float]]) -> str:
@@ -337,6 +368,7 @@ class SceneEvaluation(L.Callback):
         self._records: list[dict] | None = None
         self._baseline: dict[str, float] | None = None
         self.last: dict[str, float] = {}  # the latest summary (model), for scripts and tests
+        self.last_reasons: dict[str, int] = {}  # why its invalid responses fail (`invalid_reasons`)
         self.evaluated = 0  # records in the latest evaluation (num_samples, or fewer if the split is smaller)
         self.step: int | None = None  # the training step of the latest evaluation
         self.last_baseline: dict[str, float] = {}
@@ -392,6 +424,7 @@ class SceneEvaluation(L.Callback):
         summary = summarize(per)
         self.last, self.evaluated, self.step = summary, len(records), getattr(trainer, "global_step", None)
         self.last_baseline = dict(self._baseline or {})
+        self.last_reasons = invalid_reasons(per["reason"])
         log = {f"val/{k}": v for k, v in summary.items()}
         log |= {f"val/baseline/{k}": v for k, v in self.last_baseline.items()}
         for k, v in log.items():

@@ -42,7 +42,9 @@ from aynamics.callbacks import (
     average_scene_text,
     baseline_summary,
     evaluate_texts,
+    format_reasons,
     format_table,
+    invalid_reasons,
     json_safe,
     scorable_records,
     summarize,
@@ -594,6 +596,8 @@ def run_evaluate(args) -> int:
     else:
         print(describe(result, args.split if args.data else None))
         print(format_table(result.table))
+        if why := format_reasons(invalid_reasons(result.per_item.get("reason", [])), len(result.records)):
+            print(why)
     return 0
 
 
@@ -648,6 +652,7 @@ def summary(result: Evaluation) -> dict:
             "left_out": result.left_out,
             "split_size": result.split_size,
             "refine_timed_out": result.refine_timed_out,
+            "invalid_reasons": invalid_reasons(result.per_item.get("reason", [])),
         }
     )
 

@@ -448,7 +448,7 @@ def test_evaluate_command_passes_its_settings_and_writes_them(tmp_path, capsys, 
     assert written["settings"]["split"] is None and written["settings"]["videos"] == "V"
     assert main([*base, "--data", "D", "--split", "validation", "--no-baseline", "--json"]) == 0
     summary = {"table": {"model": {"yaml_valid": 1.0}}, "scenes": 1, "left_out": 1, "split_size": 5}
-    assert json.loads(capsys.readouterr().out) == summary | {"refine_timed_out": 0}
+    assert json.loads(capsys.readouterr().out) == summary | {"refine_timed_out": 0, "invalid_reasons": {}}
     assert [source for source, _ in calls] == ["V", "D"]
     assert calls[1][1]["split"] == "validation" and calls[1][1]["baseline"] is False and calls[1][1]["num"] == 2
 
@@ -1041,3 +1041,35 @@ def test_progress_bar_names_an_epoch_total_only_when_there_is_one(max_epochs, de
     )
     trainer.fit(BoringModel())
     assert isinstance(bar, StepsProgressBar) and seen == [described, described]
+
+
+def test_invalid_reasons_count_why_responses_fail():
+    """The line under the validation table: each invalid response counted once by its kind, the simulation's
+    failures by their own first words, most first (ties in the order met); none when every scene simulates."""
+    from aynamics.callbacks import format_reasons, invalid_reasons
+
+    reasons = [
+        None,
+        "sim: overlapping start: box_0 and the floor by 0.09 m at t=0 (more than 0.05 m)",
+        "no YAML found in the response",
+        "sim: overlapping start: sphere_0 and box_0 by 0.2 m at t=0 (more than 0.05 m)",
+        "objects[0].physics.mass = -2.0: must be > 0",
+        "sim: camera inside box_0 at t=0.000s (camera.position = [0, 0, 1]): a video cannot show that view",
+        "truncated at max_new_tokens = 16: no YAML found in the response",
+        "sim: blew up: box_0 at t=0.500s has speed 300 m/s, spin 0 rad/s, distance 4 m",
+        None,
+    ]
+    counts = invalid_reasons(reasons)
+    assert list(counts.items()) == [
+        ("overlapping start", 2),
+        ("no YAML", 1),
+        ("invalid fields", 1),
+        ("camera inside", 1),
+        ("cut off at max_new_tokens", 1),
+        ("blew up", 1),
+    ]
+    assert format_reasons(counts, len(reasons)) == (
+        "Why 7 of 9 scenes do not simulate: overlapping start 2, no YAML 1, invalid fields 1, camera inside 1, "
+        "cut off at max_new_tokens 1, blew up 1"
+    )
+    assert invalid_reasons([None, None]) == {} and format_reasons({}, 2) == ""
