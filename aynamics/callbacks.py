@@ -127,7 +127,7 @@ def format_reasons(counts: dict[str, int], total: int) -> str:
     if not counts:
         return ""
     bad = sum(counts.values())
-    return f"Why {bad} of {total} scenes do not simulate: " + ", ".join(f"{k} {v}" for k, v in counts.items())
+    return f"Why {bad} of {total} responses do not simulate: " + ", ".join(f"{k} {v}" for k, v in counts.items())
 
 
 def format_table(rows: dict[str, dict[str, float]]) -> str:

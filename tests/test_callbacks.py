@@ -1069,7 +1069,7 @@ def test_invalid_reasons_count_why_responses_fail():
         ("blew up", 1),
     ]
     assert format_reasons(counts, len(reasons)) == (
-        "Why 7 of 9 scenes do not simulate: overlapping start 2, no YAML 1, invalid fields 1, camera inside 1, "
+        "Why 7 of 9 responses do not simulate: overlapping start 2, no YAML 1, invalid fields 1, camera inside 1, "
         "cut off at max_new_tokens 1, blew up 1"
     )
     assert invalid_reasons([None, None]) == {} and format_reasons({}, 2) == ""

@@ -58,7 +58,7 @@ def test_fast_dev_run(tmp_path, dataset_dir, target, modality, as_video, capsys)
     metrics = train(cfg)
     printed = capsys.readouterr().out
     assert "Validation (2 held-out scenes, step 1):" in printed and "average scene" in printed
-    assert "Why 2 of 2 scenes do not simulate: no YAML 2\n" in printed  # 16 tokens cannot hold a scene
+    assert "Why 2 of 2 responses do not simulate: no YAML 2\n" in printed  # 16 tokens cannot hold a scene
     evaluate = f"aynamics evaluate --adapter {tmp_path / 'adapter'} --data {dataset_dir} --batch-size 8"
     assert f"The test split's table: {evaluate} --max-new-tokens 16\n" in printed  # the evaluation's settings
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
