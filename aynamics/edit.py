@@ -382,7 +382,7 @@ def _clause(
             items[i][_REMOVED] = True
         return idx
     elif m := re.fullmatch(ADD_CLAUSE, c):
-        return [_add(m.group("k"), m.group("rest"), items, clause, previous, raw)]
+        return [_add(m.group("k"), m.group("rest"), items, scene, clause, previous, raw)]
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
@@ -435,10 +435,17 @@ ADD_WORDS = (
 
 
 def _add(
-    kind_word: str, rest: str, items: list[dict], clause: str, previous: list[int] | str | None = None, raw: str = ""
+    kind_word: str,
+    rest: str,
+    items: list[dict],
+    objs: _Objects,
+    clause: str,
+    previous: list[int] | str | None = None,
+    raw: str = "",
 ) -> int:
-    """Insert the object an 'add' clause describes after the objects (in place); its index. 'like it' is the object
-    of the clause before (`previous`); 'named NAME' keeps the case NAME has in `raw`, the instruction as typed."""
+    """Insert the object an 'add' clause describes after the objects (in place); its index. `objs`: the items'
+    objects (`_objects`). 'like it' is the object of the clause before (`previous`); 'named NAME' keeps the case
+    NAME has in `raw`, the instruction as typed."""
     kind = KINDS[kind_word]
     given: dict[str, str] = {}
     rest = rest.strip(" ,")
@@ -453,7 +460,6 @@ def _add(
                 break
         else:
             raise EditError(f"{clause!r}: {rest!r} not understood. {ADD_WORDS}")
-    objs = _objects(items)
     if "position" not in given:
         raise EditError(f"{clause!r}: say where the {kind} goes: 'at [x, y]' (resting on the floor) or 'at [x, y, z]'")
     if "like" in given:
@@ -477,8 +483,8 @@ def _add(
         q = BY_KEY[what]
         if q.path[0] != "physics" and q.path[-1] not in item:
             raise EditError(f"{clause!r}: a {kind} has no {what}")
-        vector, unit = re.fullmatch(r"(\[.*\])\s*([a-z/]*)|.*", given[what]).groups()  # "[10, 10, 10] cm"
-        value, unit_kind = read_value(vector or given[what], q)
+        vector, unit = _vector_and_unit(given[what])  # "[10, 10, 10] cm"; "10 cm" is read_value's
+        value, unit_kind = read_value(vector, q)
         if unit_kind != "abs":
             raise EditError(f"{clause!r}: the {what} takes a value, not {given[what]!r}")
         if unit:
@@ -499,7 +505,7 @@ def _add(
     position, orientation = _placement(given["position"], item, items, clause)
     velocity = [0.0, 0.0, 0.0]
     if "velocity" in given:  # "[1, 0, 0] cm/s" was "'cm/s' not understood"
-        vector, unit = re.fullmatch(r"(\[.*\])\s*([a-z/]*)", given["velocity"]).groups()
+        vector, unit = _vector_and_unit(given["velocity"])
         velocity = [
             v * _unit(unit, "velocity", "velocity", clause) for v in read_value(vector, BY_KEY["linear_velocity"])[0]
         ]
@@ -508,6 +514,12 @@ def _add(
     at = len(objs.names)  # objects come first in the items, the camera and the rest after them
     items.insert(at, item)
     return at
+
+
+def _vector_and_unit(text: str) -> tuple[str, str]:
+    """'[10, 10, 10] cm' -> ('[10, 10, 10]', 'cm'); a value that is no vector is returned whole, with no unit."""
+    m = re.fullmatch(r"(\[.*\])\s*([a-z/]*)", text)
+    return (m.group(1), m.group(2)) if m else (text, "")
 
 
 def _unit(unit: str, kind: str, what: str, clause: str) -> float:
@@ -521,7 +533,7 @@ def _placement(text: str, item: dict, items: list[dict], clause: str) -> tuple[l
     """The position and orientation of an added object: '[x, y, z]' upright there, '[x, y]' resting upright on the
     floor plane (`environment.floor_offset`, tilted by `floor_tilt`: the object then leans with the floor) with
     its lowest point at x, y; a length unit may follow ('[100, 50] cm')."""
-    text, unit = re.fullmatch(r"(\[.*\])\s*([a-z/]*)", text).groups()
+    text, unit = _vector_and_unit(text)
     factor = _unit(unit, "length", "position", clause)
     try:
         at = [float(v) * factor for v in text.strip("[] ").split(",")]

@@ -264,7 +264,8 @@ def evaluation_modes(
         raise ValueError(f"{len(greedy)} greedy scores, {len(samples)} sample lists, rewards {tuple(rewards.shape)}")
     best = []
     for row, scores in zip(rewards.tolist(), samples, strict=True):
-        tied = [k for k, r in enumerate(row) if r == max(row)]
+        top = max(row)
+        tied = [k for k, r in enumerate(row) if r == top]
         best.append(next((k for k in tied if scores[k].valid), tied[0]))
     out: dict[str, float] = {}
     for name in SCORE_FIELDS:
