@@ -17,8 +17,8 @@ def main(rank: int, dataset: str, out: str) -> None:
     from aynamics.data import SceneDataModule
     from aynamics.sft import SFTModule
 
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=os.environ.get("FSDP_TEST_PORT", "29561"))
-    dist.init_process_group("gloo", rank=rank, world_size=2)
+    # the two processes meet in a file, not on a port: a free port chosen by the test could be taken before use
+    dist.init_process_group("gloo", init_method=f"file://{os.environ['FSDP_TEST_STORE']}", rank=rank, world_size=2)
     torch.set_num_threads(1)
     spec = lm.ModelSpec(kind="tiny", lora_dropout=0.0, train_vision=True)
     dm = SceneDataModule(dataset, spec.processor_path, num_frames=2, batch_size=2, visual_targets=True)

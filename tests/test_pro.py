@@ -6,7 +6,6 @@ import dataclasses
 import json
 import os
 import shutil
-import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,7 +16,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from PIL import Image
-from train_fixtures import tiny_dataset
+from train_fixtures import run_two_processes, tiny_dataset
 
 from aynamics import adapters, lm
 from aynamics import reward as rw
@@ -528,7 +527,7 @@ def _two_processes(out: Path, trainer: str, *overrides: str) -> dict:
     if trainer == "ddp":  # ddp.yaml is for GPUs (bf16-mixed); float32 on the CPU
         cmd.append("trainer.precision=32-true")
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
+    done = run_two_processes(cmd, out, cwd=ROOT, capture_output=True, text=True, timeout=900, env=env)
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads((out / "metrics.json").read_text())
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from train_fixtures import FAST, ROOT, tiny_dataset, train_cfg
+from train_fixtures import FAST, ROOT, run_two_processes, tiny_dataset, train_cfg
 
 from aynamics import adapters, lm
 from aynamics.data import SceneDataModule
@@ -902,9 +902,21 @@ def _two_processes(out: Path, *overrides: str, returncode: int | None = 0) -> su
     cmd += ["trainer.enable_progress_bar=false", *overrides]
     if "trainer=ddp" in overrides:  # ddp.yaml is for GPUs (bf16-mixed); float32 on the CPU
         cmd.append("trainer.precision=32-true")
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900, env=_one_thread())
+    done = run_two_processes(cmd, out, cwd=ROOT, capture_output=True, text=True, timeout=900, env=_one_thread())
     assert returncode is None or done.returncode == returncode, done.stderr[-3000:]
     return done
+
+
+def test_two_process_runs_are_run_again_only_when_their_port_was_taken(tmp_path):
+    """run_two_processes reruns a run that failed with EADDRINUSE once, from an empty folder; no other failure."""
+    script = "import sys; f = open(sys.argv[1], 'a+'); f.write('x'); f.seek(0); n = len(f.read()); "
+    script += "sys.exit(0 if n > 1 else sys.argv[2])"
+    for error, runs, code in (("name: EADDRINUSE, message: address already in use", 2, 0), ("other", 1, 1)):
+        out, count = tmp_path / error[:5], tmp_path / f"{error[:5]}.count"
+        (out / "checkpoints").mkdir(parents=True)
+        cmd = [sys.executable, "-c", script, str(count), error]
+        done = run_two_processes(cmd, out, capture_output=True, text=True)
+        assert (done.returncode, len(count.read_text()), out.exists()) == (code, runs, runs == 1), error
 
 
 def _one_thread() -> dict:  # and tests/ on the path, for train_fixtures' callbacks
@@ -921,13 +933,8 @@ def test_fsdp_gradients_equal_data_parallel_ones(tmp_path, dataset_dir):
     rank 1 builds it on the meta device and takes rank 0's weights and buffers), gathered, equal the mean of the
     two unsharded models' gradients on all 60 trainable tensors (without the buffers' broadcast, rank 1's rotary
     frequencies were uninitialised memory and the tower's gradients differed)."""
-    import socket
-
     out = tmp_path / "grads.pt"
-    with socket.socket() as s:  # a free port for the process group
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = dict(_one_thread(), PYTHONPATH=str(ROOT), FSDP_TEST_PORT=str(port))
+    env = dict(_one_thread(), PYTHONPATH=str(ROOT), FSDP_TEST_STORE=str(tmp_path / "store"))
     worker = [sys.executable, str(ROOT / "tests" / "fsdp_worker.py")]
     procs = [subprocess.Popen([*worker, str(r), str(dataset_dir), str(out)], env=env) for r in (1, 0)]
     try:

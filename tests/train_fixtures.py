@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
+import subprocess
 from pathlib import Path
 
 import lightning as L
@@ -40,6 +42,17 @@ def tiny_dataset(tmp_path_factory) -> Path:
             config = GenerateConfig(width=64, height=48, workers=0, splits=(0.5, 0.25, 0.25))
             generate_dataset(path, num=NUM_SCENES, seed=0, config=config)
     return path
+
+
+def run_two_processes(cmd: list[str], out: Path, **kwargs) -> subprocess.CompletedProcess:
+    """`subprocess.run(cmd, **kwargs)` of a 2-process `train.py` run writing to `out`, run once more (from an empty
+    `out`) when its process group lost the port Lightning chose for it: Lightning binds a free port, frees it and
+    gives it to the group's store, and another run (an xdist worker's) can take it in between (EADDRINUSE)."""
+    done = subprocess.run(cmd, **kwargs)
+    if done.returncode != 0 and "EADDRINUSE" in (done.stderr or ""):
+        shutil.rmtree(out, ignore_errors=True)
+        done = subprocess.run(cmd, **kwargs)
+    return done
 
 
 class SigtermAt(L.Callback):
