@@ -23,11 +23,8 @@ to -9 (stronger), where "by 50%" scales the component's size (-1 to -0.5: "reduc
 `damping` is log10 of a decay rate, so "double the damping" doubles the rate and "set the damping to 0.5 /s" sets
 the rate (a plain number sets the log10 value).
 
-An added object goes after the others, named `{type}_{k}` (the first k free) unless 'named NAME' says; 'at [x, y]'
-rests it upright on the floor with its lowest point there (leaning with a tilted floor), 'at [x, y, z]' puts its
-centre there upright. Its shape and physics are those of 'like OBJECT', else of the scene's first object of its kind,
-else 0.2 m, 1 kg, friction [0.5, 0.05], damping -4 (`ADD_DEFAULTS`); the phrases set any of them and its velocity; it
-starts at rest otherwise. An object added inside another is the simulation's to refuse (its rollout names the pair).
+An 'add' clause is read in `aynamics.edit_add` (where an added object goes, its name, shape and physics), the
+objects a target phrase or a pronoun names in `aynamics.edit_targets`.
 
     result = apply_instruction(scene, "reduce the x-velocity of box_0 by 80%")
     result.scene, result.changes   # the validated edited scene; every leaf that changed, every object removed or
@@ -46,8 +43,11 @@ import math
 import re
 from dataclasses import dataclass
 
+from aynamics.edit_add import ADD_CLAUSE, _add
+from aynamics.edit_add import ADD_DEFAULTS as ADD_DEFAULTS
 from aynamics.edit_diff import Change as Change
 from aynamics.edit_diff import diff as diff
+from aynamics.edit_targets import _REMOVED, _gone, _not_removed, _Objects, _objects, _previous, find_targets
 from aynamics.edit_words import (
     AS_OF,
     AS_WORDS,
@@ -62,7 +62,6 @@ from aynamics.edit_words import (
     UP,
     VERBS_BY,
     FieldError,
-    is_quantity,
     quantity,
     read_factor,
     read_times,
@@ -76,7 +75,7 @@ from aynamics.edit_words import UNDERSTOOD as UNDERSTOOD
 from aynamics.edit_words import UNITS as UNITS
 from aynamics.edit_words import EditError as EditError
 from aynamics.edit_words import Quantity as Quantity
-from aynamics.scene import OBJECT_TYPES, Scene, SceneError, from_items, require_scene, to_items
+from aynamics.scene import Scene, SceneError, from_items, require_scene, to_items
 
 
 @dataclass(frozen=True)
@@ -85,89 +84,6 @@ class EditResult:
 
     scene: Scene
     changes: tuple[Change, ...]
-
-
-# --------------------------------------------------------------------------------------------
-# Reading an instruction
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _Objects:
-    """The objects of the edited items as the clauses so far left them (a `Scene` reads the same): their names and
-    types, the objects an earlier clause added included."""
-
-    names: tuple[str, ...]
-    structure: tuple[str, ...]
-
-
-def _objects(items: list[dict]) -> _Objects:
-    objects = [it for it in items if it["type"] in OBJECT_TYPES]
-    return _Objects(tuple(it["name"] for it in objects), tuple(it["type"] for it in objects))
-
-
-def find_targets(
-    text: str | None,
-    scene: Scene | _Objects,
-    previous: list[int] | str | None = None,
-    gone: frozenset[int] = frozenset(),
-) -> list[int]:
-    """Indices of the objects a target phrase names; None or 'all objects' means every object; 'it' / 'them' the
-    objects of the clause before (`previous`), unless an object has that name ("stop it" stops an object named it).
-    Every object and the objects of a kind ('all boxes', 'the box') leave out those an earlier clause removed
-    (`gone`): "remove box_0 and double the mass of all objects" was refused as editing box_0."""
-    lower = {n.lower(): i for i, n in enumerate(scene.names)}
-    if text is not None and re.fullmatch(r"it|them", text) and text not in lower:
-        return _previous(text, previous, scene)
-    if text is None or re.fullmatch(r"(?:all|every|each)(?: (?:the )?objects?)?|everything|the objects", text):
-        return [i for i in range(len(scene.names)) if i not in gone]
-    out: list[int] = []
-    for part in re.split(r"\s*,\s*(?:and\s+)?|\s+and\s+", text.strip()):
-        part = part.strip()
-        bare = re.sub(r"^the ", "", part)  # "the crate" for an object named crate
-        if part in lower or bare in lower:
-            out.append(lower[part if part in lower else bare])
-            continue
-        m = re.fullmatch(r"(?:(all|every|each|the) )?(box|boxes|sphere|spheres|cylinder|cylinders)", part)
-        if m is None:
-            if is_quantity(part):  # "double the mass of box_0 and the friction": a second quantity, not an object
-                raise EditError(
-                    f"{part!r} is a quantity, not an object of the scene {list(scene.names)}: one clause changes one "
-                    f"quantity; repeat a verb before {part!r} (e.g. 'double the mass of {scene.names[0]} and halve "
-                    "its friction')"
-                )
-            raise EditError(f"object {part!r} not found; the scene has {list(scene.names)}. {UNDERSTOOD}")
-        kind = {"boxes": "box", "spheres": "sphere", "cylinders": "cylinder"}.get(m.group(2), m.group(2))
-        idx = [i for i, t in enumerate(scene.structure) if t == kind and i not in gone]
-        if not idx:
-            left = [n for i, n in enumerate(scene.names) if i not in gone]
-            raise EditError(f"{part!r}: the scene has no {kind}{' left' if gone else ''}; its objects are {left}")
-        singular = m.group(2) == kind and m.group(1) in (None, "the")
-        if singular and len(idx) > 1:
-            names = [scene.names[i] for i in idx]
-            plural = "boxes" if kind == "box" else f"{kind}s"  # it said "2 spherees"
-            raise EditError(f"{part!r} is ambiguous: the scene has {len(idx)} {plural} {names}; name one")
-        out.extend(idx)
-    return sorted(set(out))
-
-
-def _previous(word: str, previous: list[int] | str | None, scene: Scene | _Objects) -> list[int]:
-    """The objects an earlier clause named, for 'it', 'its', 'them', 'their' (alone they meant every object:
-    "double the mass of box_0; halve its friction" halved every object's friction); in a scene of one object,
-    before any clause named one, that object. After a clause that edited the camera (`previous` is its text) the
-    word could mean the camera: "set the fov to 60 and move it 1 m back" moved the object."""
-    if isinstance(previous, str):
-        raise EditError(
-            f"{word!r} follows {previous!r}, which edited the camera, so it could mean the camera; name the object "
-            f"(e.g. {scene.names[0]})"
-        )
-    if previous is None and len(scene.names) == 1:
-        return [0]
-    if previous is None:
-        raise EditError(
-            f"{word!r} refers to no object named before it in the instruction; name the object (e.g. {scene.names[0]})"
-        )
-    return previous
 
 
 # --------------------------------------------------------------------------------------------
@@ -394,182 +310,7 @@ def _clause(
     return idx if q.scope == "object" else clause if q.scope == "camera" else previous
 
 
-# --------------------------------------------------------------------------------------------
-# Adding an object
-# --------------------------------------------------------------------------------------------
-KINDS = {"box": "box", "cube": "box", "sphere": "sphere", "ball": "sphere", "cylinder": "cylinder"}
-# "add a sphere ...", "add another box ...": the kind, then the phrases of `_ADD_PHRASES` in any order
-ADD_CLAUSE = rf"(?:add|insert) (?:a|an|another|one more|a new|a second|a third) (?P<k>{'|'.join(KINDS)})(?P<rest>.*)"
-_VEC = r"\[[^\]]*\]"
-# a number and its unit; the word after a bare number is the next phrase's ("of radius 0.1 and height 0.3" read
-# "and" as the radius' unit)
-_NEXT = r"(?:and|with|of|a|an|named|called|like|copied|at|moving|going|travell?ing|sliding|rolling|velocity|radius|"
-_NEXT += r"height|size|half-extents|mass|weighing)\b"
-_AMOUNT = rf"{NUM}(?: ?(?!{_NEXT})[a-z/]+)?"
-_UNIT_WORDS = "|".join(sorted({re.escape(u) for table in UNITS.values() for u in table}, key=len, reverse=True))
-_VEC_UNIT = rf"{_VEC}(?: ?(?:{_UNIT_WORDS}))?"  # "[1, 0, 0] cm/s", "[10, 10, 10] cm", "[1, 2]"
-_ADD_PHRASES: tuple[tuple[str, str], ...] = (  # (what, regex of its value `v`), matched at the start of the rest
-    ("name", r"(?:named|called) (?P<v>[a-z_][\w.-]*)"),
-    ("like", r"(?:like|copied from) (?P<v>(?:the )?[\w.-]+)"),  # "like box_0", "like the box", "like it"
-    ("position", rf"at (?:position )?(?P<v>{_VEC_UNIT})"),
-    ("velocity", rf"(?:moving|going|travell?ing|sliding|rolling) (?:at |with )?(?P<v>{_VEC_UNIT})"),
-    ("velocity", rf"(?:with )?(?:a |an initial )?velocity (?:of )?(?P<v>{_VEC_UNIT})"),
-    ("radius", rf"(?:of |with )?(?:a )?radius (?:of )?(?P<v>{_AMOUNT})"),
-    ("height", rf"(?:of |with )?(?:a )?height (?:of )?(?P<v>{_AMOUNT})"),
-    ("size", rf"(?:of |with )?(?:a )?(?:size|half-extents) (?:of )?(?P<v>{_VEC_UNIT})"),
-    ("mass", rf"(?:of |with )?(?:a )?mass (?:of )?(?P<v>{_AMOUNT})"),
-    ("mass", rf"weighing (?P<v>{_AMOUNT})"),
-)
-ADD_DEFAULTS = {  # an added object's shape and physics when the scene has no object of its kind and no "like"
-    "box": {"size": [0.2, 0.2, 0.2]},
-    "sphere": {"radius": 0.2},
-    "cylinder": {"radius": 0.2, "height": 0.4},
-    "physics": {"friction": [0.5, 0.05], "mass": 1.0, "damping": -4.0},
-}
-ADD_WORDS = (
-    "'add a|another box|cube|sphere|ball|cylinder at [x, y] (resting on the floor) | at [x, y, z]', then any of: "
-    "'named NAME', 'like OBJECT' (its shape and physics), 'moving at [vx, vy, vz] m/s', 'of radius R', "
-    "'of height H', 'of size [a, b, c]' (half-extents), 'of mass M kg'; the shape and physics not given are "
-    "those of the scene's first object of the kind, else a 0.2 m object of 1 kg, friction [0.5, 0.05]"
-)
-
-
-def _add(
-    kind_word: str,
-    rest: str,
-    items: list[dict],
-    objs: _Objects,
-    clause: str,
-    previous: list[int] | str | None = None,
-    raw: str = "",
-) -> int:
-    """Insert the object an 'add' clause describes after the objects (in place); its index. `objs`: the items'
-    objects (`_objects`). 'like it' is the object of the clause before (`previous`); 'named NAME' keeps the case
-    NAME has in `raw`, the instruction as typed."""
-    kind = KINDS[kind_word]
-    given: dict[str, str] = {}
-    rest = rest.strip(" ,")
-    while rest:
-        rest = re.sub(r"^(?:and|with|,)\s*", "", rest)
-        for what, pattern in _ADD_PHRASES:
-            if m := re.match(rf"{pattern}(?=[ ,]|$)", rest):
-                if what in given:
-                    raise EditError(f"{clause!r}: the {what} is given twice ({given[what]!r}, {m.group('v')!r})")
-                given[what] = m.group("v")
-                rest = rest[m.end() :].strip(" ,")
-                break
-        else:
-            raise EditError(f"{clause!r}: {rest!r} not understood. {ADD_WORDS}")
-    if "position" not in given:
-        raise EditError(f"{clause!r}: say where the {kind} goes: 'at [x, y]' (resting on the floor) or 'at [x, y, z]'")
-    if "like" in given:
-        like = find_targets(given["like"], objs, previous, _gone(items))
-        if len(like) != 1 or objs.structure[like[0]] != kind:
-            names = [objs.names[i] for i in like]
-            raise EditError(f"{clause!r}: 'like {given['like']}' must name one {kind}, not {names}")
-        template = items[like[0]]
-    else:
-        template = next((it for it in items if it["type"] == kind and not it.get(_REMOVED)), None)
-    if template is None:
-        # deep copies: "set its friction to 0.9" wrote 0.9 into ADD_DEFAULTS' friction list (every later default too)
-        item = {"type": kind, **copy.deepcopy(ADD_DEFAULTS[kind]), "physics": copy.deepcopy(ADD_DEFAULTS["physics"])}
-    else:
-        item = {k: copy.deepcopy(v) for k, v in template.items() if k not in ("name", "state", _REMOVED)}
-    if kind_word == "cube" and "size" not in given and len(set(item["size"])) != 1:  # the scene's box is no cube
-        item["size"] = list(ADD_DEFAULTS["box"]["size"])
-    for what in ("radius", "height", "size", "mass"):
-        if what not in given:
-            continue
-        q = BY_KEY[what]
-        if q.path[0] != "physics" and q.path[-1] not in item:
-            raise EditError(f"{clause!r}: a {kind} has no {what}")
-        vector, unit = _vector_and_unit(given[what])  # "[10, 10, 10] cm"; "10 cm" is read_value's
-        value, unit_kind = read_value(vector, q)
-        if unit_kind != "abs":
-            raise EditError(f"{clause!r}: the {what} takes a value, not {given[what]!r}")
-        if unit:
-            value = [v * _unit(unit, "length", what, clause) for v in value]
-        if kind_word == "cube" and what == "size" and len(set(value)) != 1:
-            raise EditError(f"{clause!r}: a cube has equal half-extents, not {value}; say 'a box'")
-        (item["physics"] if what == "mass" else item)[q.path[-1]] = value
-    taken = {it["name"].lower() for it in items if it["type"] in OBJECT_TYPES}
-    name = given.get("name") or next(f"{kind}_{k}" for k in range(len(taken) + 1) if f"{kind}_{k}" not in taken)
-    if "name" in given and (typed := re.search(rf"\b(?:named|called)\s+({re.escape(name)})(?![\w.-])", raw, re.I)):
-        name = typed.group(1)  # "named Ball" named it ball
-    if name.lower() in ("camera", "gravity", "environment"):  # diff read the camera's fields as removed
-        raise EditError(
-            f"{clause!r}: {name!r} is the name of the scene's {name.lower()} item; name the {kind} otherwise"
-        )
-    if name.lower() in taken:
-        raise EditError(f"{clause!r}: the scene already has an object named {name!r} (its objects: {list(objs.names)})")
-    position, orientation = _placement(given["position"], item, items, clause)
-    velocity = [0.0, 0.0, 0.0]
-    if "velocity" in given:  # "[1, 0, 0] cm/s" was "'cm/s' not understood"
-        vector, unit = _vector_and_unit(given["velocity"])
-        velocity = [
-            v * _unit(unit, "velocity", "velocity", clause) for v in read_value(vector, BY_KEY["linear_velocity"])[0]
-        ]
-    state = {"angular_velocity": [0.0, 0.0, 0.0], "linear_velocity": velocity}
-    item = {"type": kind, "name": name, **item, "state": state | {"orientation": orientation, "position": position}}
-    at = len(objs.names)  # objects come first in the items, the camera and the rest after them
-    items.insert(at, item)
-    return at
-
-
-def _vector_and_unit(text: str) -> tuple[str, str]:
-    """'[10, 10, 10] cm' -> ('[10, 10, 10]', 'cm'); a value that is no vector is returned whole, with no unit."""
-    m = re.fullmatch(r"(\[.*\])\s*([a-z/]*)", text)
-    return (m.group(1), m.group(2)) if m else (text, "")
-
-
-def _unit(unit: str, kind: str, what: str, clause: str) -> float:
-    """The SI factor of a unit of `UNITS[kind]` ('' is SI)."""
-    if unit and unit not in UNITS[kind]:
-        raise EditError(f"{clause!r}: unit {unit!r} does not fit {what}: allowed {', '.join(UNITS[kind])}")
-    return UNITS[kind][unit] if unit else 1.0
-
-
-def _placement(text: str, item: dict, items: list[dict], clause: str) -> tuple[list[float], list[float]]:
-    """The position and orientation of an added object: '[x, y, z]' upright there, '[x, y]' resting upright on the
-    floor plane (`environment.floor_offset`, tilted by `floor_tilt`: the object then leans with the floor) with
-    its lowest point at x, y; a length unit may follow ('[100, 50] cm')."""
-    text, unit = _vector_and_unit(text)
-    factor = _unit(unit, "length", "position", clause)
-    try:
-        at = [float(v) * factor for v in text.strip("[] ").split(",")]
-    except ValueError:
-        raise EditError(f"{clause!r}: a position is [x, y] or [x, y, z] numbers, not {text}") from None
-    if len(at) == 3:
-        return at, [1.0, 0.0, 0.0, 0.0]
-    if len(at) != 2:
-        raise EditError(f"{clause!r}: a position is [x, y] (resting on the floor) or [x, y, z], not {text}")
-    env = next((it for it in items if it["type"] == "environment"), {})
-    offset, tilt = float(env.get("floor_offset") or 0.0), env.get("floor_tilt") or [0.0, 0.0]
-    half = (
-        item["size"][2] if item["type"] == "box" else item["radius"] if item["type"] == "sphere" else item["height"] / 2
-    )
-    if not any(tilt):
-        return [at[0], at[1], offset + half], [1.0, 0.0, 0.0, 0.0]
-    from aynamics.mujoco_model import quat_to_mat, tilt_quaternion
-
-    q = tilt_quaternion(*tilt)
-    n = quat_to_mat(q)[:, 2]
-    z = offset - (n[0] * at[0] + n[1] * at[1]) / n[2]  # the floor plane below x, y
-    return [float(v) for v in (at[0], at[1], z) + half * n], [float(v) for v in q]
-
-
-_REMOVED = "__removed__"  # marks an object item a clause removed; `apply_instruction` drops it at the end
 REMOVE_CLAUSE = r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the scene)?"  # a removal clause
-
-
-def _gone(items: list[dict]) -> frozenset[int]:
-    return frozenset(i for i, item in enumerate(items) if item.get(_REMOVED))
-
-
-def _not_removed(items: list[dict], idx: list[int], clause: str) -> None:
-    for i in idx:
-        if items[i].get(_REMOVED):
-            raise EditError(f"{clause!r}: {items[i]['name']} was removed by an earlier clause")
 
 
 # the words a clause starts with: "and" before one of them joins two clauses ("double the mass of box_0 and halve its

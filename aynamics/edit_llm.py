@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import re
 
-from aynamics.edit import ADD_CLAUSE, KINDS, REMOVE_CLAUSE, EditResult, find_targets, split_clauses
+from aynamics.edit import REMOVE_CLAUSE, EditResult, split_clauses
+from aynamics.edit_add import ADD_CLAUSE, KINDS
 from aynamics.edit_diff import Change, diff
+from aynamics.edit_targets import find_targets
 from aynamics.edit_words import DIRECTIONS, QUANTITIES, EditError
 from aynamics.scene import Scene, SceneError, dump, parse, require_scene
 

@@ -992,7 +992,7 @@ def test_cli_edit_adds_and_renders(tmp_path, capsys):
 def test_add_defaults_are_not_changed_by_an_edit_of_the_added_object(scene):
     """'add a sphere ...; set its friction to 0.9' edited the friction list of `ADD_DEFAULTS` in place (a shallow
     copy): every later default sphere had friction 0.9."""
-    from aynamics.edit import ADD_DEFAULTS
+    from aynamics.edit_add import ADD_DEFAULTS
 
     edited = apply_instruction(scene, "add a sphere at [1, 2] and set its friction to 0.9").scene.objects[-1]
     assert edited.physics.friction == (0.9, 0.05)
