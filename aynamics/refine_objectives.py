@@ -49,7 +49,7 @@ def trajectory_objective(target: Scene, config=None, nthread: int | None = None)
     A physics-only objective for known ground truth (tests, benchmarks of the search itself); diverging or
     differently built candidates score -100.
     """
-    from aynamics.simulate import SimConfig
+    from aynamics.rollout import SimConfig
 
     config = config or SimConfig()
     ref, ok = raw_positions([target], config, 1)

@@ -229,7 +229,7 @@ def track_start(
 
 def centre_heights(scene: Scene, frames: np.ndarray, config=None, nthread: int | None = None) -> np.ndarray | None:
     """(F, N) heights of the object centres at `frames` in the scene's own rollout, or None when it diverges."""
-    from aynamics.simulate import SimConfig
+    from aynamics.rollout import SimConfig
 
     pos, ok = raw_positions([scene], config or SimConfig(), nthread)
     return pos[0, np.minimum(frames, pos.shape[1] - 1), :, 2] if ok[0] else None
@@ -258,7 +258,7 @@ def track_distances(
     Physics only (no rendering). A centre behind the camera counts as 1 image height off; scenes of another
     object count or structure than the first, or that diverge, are invalid (distance 1).
     """
-    from aynamics.simulate import SimConfig
+    from aynamics.rollout import SimConfig
 
     n, (f_count, n_obj) = len(scenes), tracks.visible.shape
     dist, valid = np.ones((n, f_count, n_obj)), np.zeros(n, bool)

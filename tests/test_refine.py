@@ -743,8 +743,8 @@ def test_trajectory_objective_is_minus_the_mean_centre_distance():
     is sqrt(0.3² + 0.4²) = 0.5 m off in every frame -> -0.5 (Euclidean; not -0.7 summed over axes or -0.25 squared).
     A candidate that leaves MAX_DISTANCE (1000 m: a sphere flying at 20 m/s without gravity for 60 s reaches
     1200 m) scores exactly -100, not minus its distance."""
+    from aynamics.rollout import SimConfig
     from aynamics.scene import parse
-    from aynamics.simulate import SimConfig
 
     cam = "- type: camera\n  position: [0, -2, 3.5]\n"
     box = "- {{type: box, size: [0.1, 0.1, 0.1], state: {{position: [{}, {}, 0.1]}}}}\n"
