@@ -43,11 +43,19 @@ import math
 import re
 from dataclasses import dataclass
 
-from aynamics.edit_add import ADD_CLAUSE, _add
+from aynamics.edit_add import ADD_CLAUSE, add_object
 from aynamics.edit_add import ADD_DEFAULTS as ADD_DEFAULTS
 from aynamics.edit_diff import Change as Change
 from aynamics.edit_diff import diff as diff
-from aynamics.edit_targets import _REMOVED, _gone, _not_removed, _Objects, _objects, _previous, find_targets
+from aynamics.edit_targets import (
+    REMOVED,
+    ObjectView,
+    check_not_removed,
+    find_targets,
+    gone,
+    object_view,
+    previous_targets,
+)
 from aynamics.edit_words import (
     AS_OF,
     AS_WORDS,
@@ -89,7 +97,7 @@ class EditResult:
 # --------------------------------------------------------------------------------------------
 # Applying
 # --------------------------------------------------------------------------------------------
-def _items_of(q: Quantity, items: list[dict], targets: list[int], scene: _Objects, named: bool) -> list[dict]:
+def _items_of(q: Quantity, items: list[dict], targets: list[int], scene: ObjectView, named: bool) -> list[dict]:
     if q.scope == "object":
         return [items[i] for i in targets]
     if named:
@@ -108,7 +116,7 @@ def _edit_field(item: dict, q: Quantity, comp: int | None, fn, label: str) -> No
     for k in parents:
         holder = holder[k]
     name = item.get("name", q.scope)
-    if item.get(_REMOVED):
+    if item.get(REMOVED):
         raise EditError(f"{label}: {name} was removed by an earlier clause")
     at = q.index if q.index is not None else comp
     field = f"{name}.{'.'.join(q.path)}" + ("" if at is None else f"[{at}]")  # as `diff` names it
@@ -206,7 +214,7 @@ def _clause(
     `previous` on; one that edited the camera gives its own text, which a pronoun after it is refused with. `raw`: the
     instruction as typed (the clauses are lower-cased), where an added object's name keeps its case."""
     c, q_text = clause, ""
-    scene = _objects(items)  # names and types as the clauses before left them (added objects included)
+    scene = object_view(items)  # names and types as the clauses before left them (added objects included)
     if m := re.fullmatch(rf"(?:set|change) (?:the )?gravity to {PLANET}(?: gravity)?", c) or re.fullmatch(
         rf"(?:use |switch to |apply )?{PLANET} gravity", c
     ):
@@ -285,26 +293,30 @@ def _clause(
             raise EditError(f"{clause!r}: a move takes a distance like '0.5 m', not {m.group('n')!r}")
         fn = _relative(q, comp, sign, amount, "abs", clause)
     elif m := re.fullmatch(r"(?:stop|freeze) (?P<t>.+)", c):
-        idx = find_targets(m.group("t"), scene, previous, _gone(items))
-        _not_removed(items, idx, clause)
+        idx = find_targets(m.group("t"), scene, previous, gone(items))
+        check_not_removed(items, idx, clause)
         for i in idx:
             items[i]["state"]["linear_velocity"] = [0.0, 0.0, 0.0]
             items[i]["state"]["angular_velocity"] = [0.0, 0.0, 0.0]
         return idx
     elif m := re.fullmatch(REMOVE_CLAUSE, c):
-        idx = find_targets(m.group("t"), scene, previous, _gone(items))
-        _not_removed(items, idx, clause)
+        idx = find_targets(m.group("t"), scene, previous, gone(items))
+        check_not_removed(items, idx, clause)
         for i in idx:
-            items[i][_REMOVED] = True
+            items[i][REMOVED] = True
         return idx
     elif m := re.fullmatch(ADD_CLAUSE, c):
-        return [_add(m.group("k"), m.group("rest"), items, scene, clause, previous, raw)]
+        return [add_object(m.group("k"), m.group("rest"), items, scene, clause, previous, raw)]
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
         t_text = None  # "the field of view of the camera", "the gravity of the scene" name the item itself
     owner = re.match(r"(its|their) ", q_text) if t_text is None and q.scope == "object" else None
-    idx = _previous(owner.group(1), previous, scene) if owner else find_targets(t_text, scene, previous, _gone(items))
+    idx = (
+        previous_targets(owner.group(1), previous, scene)
+        if owner
+        else find_targets(t_text, scene, previous, gone(items))
+    )
     for item in _items_of(q, items, idx, scene, t_text is not None or owner is not None):
         _edit_field(item, q, comp, fn, repr(clause))
     return idx if q.scope == "object" else clause if q.scope == "camera" else previous
@@ -350,7 +362,7 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
     previous = None  # the objects the last clause edited ("its", "it", "their", "them"), or a camera clause
     for clause in clauses:
         previous = _clause(clause, items, previous, instruction)
-    return finish(scene, [it for it in items if not it.get(_REMOVED)], instruction)
+    return finish(scene, [it for it in items if not it.get(REMOVED)], instruction)
 
 
 def finish(scene: Scene, items: list[dict], instruction: str) -> EditResult:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import re
 
-from aynamics.edit_targets import _REMOVED, _gone, _Objects, find_targets
+from aynamics.edit_targets import REMOVED, ObjectView, find_targets, gone
 from aynamics.edit_words import BY_KEY, NUM, UNITS, EditError, read_value
 from aynamics.scene import OBJECT_TYPES
 
@@ -54,17 +54,17 @@ ADD_WORDS = (
 )
 
 
-def _add(
+def add_object(
     kind_word: str,
     rest: str,
     items: list[dict],
-    objs: _Objects,
+    objs: ObjectView,
     clause: str,
     previous: list[int] | str | None = None,
     raw: str = "",
 ) -> int:
     """Insert the object an 'add' clause describes after the objects (in place); its index. `objs`: the items'
-    objects (`_objects`). 'like it' is the object of the clause before (`previous`); 'named NAME' keeps the case
+    objects (`object_view`). 'like it' is the object of the clause before (`previous`); 'named NAME' keeps the case
     NAME has in `raw`, the instruction as typed."""
     kind = KINDS[kind_word]
     given: dict[str, str] = {}
@@ -83,18 +83,18 @@ def _add(
     if "position" not in given:
         raise EditError(f"{clause!r}: say where the {kind} goes: 'at [x, y]' (resting on the floor) or 'at [x, y, z]'")
     if "like" in given:
-        like = find_targets(given["like"], objs, previous, _gone(items))
+        like = find_targets(given["like"], objs, previous, gone(items))
         if len(like) != 1 or objs.structure[like[0]] != kind:
             names = [objs.names[i] for i in like]
             raise EditError(f"{clause!r}: 'like {given['like']}' must name one {kind}, not {names}")
         template = items[like[0]]
     else:
-        template = next((it for it in items if it["type"] == kind and not it.get(_REMOVED)), None)
+        template = next((it for it in items if it["type"] == kind and not it.get(REMOVED)), None)
     if template is None:
         # deep copies: "set its friction to 0.9" wrote 0.9 into ADD_DEFAULTS' friction list (every later default too)
         item = {"type": kind, **copy.deepcopy(ADD_DEFAULTS[kind]), "physics": copy.deepcopy(ADD_DEFAULTS["physics"])}
     else:
-        item = {k: copy.deepcopy(v) for k, v in template.items() if k not in ("name", "state", _REMOVED)}
+        item = {k: copy.deepcopy(v) for k, v in template.items() if k not in ("name", "state", REMOVED)}
     if kind_word == "cube" and "size" not in given and len(set(item["size"])) != 1:  # the scene's box is no cube
         item["size"] = list(ADD_DEFAULTS["box"]["size"])
     for what in ("radius", "height", "size", "mass"):

@@ -15,7 +15,7 @@ from aynamics.scene import OBJECT_TYPES, Scene
 
 
 @dataclass(frozen=True)
-class _Objects:
+class ObjectView:
     """The objects of the edited items as the clauses so far left them (a `Scene` reads the same): their names and
     types, the objects an earlier clause added included."""
 
@@ -23,14 +23,16 @@ class _Objects:
     structure: tuple[str, ...]
 
 
-def _objects(items: list[dict]) -> _Objects:
+def object_view(items: list[dict]) -> ObjectView:
+    """The objects of the edited items, those removed so far included (objects come first among the items, so an
+    object's index is its item's)."""
     objects = [it for it in items if it["type"] in OBJECT_TYPES]
-    return _Objects(tuple(it["name"] for it in objects), tuple(it["type"] for it in objects))
+    return ObjectView(tuple(it["name"] for it in objects), tuple(it["type"] for it in objects))
 
 
 def find_targets(
     text: str | None,
-    scene: Scene | _Objects,
+    scene: Scene | ObjectView,
     previous: list[int] | str | None = None,
     gone: frozenset[int] = frozenset(),
 ) -> list[int]:
@@ -40,7 +42,7 @@ def find_targets(
     (`gone`): "remove box_0 and double the mass of all objects" was refused as editing box_0."""
     lower = {n.lower(): i for i, n in enumerate(scene.names)}
     if text is not None and re.fullmatch(r"it|them", text) and text not in lower:
-        return _previous(text, previous, scene)
+        return previous_targets(text, previous, scene)
     if text is None or re.fullmatch(r"(?:all|every|each)(?: (?:the )?objects?)?|everything|the objects", text):
         return [i for i in range(len(scene.names)) if i not in gone]
     out: list[int] = []
@@ -73,7 +75,7 @@ def find_targets(
     return sorted(set(out))
 
 
-def _previous(word: str, previous: list[int] | str | None, scene: Scene | _Objects) -> list[int]:
+def previous_targets(word: str, previous: list[int] | str | None, scene: Scene | ObjectView) -> list[int]:
     """The objects an earlier clause named, for 'it', 'its', 'them', 'their' (alone they meant every object:
     "double the mass of box_0; halve its friction" halved every object's friction); in a scene of one object,
     before any clause named one, that object. After a clause that edited the camera (`previous` is its text) the
@@ -92,14 +94,16 @@ def _previous(word: str, previous: list[int] | str | None, scene: Scene | _Objec
     return previous
 
 
-_REMOVED = "__removed__"  # marks an object item a clause removed; `apply_instruction` drops it at the end
+REMOVED = "__removed__"  # marks an object item a clause removed; `apply_instruction` drops it at the end
 
 
-def _gone(items: list[dict]) -> frozenset[int]:
-    return frozenset(i for i, item in enumerate(items) if item.get(_REMOVED))
+def gone(items: list[dict]) -> frozenset[int]:
+    """Indices of the items an earlier clause removed (marked `REMOVED`)."""
+    return frozenset(i for i, item in enumerate(items) if item.get(REMOVED))
 
 
-def _not_removed(items: list[dict], idx: list[int], clause: str) -> None:
+def check_not_removed(items: list[dict], idx: list[int], clause: str) -> None:
+    """Raise EditError naming the clause when it edits an object an earlier clause removed."""
     for i in idx:
-        if items[i].get(_REMOVED):
+        if items[i].get(REMOVED):
             raise EditError(f"{clause!r}: {items[i]['name']} was removed by an earlier clause")
