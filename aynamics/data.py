@@ -24,6 +24,7 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset
 
 from aynamics import lm
 from aynamics import scene as scene_lib
+from aynamics.batching import collate
 from aynamics.loaders import (  # noqa: F401 - re-exported: the loaders the data module builds
     EvalShard,
     ResumableLoader,
@@ -35,7 +36,7 @@ from aynamics.loaders import (  # noqa: F401 - re-exported: the loaders the data
     real_rows,
     resumable_loader,
 )
-from aynamics.processor import IGNORE_INDEX, build_sft_example, collate, sample_frames, type_tokens
+from aynamics.processor import IGNORE_INDEX, build_sft_example, sample_frames, type_tokens
 from aynamics.scene import Scene, SceneError, from_items, parse, to_items
 from aynamics.visual_targets import token_targets
 

@@ -22,7 +22,8 @@ from typing import Any
 import torch
 
 from aynamics import scene as scene_lib
-from aynamics.processor import IGNORE_INDEX, build_prompt, local_path, token_logprobs
+from aynamics.logprobs import token_logprobs
+from aynamics.processor import IGNORE_INDEX, build_prompt, local_path
 
 TARGETS = ("answer", "think_answer")  # stage.target: the YAML alone, or motion reasoning then the YAML
 MODALITIES = ("rgb", "flow")  # data.modality: the frames shown to the model

@@ -2,7 +2,7 @@
 
 Shapes: `seq_logps` and `rewards` are (B, N): B input videos, N sampled candidates each. `seq_logps[b, n]` is the
 length-normalised log-likelihood of candidate n, i.e. the mean per-token log-probability of its response tokens
-given the input (`aynamics.processor.mean_token_logprob`). `rewards[b, n]` is the simulator's score (IoU in
+given the input (`aynamics.logprobs.mean_token_logprob`). `rewards[b, n]` is the simulator's score (IoU in
 [0, 1]; 0 for an invalid response).
 """
 
@@ -126,7 +126,7 @@ def sft_on_best(token_logps: torch.Tensor, token_mask: torch.Tensor, rewards: to
         token_mask: (B, N, L) bool, True on response tokens.
         rewards: (B, N) simulator scores (finite).
 
-    A best candidate without response tokens adds 0 (as `processor.mean_token_logprob`).
+    A best candidate without response tokens adds 0 (as `logprobs.mean_token_logprob`).
 
     Raises:
         ValueError: shapes that do not match (B, N, L) and (B, N), an empty batch, or a NaN / infinite reward (its

@@ -37,9 +37,10 @@ from torch.utils.data import DataLoader
 
 from aynamics import adapters, lm, sharding
 from aynamics import reward as rw
+from aynamics.batching import model_inputs
 from aynamics.data import real_rows
+from aynamics.logprobs import token_logprobs
 from aynamics.preference import check_finite_rewards, pro_ranking_loss, sft_on_best, soft_preference_loss
-from aynamics.processor import model_inputs, token_logprobs
 from aynamics.sft import check_gradients
 from aynamics.unlabeled import GeneratedVideos, UnlabeledVideo, collate_videos, is_generated, open_videos
 

@@ -1,4 +1,4 @@
-"""Turning frames + text into Qwen2.5-VL inputs: an image-only processor, SFT chat formatting and log-probs.
+"""Turning frames + text into Qwen2.5-VL inputs: an image-only processor and SFT chat formatting.
 
 transformers' `Qwen2_5_VLProcessor` needs torchvision's video processor, which has no CPU build here.
 `ImageOnlyQwenProcessor` keeps the stock PIL image processor (`Qwen2VLImageProcessorPil`) and builds video
@@ -11,13 +11,10 @@ One example is a dict of tensors without a batch dimension (`build_prompt`, `bui
     pixel_values, image_grid_thw                           # (P, 1176), (n_images, 3)   frames as images
     pixel_values_videos, video_grid_thw, second_per_grid_ts  # (P, 1176), (1, 3), (1,)  frames as one video
 
-`collate` pads a list of them into a batch, LEFT-padded by default: generation needs left padding, and
-training is indifferent to it because Qwen2.5-VL derives its 3-D positions from the attention mask.
+`aynamics.batching` pads them into batches and `aynamics.logprobs` scores their labelled tokens.
 
     proc = load_processor(TINY_ASSET_DIR)
     ex = build_sft_example(proc, frames, "<answer>...</answer>", system_prompt=..., user_prompt=...)
-    batch = collate([ex, ...], pad_token_id=proc.tokenizer.pad_token_id)
-    out = model(**model_inputs(batch)); lp = mean_token_logprob(out.logits, batch["labels"])
 """
 
 from __future__ import annotations
@@ -39,18 +36,6 @@ IGNORE_INDEX = -100  # label of tokens that carry no loss (prompt, images, paddi
 TEXT, IMAGE, VIDEO = 0, 1, 2  # mm_token_type_ids values the model expects
 
 Frame = Image.Image | np.ndarray  # (H, W, 3) uint8 or PIL image
-
-# Keys of a collated batch that the model's forward takes.
-MODEL_KEYS = (
-    "input_ids",
-    "attention_mask",
-    "mm_token_type_ids",
-    "pixel_values",
-    "image_grid_thw",
-    "pixel_values_videos",
-    "video_grid_thw",
-    "second_per_grid_ts",
-)
 
 
 class PixelBoundsError(ValueError):
@@ -438,210 +423,3 @@ def append_response(prompt: dict[str, torch.Tensor], completion: Sequence[int]) 
     ex["labels"] = torch.cat([prompt["labels"], c])
     ex["mm_token_type_ids"] = torch.cat([prompt["mm_token_type_ids"], torch.zeros_like(c)])
     return ex
-
-
-# --------------------------------------------------------------------------------------------
-# Batching
-# --------------------------------------------------------------------------------------------
-_PAD_VALUES = {
-    "input_ids": None,
-    "attention_mask": 0,
-    "labels": IGNORE_INDEX,
-    "mm_token_type_ids": TEXT,
-    "type_tokens": False,  # per token (`type_tokens`), added by the data module
-    "loss_weights": 0.0,  # per token, when the data module has a type_weight
-}
-_CAT_KEYS = (
-    "pixel_values",
-    "image_grid_thw",
-    "pixel_values_videos",
-    "video_grid_thw",
-    "second_per_grid_ts",
-    "visual_targets",  # per visual token (aynamics.visual_targets), when the data module adds them
-)
-
-
-def collate(
-    examples: Sequence[dict[str, torch.Tensor]], pad_token_id: int, padding_side: str = "left"
-) -> dict[str, torch.Tensor]:
-    """Pad per-token tensors to the longest example and concatenate the visual tensors in example order.
-
-    Args:
-        examples: Unbatched examples from `build_prompt` / `build_sft_example` / `append_response`.
-        pad_token_id: Id written into padded input_ids (labels get -100, masks 0).
-        padding_side: "left" (default; what `generate` needs, and fine for training) or "right".
-    """
-    if not examples:
-        raise ValueError("collate got 0 examples")
-    if padding_side not in ("left", "right"):
-        raise ValueError(f"padding_side = {padding_side!r}: must be 'left' or 'right'")
-    length = max(len(ex["input_ids"]) for ex in examples)
-    batch: dict[str, torch.Tensor] = {}
-    for key, value in _PAD_VALUES.items():
-        if key not in examples[0]:
-            continue
-        value = pad_token_id if value is None else value
-        rows = []
-        for ex in examples:
-            pad = ex[key].new_full((length - len(ex[key]),), value)
-            rows.append(torch.cat([pad, ex[key]] if padding_side == "left" else [ex[key], pad]))
-        batch[key] = torch.stack(rows)
-    for key in _CAT_KEYS:
-        present = [key in ex for ex in examples]
-        if any(present) and not all(present):
-            raise ValueError(f"collate: {key} in {sum(present)} of {len(examples)} examples: images and videos mixed")
-        if all(present):
-            batch[key] = torch.cat([ex[key] for ex in examples])
-    if "second_per_grid_ts" in batch:
-        batch[SECONDS_BITS] = batch["second_per_grid_ts"].to(torch.float32).view(torch.int32)
-    return batch
-
-
-# A video's seconds per temporal patch as the bits of its float32 value: a precision plugin casts every floating
-# tensor of a batch to the model's dtype before the step (`bf16-true`, and DeepSpeed even with bf16-mixed), and
-# in bfloat16 2 / 3.75 s reads 0.5352 s, which moves Qwen2.5-VL's temporal positions (floor(t · seconds · tokens per
-# second): 15 for 14 at the 15th patch) away from those generation gives (its inputs are not cast). Integers are
-# not cast; `model_inputs` reads the value back exactly.
-SECONDS_BITS = "second_per_grid_ts_bits"
-
-
-def model_inputs(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The subset of `batch` the model's forward/generate takes (drops labels and extras), with a collated video's
-    `second_per_grid_ts` as collated, whatever dtype a precision plugin cast it to (`SECONDS_BITS`)."""
-    out = {k: v for k, v in batch.items() if k in MODEL_KEYS}
-    if SECONDS_BITS in batch:
-        out["second_per_grid_ts"] = batch[SECONDS_BITS].view(torch.float32)
-    return out
-
-
-def append_completions(
-    prompt: dict[str, torch.Tensor],
-    completions: Sequence[Sequence[int]] | torch.Tensor,
-    *,
-    pad_token_id: int,
-    eos_token_ids: Sequence[int] = (),
-    padding_side: str = "left",
-) -> dict[str, torch.Tensor]:
-    """Batch of N rows = one prompt + each of N completions, sharing the prompt's frames.
-
-    The visual tensors are repeated N times (the model consumes one copy per row), image/video grids likewise,
-    and mm_token_type_ids is 0 on the completions. Labels hold the completion tokens, -100 elsewhere, ready
-    for `mean_token_logprob`.
-
-    Args:
-        prompt: Unbatched prompt from `build_prompt`.
-        completions: N lists of token ids, or an (N, T) tensor of generated tokens (as `generate` returns after
-            slicing off the prompt); each row is cut after its first id in `eos_token_ids` and trailing
-            `pad_token_id`s are dropped.
-        pad_token_id: Id used for padding.
-        eos_token_ids: End-of-turn ids (e.g. <|im_end|>, <|endoftext|>): kept, anything after is dropped.
-        padding_side: Passed to `collate`.
-    """
-    rows = [trim_completion(c, pad_token_id=pad_token_id, eos_token_ids=eos_token_ids) for c in completions]
-    if not rows:
-        raise ValueError("append_completions got 0 completions")
-    return collate([append_response(prompt, r) for r in rows], pad_token_id, padding_side)
-
-
-def trim_completion(
-    ids: Sequence[int] | torch.Tensor, *, pad_token_id: int | None = None, eos_token_ids: Sequence[int] = ()
-) -> list[int]:
-    """Ids up to and including the first end-of-turn id; without one, trailing pad ids are removed."""
-    out = [int(i) for i in (ids.tolist() if isinstance(ids, torch.Tensor) else ids)]
-    stop = set(eos_token_ids)
-    for k, i in enumerate(out):
-        if i in stop:
-            return out[: k + 1]
-    while out and out[-1] == pad_token_id:
-        out.pop()
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# Log-probabilities
-# --------------------------------------------------------------------------------------------
-# Above this many logit entries of labelled positions (256 MB in float32), log-probabilities are computed in
-# chunks recomputed in backward: a 7B vocabulary (152k) reaches it at ~440 tokens, and the full float32 copy plus the
-# log-softmax kept for backward would take ~8 bytes per entry (PRO's 32 candidates of ~800 tokens: ~30 GB).
-CHUNK_ENTRIES = 1 << 26
-
-
-def token_logprobs(
-    logits: torch.Tensor, labels: torch.Tensor, chunk_entries: int = CHUNK_ENTRIES
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Log-probability of every labelled token under the model, with the usual one-step shift.
-
-    Args:
-        logits: (B, K, V) model outputs for the last K positions of input_ids of length L (K = L: all of them;
-            fewer with the model's `logits_to_keep=K`, when every labelled token lies in the last K - 1).
-        labels: (B, L), -100 where no loss; labels[:, t] is predicted by the logits of position t - 1.
-        chunk_entries: Above this many logit entries at labelled positions, log-probabilities are computed per
-            chunk of positions (log p = x[label] - logsumexp(x) in float32), and the backward recomputes each
-            chunk's softmax: memory of one chunk instead of two float32 copies of them all.
-
-    Returns:
-        logp (B, L-1) float32, 0 where masked, and mask (B, L-1) bool. The one-pass path normalises only the
-        labelled positions; the chunked one every kept position (the padding of shorter candidates too).
-
-    Raises:
-        ValueError: shapes that disagree, or a labelled token outside the kept logits.
-    """
-    b, length = labels.shape
-    kept = logits.shape[1]
-    if logits.shape[0] != b or not 1 <= kept <= length:
-        raise ValueError(f"logits {tuple(logits.shape)} and labels {tuple(labels.shape)} disagree on (B, L)")
-    target = labels[:, 1:]
-    mask = target != IGNORE_INDEX
-    start = length - kept  # logits[:, j] is position start + j, predicting labels[:, start + j + 1]
-    if start and mask[:, :start].any():
-        raise ValueError(f"labelled tokens before the last {kept} positions, whose logits were not kept")
-    window, tail = target[:, start:], mask[:, start:]
-    out = torch.zeros(target.shape, dtype=torch.float32, device=logits.device)
-    n = int(tail.sum())
-    if n * logits.shape[-1] <= chunk_entries:
-        picked = logits[:, :-1][tail].float()  # (n, V)
-        lp = picked.log_softmax(-1).gather(-1, window[tail].unsqueeze(-1)).squeeze(-1)
-        return out.masked_scatter(mask, lp), mask
-    lp = _ChunkedLabelLogprob.apply(logits, window.clamp(min=0), max(1, chunk_entries // logits.shape[-1]))
-    out[:, start:] = torch.where(tail, lp, torch.zeros_like(lp))
-    return out, mask
-
-
-class _ChunkedLabelLogprob(torch.autograd.Function):
-    """log softmax(logits[:, t])[label[:, t]] for t < K - 1, (B, K - 1) float32, a few positions at a time.
-
-    Nothing of size V is kept between forward and backward: the backward recomputes each chunk's softmax and
-    writes d logp / d x = onehot(label) - softmax(x) into one gradient of the logits' shape and dtype (slicing
-    under autograd instead allocated a zero tensor of the logits' full size for every chunk in backward)."""
-
-    @staticmethod
-    def _chunks(logits: torch.Tensor, rows: int):
-        for i in range(logits.shape[0]):
-            for t in range(0, logits.shape[1] - 1, rows):
-                yield i, t, min(t + rows, logits.shape[1] - 1)  # the last position predicts nothing
-
-    @staticmethod
-    def forward(ctx, logits: torch.Tensor, labels: torch.Tensor, rows: int) -> torch.Tensor:
-        out = torch.empty(labels.shape, dtype=torch.float32, device=logits.device)
-        for i, t, end in _ChunkedLabelLogprob._chunks(logits, rows):
-            x = logits[i, t:end].float()
-            out[i, t:end] = x.gather(-1, labels[i, t:end, None])[:, 0] - torch.logsumexp(x, -1)
-        ctx.save_for_backward(logits, labels)
-        ctx.rows = rows
-        return out
-
-    @staticmethod
-    def backward(ctx, grad_out: torch.Tensor):
-        logits, labels = ctx.saved_tensors
-        grad = torch.zeros_like(logits)
-        for i, t, end in _ChunkedLabelLogprob._chunks(logits, ctx.rows):
-            g = -torch.softmax(logits[i, t:end].float(), -1)
-            g.scatter_add_(-1, labels[i, t:end, None], torch.ones_like(g[:, :1]))
-            grad[i, t:end] = g * grad_out[i, t:end, None]
-        return grad, None, None
-
-
-def mean_token_logprob(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Length-normalised sequence log-likelihood: mean log p over each row's labelled tokens, (B,); 0 if none."""
-    lp, mask = token_logprobs(logits, labels)
-    return lp.sum(-1) / mask.sum(-1).clamp(min=1)

@@ -28,7 +28,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from aynamics.processor import append_response, collate, model_inputs, trim_completion
+from aynamics.batching import collate, model_inputs, trim_completion
+from aynamics.processor import append_response
 from aynamics.scene import SceneError, is_number, parse
 from aynamics.scorer import EPE_INVALID, Observation, Score, score
 from aynamics.simulate import usable_cores

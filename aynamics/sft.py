@@ -19,9 +19,10 @@ import lightning as L
 import torch
 
 from aynamics import adapters, lm, sharding, visual_targets
+from aynamics.batching import model_inputs
 from aynamics.data import real_rows
 from aynamics.model import find_visual
-from aynamics.processor import IGNORE_INDEX, model_inputs
+from aynamics.processor import IGNORE_INDEX
 
 SCHEDULES = ("cosine", "constant")
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""Peak memory and time of `processor.token_logprobs` (forward + backward) at Qwen2.5-VL's vocabulary (151 936):
+"""Peak memory and time of `logprobs.token_logprobs` (forward + backward) at Qwen2.5-VL's vocabulary (151 936):
 the one-pass float32 log_softmax against checkpointed chunks (`CHUNK_ENTRIES`), on bfloat16 logits as a GPU run
 holds them. PRO scores N candidates per video this way (and SFT its targets); each variant runs in its own process
 so that its peak resident memory is its own.
@@ -24,7 +24,7 @@ VOCAB = 151_936
 def _one(rows: int, positions: int, chunk_entries: int) -> dict:
     import torch
 
-    from aynamics.processor import token_logprobs
+    from aynamics.logprobs import token_logprobs
 
     torch.manual_seed(0)
     logits = torch.randn(rows, positions, VOCAB, dtype=torch.bfloat16).requires_grad_()
@@ -48,7 +48,7 @@ def main() -> None:
     if args.one is not None:
         print(json.dumps(_one(args.rows, args.positions, args.one)))
         return
-    from aynamics.processor import CHUNK_ENTRIES
+    from aynamics.logprobs import CHUNK_ENTRIES
 
     logits_gb = args.rows * args.positions * VOCAB * 2 / 1e9
     print(

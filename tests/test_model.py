@@ -9,6 +9,8 @@ import pytest
 import torch
 from peft import PeftModel
 
+from aynamics.batching import append_completions, collate, model_inputs
+from aynamics.logprobs import mean_token_logprob
 from aynamics.model import (
     DEFAULT_LORA_TARGETS,
     apply_lora,
@@ -17,16 +19,7 @@ from aynamics.model import (
     load_pretrained,
     set_vision_trainable,
 )
-from aynamics.processor import (
-    IGNORE_INDEX,
-    append_completions,
-    build_prompt,
-    build_sft_example,
-    collate,
-    load_processor,
-    mean_token_logprob,
-    model_inputs,
-)
+from aynamics.processor import IGNORE_INDEX, build_prompt, build_sft_example, load_processor
 from aynamics.tokenizer_build import TINY_ASSET_DIR
 
 PROMPTS = {"system_prompt": "You are a physics expert.", "user_prompt": "Write the scene as YAML."}
@@ -332,7 +325,7 @@ def test_token_logprobs_in_chunks_and_of_the_kept_positions():
     """Above `chunk_entries` the log-probabilities come from checkpointed chunks (x[label] - logsumexp(x)): the
     same values and gradients as the one-pass log_softmax; logits of only the last K positions (the model's
     logits_to_keep) give the same result when every label lies in them, and a label outside them is named."""
-    from aynamics.processor import token_logprobs
+    from aynamics.logprobs import token_logprobs
 
     torch.manual_seed(0)
     logits = torch.randn(3, 9, 50, requires_grad=True)

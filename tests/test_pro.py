@@ -127,7 +127,8 @@ def test_sequence_scores_are_length_normalised_per_candidate(dataset_dir):
     """Each candidate's sequence score in the padded B x N batch is its mean token log-probability computed alone
     (candidates of 7, 13, 13 and 17 tokens here: a sum would differ by their lengths), from the logits of the
     last longest + 1 positions only."""
-    from aynamics.processor import mean_token_logprob, model_inputs
+    from aynamics.batching import model_inputs
+    from aynamics.logprobs import mean_token_logprob
 
     module = ProModule(SPEC, prompt=PROMPT, num_samples=4).eval()
     module.ensure_processor()
@@ -885,8 +886,8 @@ def test_sft_term_never_imitates_an_invalid_candidate(dataset_dir):
     """skip_ties=false, sft_weight=1: a video whose candidates are all invalid (rewards 0) adds its soft-preference
     term (uniform targets) but no SFT term (argmax of the zeros is candidate 0, an invalid text); a video with a
     valid best candidate adds the SFT term on it."""
+    from aynamics.logprobs import token_logprobs
     from aynamics.preference import sft_on_best, soft_preference_loss
-    from aynamics.processor import token_logprobs
 
     module = ProModule(SPEC, prompt=PROMPT, num_samples=4, skip_ties=False, sft_weight=1.0, tau=0.1).eval()
     module.ensure_processor()
@@ -899,7 +900,7 @@ def test_sft_term_never_imitates_an_invalid_candidate(dataset_dir):
         loss, seq = module.preference_loss(prompts, ids, mixed)
         pad = module.processor.tokenizer.pad_token_id
         one = rw.candidate_batch(prompts[1:], ids[1:], pad, forbidden=rw.vision_token_ids(module.model))
-        from aynamics.processor import model_inputs
+        from aynamics.batching import model_inputs
 
         lp, m = token_logprobs(module.model(**model_inputs(one)).logits, one["labels"])
         sft = sft_on_best(lp.view(1, 4, -1), m.view(1, 4, -1), rewards[1:])
@@ -911,8 +912,9 @@ def test_sft_term_with_skipped_ties_is_on_the_kept_videos_best(dataset_dir):
     """skip_ties=true (the default) with sft_weight=1: video 0's candidates all tie (skipped), video 1's best is valid
     (0.8). The SFT mask of valid bests is over the kept videos (one), so the term is video 1's, and both terms are
     means over the batch's 2 videos: loss = soft(ℓ₁, r₁) / 2 + sft(video 1) / 2."""
+    from aynamics.batching import model_inputs
+    from aynamics.logprobs import token_logprobs
     from aynamics.preference import sft_on_best, soft_preference_loss
-    from aynamics.processor import model_inputs, token_logprobs
 
     module = ProModule(SPEC, prompt=PROMPT, num_samples=4, skip_ties=True, sft_weight=1.0, tau=0.1).eval()
     module.ensure_processor()

@@ -9,22 +9,19 @@ import numpy as np
 import pytest
 import torch
 
+from aynamics.batching import append_completions, collate, trim_completion
 from aynamics.lm import sft_loss, token_accuracy
+from aynamics.logprobs import mean_token_logprob, token_logprobs
 from aynamics.processor import (
     IGNORE_INDEX,
     IMAGE,
     VIDEO,
-    append_completions,
     build_messages,
     build_prompt,
     build_sft_example,
-    collate,
     load_processor,
-    mean_token_logprob,
     response_ids,
     sample_frames,
-    token_logprobs,
-    trim_completion,
     type_tokens,
 )
 from aynamics.tokenizer_build import SPECIAL_TOKENS, TAG_TOKENS, TINY_ASSET_DIR, build_tokenizer
@@ -193,7 +190,7 @@ def test_a_videos_seconds_survive_the_precision_plugins_input_cast(proc, frames)
     (inputs not cast) gives. `model_inputs` now hands the model the collated float32 value."""
     from lightning.pytorch.plugins.precision import HalfPrecision
 
-    from aynamics.processor import model_inputs
+    from aynamics.batching import model_inputs
 
     ex = build_sft_example(proc, frames, RESPONSE, as_video=True, **PROMPTS)
     ex["second_per_grid_ts"] = torch.tensor([2 / 3.75])

@@ -494,7 +494,9 @@ def test_sample_completions_shapes_and_order(tiny):
 def test_candidate_batch_keeps_images_aligned(tiny):
     """B=2 prompts (4 and 6 merged tokens per image) x N=3: visual tensors follow the rows; each row's mean
     log-prob in the padded batch equals that row's alone."""
-    from aynamics.processor import append_response, collate, mean_token_logprob, model_inputs, response_ids
+    from aynamics.batching import collate, model_inputs
+    from aynamics.logprobs import mean_token_logprob
+    from aynamics.processor import append_response, response_ids
 
     model, proc = tiny
     prompts = _prompts(proc)

@@ -20,8 +20,8 @@ import torch
 from train_fixtures import FAST, ROOT, run_two_processes, tiny_dataset, train_cfg
 
 from aynamics import adapters, lm
+from aynamics.batching import model_inputs
 from aynamics.data import SceneDataModule
-from aynamics.processor import model_inputs
 from aynamics.sft import SFTModule
 
 sys.path.insert(0, str(ROOT))
