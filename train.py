@@ -40,15 +40,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the stage described by `cfg` and return the final metrics (also written to `OUT/metrics.json`)."""
     import lightning as L
 
-    from aynamics.callbacks import (
-        SceneEvaluation,
-        format_reasons,
-        format_table,
-        json_safe,
-        progress_bar,
-        use_atomic_checkpoints,
-    )
+    from aynamics.callbacks import SceneEvaluation, format_reasons, format_table, json_safe
     from aynamics.lm import TARGETS
+    from aynamics.run_callbacks import progress_bar, use_atomic_checkpoints
     from aynamics.sharding import model_init_context
 
     check_whole_numbers(cfg)
@@ -425,7 +419,7 @@ def report_input_error(error: BaseException, message: str) -> None:
 def main(cfg: DictConfig) -> float | None:
     """`python train.py ...`: an input error (see `input_error_message`) ends the run with status 2 and one
     paragraph naming the key and the value; HYDRA_FULL_ERROR=1 shows Hydra's report with the traceback. SIGTERM
-    (a preemption) ends it with status 143 after the step under way, saved by `callbacks.StepCheckpoint`."""
+    (a preemption) ends it with status 143 after the step under way, saved by `run_callbacks.StepCheckpoint`."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
     from lightning.pytorch.utilities.exceptions import SIGTERMException

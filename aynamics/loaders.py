@@ -166,7 +166,7 @@ def loader_workers(num_workers: int | None, trainer, cache: bool = False) -> int
 
 def loader_options(num_workers: int | None, trainer, cache: bool = False) -> dict[str, Any]:
     """DataLoader keywords for this trainer: the workers (`loader_workers`), kept between epochs and deaf to
-    SIGTERM (the training process saves and stops on it, `callbacks.StepCheckpoint`; a worker running Lightning's
+    SIGTERM (the training process saves and stops on it, `run_callbacks.StepCheckpoint`; a worker running Lightning's
     handler, inherited at the fork, failed), and pinned host memory when the model is on a GPU."""
     workers = loader_workers(num_workers, trainer, cache)
     options = {"num_workers": workers, "persistent_workers": workers > 0, "pin_memory": not _on_cpu(trainer)}

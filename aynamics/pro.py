@@ -18,7 +18,7 @@ simulator score), for IoU and EPE, first frame and full sequence.
 Logged: train/loss, train/margin (ℓ of the best- minus the worst-scored candidate), train/informative (share of
 videos whose candidates do not all tie), reward/mean, reward/best,
 reward/invalid (+ reward/invalid_<kind>), val/<mode>/<metric> (val/iou_full = greedy). Checkpoints hold only the
-trainable (adapter) weights; `callbacks.AdapterExport` writes the peft adapter, as in the SFT stage.
+trainable (adapter) weights; `run_callbacks.AdapterExport` writes the peft adapter, as in the SFT stage.
 """
 
 from __future__ import annotations

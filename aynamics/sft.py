@@ -3,7 +3,7 @@
 A LightningModule around `lm.build_model(spec)` (a Qwen2.5-VL with LoRA on the language model). The loss is
 the token-mean negative log-likelihood of the response tokens only (`lm.sft_loss`). Checkpoints hold the
 trainable weights (the adapter) plus the optimizer, scheduler, loop counters and RNG states, so a resumed run
-continues exactly; `callbacks.AdapterExport` writes the peft folder that `PeftModel.from_pretrained` loads.
+continues exactly; `run_callbacks.AdapterExport` writes the peft folder that `PeftModel.from_pretrained` loads.
 
     module = SFTModule(ModelSpec(kind="tiny"), lr=1e-3, warmup_steps=10)
     Trainer(max_steps=20).fit(module, datamodule=SceneDataModule(...))

@@ -505,7 +505,8 @@ def test_evaluation_every_n_validations_and_always_at_the_end(monkeypatch):
     """Validation runs are counted (not epochs: a step-based run validates every val_check_interval steps inside
     one epoch); the sanity check does not count; the run that ends training is evaluated off the cadence, whether
     training ends on max_steps or on the last batch of max_epochs."""
-    from aynamics.callbacks import SceneEvaluation, ends_training
+    from aynamics.callbacks import SceneEvaluation
+    from aynamics.run_callbacks import ends_training
 
     cb = SceneEvaluation(every_n_validations=3)
     done = []
@@ -1026,7 +1027,7 @@ def test_progress_bar_names_an_epoch_total_only_when_there_is_one(max_epochs, de
     from lightning.pytorch.callbacks import TQDMProgressBar
     from lightning.pytorch.demos.boring_classes import BoringModel
 
-    from aynamics.callbacks import StepsProgressBar, progress_bar
+    from aynamics.run_callbacks import StepsProgressBar, progress_bar
 
     assert progress_bar([], enabled=False) == [] and progress_bar([TQDMProgressBar()], enabled=True) == []
     (bar,) = progress_bar([], enabled=True)

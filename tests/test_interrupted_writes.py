@@ -76,7 +76,7 @@ def test_a_run_stopped_in_its_final_validation_resumes_to_its_results(tmp_path, 
 def test_a_checkpoint_interrupted_while_written_leaves_the_previous_one(tmp_path, monkeypatch):
     """Lightning's writer copied over the final path when $TMPDIR is on another filesystem (truncating it first):
     a kill or a full disk mid-copy left an empty last.ckpt where the previous good one was."""
-    from aynamics.callbacks import AtomicCheckpointIO
+    from aynamics.run_callbacks import AtomicCheckpointIO
 
     path = tmp_path / "checkpoints" / "last.ckpt"
     io = AtomicCheckpointIO()

@@ -990,7 +990,7 @@ def test_fsdp_matches_ddp_and_resumes_exactly(tmp_path, dataset_dir):
     _two_processes(tmp_path / "straight", *three)
     step2 = tmp_path / "straight" / "checkpoints" / "step000002.ckpt"
     _two_processes(tmp_path / "resumed", *three, f"ckpt_path={step2}")
-    # the adapter holds the final (step 3) weights, as does last.ckpt (callbacks.StepCheckpoint)
+    # the adapter holds the final (step 3) weights, as does last.ckpt (run_callbacks.StepCheckpoint)
     straight = load_file(tmp_path / "straight" / "adapter" / "adapter_model.safetensors")
     resumed = load_file(tmp_path / "resumed" / "adapter" / "adapter_model.safetensors")
     at_step2 = _weights(tmp_path / "straight", step2.name)
