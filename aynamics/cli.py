@@ -201,7 +201,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "audit": ("aynamics.audit", "add_audit", "audit the simulation against measured trajectories"),
     "predict": ("aynamics.predict", "add_predict_command", "write the scene YAML for a video with a trained adapter"),
     "evaluate": (
-        "aynamics.evaluate",
+        "aynamics.evaluate_cli",
         "add_evaluate_command",
         "score a trained adapter on a data-set split by simulation",
     ),

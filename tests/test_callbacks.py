@@ -387,6 +387,7 @@ def test_evaluate_scores_refines_and_counts_by_hand(truth, monkeypatch):
     table says "of 10 (--num)" only while fewer than the split were read (2 scored + 1 left out of a split of 3: all
     of it)."""
     from aynamics import evaluate as ev
+    from aynamics.evaluate_cli import describe
 
     scene, obs = truth
     records = [{"index": k, "scene_yaml": dump(scene), "scene": scene, "observation": obs} for k in range(2)]
@@ -415,11 +416,11 @@ def test_evaluate_scores_refines_and_counts_by_hand(truth, monkeypatch):
     assert valid == {"model": 0.5, "average scene": 0.0, "model + refine": 1.0, "average scene + refine": 1.0}
     assert result.refined == [dump(scene)] * 2 and result.refined_per_item["yaml_valid"] == [1.0, 1.0]
     cut = "3 refinements stopped by --refine-seconds before their budget"
-    assert ev.describe(result, "test") == f"test: 2 scenes of 10 (--num), 1 left out (named above), {cut}"
+    assert describe(result, "test") == f"test: 2 scenes of 10 (--num), 1 left out (named above), {cut}"
     result.split_size = 3
-    assert ev.describe(result, "test") == f"test: 2 scenes, 1 left out (named above), {cut}"
+    assert describe(result, "test") == f"test: 2 scenes, 1 left out (named above), {cut}"
     result.left_out, result.refine_timed_out, result.records = 0, 0, records[:1]
-    assert ev.describe(result, None) == "videos: 1 video of 3 (--num)"
+    assert describe(result, None) == "videos: 1 video of 3 (--num)"
 
 
 def test_evaluate_command_passes_its_settings_and_writes_them(tmp_path, capsys, monkeypatch):
@@ -428,6 +429,7 @@ def test_evaluate_command_passes_its_settings_and_writes_them(tmp_path, capsys, 
     hands the split, --num and the baseline choice to the evaluation, and --json prints metrics.json less the
     settings."""
     from aynamics import evaluate as ev
+    from aynamics import evaluate_cli
     from aynamics.cli import main
 
     calls = []
@@ -437,8 +439,8 @@ def test_evaluate_command_passes_its_settings_and_writes_them(tmp_path, capsys, 
         per = {"yaml_valid": [1.0], "reason": [None]}
         return ev.Evaluation({"model": {"yaml_valid": 1.0}}, [{"index": "v0"}], ["t"], per, left_out=1, split_size=5)
 
-    monkeypatch.setattr(ev, "evaluate_videos", fixed)
-    monkeypatch.setattr(ev, "evaluate_adapter", fixed)
+    monkeypatch.setattr(evaluate_cli, "evaluate_videos", fixed)
+    monkeypatch.setattr(evaluate_cli, "evaluate_adapter", fixed)
     (tmp_path / "adapter").mkdir()
     base = ["evaluate", "--adapter", str(tmp_path / "adapter"), "--num", "2", "--quiet"]
     assert main([*base, "--videos", "V", "--out", str(tmp_path / "v")]) == 0
@@ -833,7 +835,7 @@ def test_evaluate_refused_or_interrupted_before_a_batch_leaves_no_partial_folder
     the same command goes on from them"."""
     from train_fixtures import tiny_dataset
 
-    from aynamics import evaluate as ev
+    from aynamics import evaluate_cli
     from aynamics.cli import main
 
     (tmp_path / "adapter").mkdir()
@@ -846,7 +848,7 @@ def test_evaluate_refused_or_interrupted_before_a_batch_leaves_no_partial_folder
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(ev, "evaluate_adapter", interrupted)
+    monkeypatch.setattr(evaluate_cli, "evaluate_adapter", interrupted)
     assert main([*base, "--out", str(tmp_path / "b")]) == 130
     assert "kept in" not in capsys.readouterr().err and not (tmp_path / "b.partial").exists()
 

@@ -145,7 +145,7 @@ def test_kept_refinements_of_other_physics_are_done_again(tmp_path, monkeypatch)
     kept depends on the physics: it binds nothing. The physics was not among the settings, and the refined scenes of
     two physics were mixed in one table."""
     from aynamics import simulate
-    from aynamics.evaluate import evaluation_progress
+    from aynamics.evaluate_cli import evaluation_progress
 
     (tmp_path / "adapter").mkdir()
     settings = {"adapter": str(tmp_path / "adapter"), "data": "d", "num": 1, "refine": 6}
