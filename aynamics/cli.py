@@ -206,7 +206,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "score a trained adapter on a data-set split by simulation",
     ),
     "export-adapter": ("aynamics.predict", "add_export_command", "write the peft adapter folder of a checkpoint"),
-    "preferences": ("aynamics.preference_data", "add_preferences_command", "sample, score, store PRO preferences"),
+    "preferences": ("aynamics.preference_cli", "add_preferences_command", "sample, score, store PRO preferences"),
     "collect": ("aynamics.collect", "add_collect_command", "collect a multirun folder into one metrics table"),
 }
 

@@ -1131,9 +1131,9 @@ def test_preferences_interrupted_while_writing_are_written_from_the_kept_batches
     and writes the rows of an uninterrupted run. It stopped with an AttributeError (the processor, loaded only by
     sampling, was None when the summary named its tokenizer), as after the 'cannot write --out' failure whose
     message promises that the same command writes them."""
-    from aynamics import preference_data
+    from aynamics import preference_cli
 
-    calls, real_write = [], preference_data.write_preferences
+    calls, real_write = [], preference_cli.write_preferences
     real = ProModule.sample_and_score
 
     def counted(self, chunk, num_samples, temperature):
@@ -1147,10 +1147,10 @@ def test_preferences_interrupted_while_writing_are_written_from_the_kept_batches
     args = ["preferences", "--data", str(dataset_dir), "--limit", "3", "--num-samples", "2", "--pairs", "1"]
     args += ["--max-new-tokens", "4", "--device", "cpu"]
     assert cli_main([*args, "--out", str(tmp_path / "whole")]) == 0
-    monkeypatch.setattr(preference_data, "write_preferences", interrupted)
+    monkeypatch.setattr(preference_cli, "write_preferences", interrupted)
     assert cli_main([*args, "--out", str(tmp_path / "part")]) == 130
     assert len(list((tmp_path / "part.partial").glob("batch-*.pt"))) == 3
-    monkeypatch.setattr(preference_data, "write_preferences", real_write)
+    monkeypatch.setattr(preference_cli, "write_preferences", real_write)
     calls.clear()
     assert cli_main([*args, "--out", str(tmp_path / "part")]) == 0
     assert calls == [] and not (tmp_path / "part.partial").exists()  # nothing sampled again
@@ -1329,7 +1329,7 @@ def test_preferences_with_an_adapter_trained_again_into_its_folder_are_refused(t
     """The settings named --adapter by its folder only: an interrupted run went on with an adapter trained again into
     the same folder, and the data set mixed two policies' candidates. They hold a hash of its weights file now
     (sha256 of b"abc": ba7816bf8f01cfea..., of b"": e3b0c44298fc1c14...; no adapter: None)."""
-    from aynamics.preference_data import _settings
+    from aynamics.preference_cli import _settings
 
     adapter = tmp_path / "adapter"
     adapter.mkdir()
