@@ -259,8 +259,8 @@ def evaluate_adapter(
     kept: KeptBatches | None = None,
 ) -> Evaluation:
     """Generate greedily for the first `num` records of `split` (all when None), score the responses by
-    simulation, and the average scene beside them. With `kept` (opened: `evaluation_progress`), each batch of
-    responses and each refinement is kept as it is done, and what it holds is read back, not done again.
+    simulation, and the average scene beside them. With `kept` (opened: `evaluate_cli.evaluation_progress`), each
+    batch of responses and each refinement is kept as it is done, and what it holds is read back, not done again.
 
     Raises:
         FileNotFoundError: no data set at `data_dir`, or no adapter folder.

@@ -80,6 +80,8 @@ def add_evaluate_command(sub) -> None:
 
 
 def run_evaluate(args) -> int:
+    """`aynamics evaluate`: generate, simulate and score, print the table (and write OUT); a usage error raises
+    `cli.UsageError` (exit 2)."""
     from aynamics.cli import UsageError, check_out_folder, missing_file_message, warnings_as_lines
 
     if args.out is not None:

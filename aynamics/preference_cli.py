@@ -30,6 +30,7 @@ from aynamics.unlabeled import UnlabeledVideo
 # CLI: aynamics preferences
 # --------------------------------------------------------------------------------------------
 def add_preferences_command(sub) -> None:
+    """Register `aynamics preferences` on the CLI's subparsers."""
     from aynamics.cli import add_device_option
 
     p = sub.add_parser("preferences", help="sample, score and store a PRO preference data set (offline mode)")
@@ -68,6 +69,8 @@ def add_preferences_command(sub) -> None:
 
 
 def run_preferences(args) -> int:
+    """`aynamics preferences`: sample, score and pair responses for each video, write the data set; a usage error
+    raises `cli.UsageError` (exit 2)."""
     from aynamics import lm
     from aynamics.cli import UsageError, print_json
     from aynamics.pro import ProModule
