@@ -317,7 +317,7 @@ def scorable_records(records: Sequence[dict], where: str = "records") -> list[di
     it in the video's view; a record whose `scene_yaml` cannot be scored (hand-edited, corrupted) is left out with a
     warning naming its index among `where` (e.g. "validation records of data.dir = 'DIR'"): it never stops a
     training run or an evaluation."""
-    from aynamics.scorer import Observation, scoring_size
+    from aynamics.observation import Observation, scoring_size
     from aynamics.simulate import FPS
 
     out = []

@@ -168,8 +168,8 @@ def _add_score(sub) -> None:
 
 
 def _run_score(args) -> int:
+    from aynamics import observation, scorer
     from aynamics import scene as scenelib
-    from aynamics import scorer
 
     if not (
         8 <= (8 if args.width is None else args.width) <= 1920
@@ -184,10 +184,10 @@ def _run_score(args) -> int:
     refuse_rendered_file("score", args.observed)
     try:
         if observed.is_dir():
-            obs = scorer.Observation.from_dir(observed, width=args.width, height=args.height)
+            obs = observation.Observation.from_dir(observed, width=args.width, height=args.height)
         else:  # a scene has no image size of its own: the scorer's 120×80 unless given (its aspect: 3:2)
-            width, height = scorer.scoring_size(scorer.WIDTH, scorer.HEIGHT, args.width, args.height)
-            obs = scorer.Observation.from_scene(scenelib.load(args.observed), width=width, height=height)
+            width, height = observation.scoring_size(observation.WIDTH, observation.HEIGHT, args.width, args.height)
+            obs = observation.Observation.from_scene(scenelib.load(args.observed), width=width, height=height)
     except ValueError as e:  # SceneError is a ValueError too: named with --observed, as the folder's problems
         raise UsageError(f"score: --observed {args.observed!r}: {e}") from None
     # read as `simulate` reads a scene (scene.load: its size cap, UTF-8); a file that cannot be read or parsed

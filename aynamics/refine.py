@@ -330,7 +330,8 @@ def refine(
             its range (a budget < 1, seconds <= 0, a seed < 0, a share outside [0, 1], a NaN, ...), naming it.
         TypeError: `initial` holds something other than Scenes, or `observed` is not an Observation.
     """
-    from aynamics.scorer import Observation, score
+    from aynamics.observation import Observation
+    from aynamics.scorer import score
 
     start_t = time.perf_counter()
     if isinstance(params, str):  # "position" or "position, mass": one string, not its characters

@@ -99,9 +99,9 @@ def run_refine_command(args) -> int:
     from pathlib import Path
 
     from aynamics.cli import UsageError, load_scene, refuse_rendered_file
+    from aynamics.observation import Observation
     from aynamics.refine import refine
     from aynamics.scene import load
-    from aynamics.scorer import Observation
 
     if args.budget < 1 or not args.seconds > 0:  # nan fails the comparison; inf seconds: the budget alone
         raise UsageError(f"refine: --budget {args.budget} and --seconds {args.seconds:g} must be > 0")

@@ -29,9 +29,10 @@ import numpy as np
 import torch
 
 from aynamics.batching import collate, model_inputs, trim_completion
+from aynamics.observation import Observation
 from aynamics.processor import append_response
 from aynamics.scene import SceneError, is_number, parse
-from aynamics.scorer import EPE_INVALID, Observation, Score, score
+from aynamics.scorer import EPE_INVALID, Score, score
 from aynamics.simulate import usable_cores
 
 METRICS = ("iou", "epe", "mix")

@@ -13,7 +13,7 @@ Two sources, neither of which needs (or reads) a scene label:
 
     videos = load_generated("data/synth", split="train")          # list-like of UnlabeledVideo
     videos = load_folders("videos/")                               # one UnlabeledVideo per folder
-    video.frames, video.observation                                 # PIL frames, scorer.Observation
+    video.frames, video.observation                                 # PIL frames, observation.Observation
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ from PIL import Image
 
 from aynamics.dataset_store import dataset_fps, dataset_substeps
 from aynamics.flow import decode_flow_colors, on_own_scale
+from aynamics.observation import Observation, scoring_size
 from aynamics.raycast import SampleGrid
-from aynamics.scorer import Observation, scoring_size
 from aynamics.simulate import FPS
 from aynamics.video_io import IMAGE_SUFFIXES, image_files, read_image, same_size
 
@@ -132,7 +132,7 @@ class GeneratedVideos(torch.utils.data.Dataset):
         path: Folder written by `aynamics generate` (a DatasetDict) or one split saved on its own.
         split: Split name when `path` holds a DatasetDict.
         inputs: "rgb" or "flow": the images the model sees.
-        width, height: Scorer resolution of the observation (default: `scorer.scoring_size`, the video's aspect).
+        width, height: Scorer resolution of the observation (default: `observation.scoring_size`, the video's aspect).
         use_flow: Decode the flow images into the observation (needed for EPE rewards).
         limit: Keep only the first `limit` records.
     """

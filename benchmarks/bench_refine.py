@@ -21,10 +21,10 @@ import time
 import numpy as np
 
 from aynamics.metrics import state_mae
+from aynamics.observation import Observation
 from aynamics.refine import DEFAULT_SIGMA_SCALE, refine
 from aynamics.sampler import SamplerConfig, sample_scene, scene_seed
 from aynamics.scene import RANGES, Scene, from_items, to_items
-from aynamics.scorer import Observation
 
 LEVELS = {"mild": (0.3, 0.5), "paper": (2.0, 3.0)}  # (position MAE m, velocity MAE m/s) over x, y, z
 

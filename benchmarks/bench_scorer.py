@@ -15,7 +15,7 @@ import numpy as np
 from timing import timed
 
 from aynamics import flow as flowlib
-from aynamics import metrics, scorer
+from aynamics import metrics, observation, scorer
 from aynamics import render as renderlib
 from aynamics import scene as S
 from aynamics import simulate as sim
@@ -48,7 +48,7 @@ def candidates(n: int, seed: int = 0) -> list[S.Scene]:
     return out
 
 
-def naive(cands: list[S.Scene], obs: scorer.Observation, r: renderlib.Renderer) -> list[float]:
+def naive(cands: list[S.Scene], obs: observation.Observation, r: renderlib.Renderer) -> list[float]:
     """One candidate at a time: simulate, render segmentation + depth at 480×320 with OpenGL, flow, metrics."""
     out = []
     for c in cands:
@@ -83,7 +83,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     cands = candidates(args.candidates)
-    obs = scorer.Observation.from_scene(OBSERVED)
+    obs = observation.Observation.from_scene(OBSERVED)
     n = len(cands)
     print(f"machine: {os.cpu_count()} CPU cores; {n} candidates × {len(obs.frames)} frames at {obs.width}×{obs.height}")
     scorer.score(cands, obs)  # warm-up: template compile, Batch allocation

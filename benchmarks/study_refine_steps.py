@@ -15,10 +15,10 @@ import argparse
 
 import numpy as np
 
+from aynamics.observation import Observation
 from aynamics.refine import refine
 from aynamics.sampler import SamplerConfig, sample_scene, scene_seed
 from aynamics.scene import SceneError, from_items, to_items
-from aynamics.scorer import Observation
 
 LEVELS = {"close": (0.1, 0.4), "medium": (0.3, 1.0), "far": (2.0, 3.0)}  # error sd: position m, velocity m/s
 

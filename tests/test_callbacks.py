@@ -12,8 +12,9 @@ import torch
 
 from aynamics.callbacks import METRIC_KEYS, evaluate_texts, format_table, side_by_side, summarize
 from aynamics.collect import DEFAULT_METRICS, collect, to_markdown
+from aynamics.observation import Observation
 from aynamics.scene import dump, load
-from aynamics.scorer import EPE_INVALID, Observation
+from aynamics.scorer import EPE_INVALID
 
 ASSET = Path(__file__).parent / "assets" / "paper_example.yaml"
 
@@ -544,8 +545,8 @@ def test_evaluation_baseline_scores_the_average_training_scene(monkeypatch):
 
     from aynamics.callbacks import SceneEvaluation
     from aynamics.data import mean_scene_of_split
+    from aynamics.observation import scoring_size
     from aynamics.scene import parse
-    from aynamics.scorer import scoring_size
 
     sphere = (
         "- {{type: sphere, radius: 0.3, state: {{position: [{}, 0, 0.3]}}}}\n- type: camera\n  position: [0, -2, 3.5]\n"

@@ -211,15 +211,15 @@ def test_score_against_a_scene_takes_the_scoring_size_given(monkeypatch, capsys)
     """A scene has no image size of its own: it is observed at the scorer's 120×80 (3:2) unless a size is given.
     --height 40 alone is 60×40 (40·120/80), --width 60 alone 60×40 (60·80/120), neither 120×80; --width 100
     --height 80 is off 3:2 by 20 pixels (100 against 80·120/80 = 120) and refused, naming width 120."""
-    from aynamics import scorer
+    from aynamics import observation
 
-    seen, observe = [], scorer.Observation.from_scene
+    seen, observe = [], observation.Observation.from_scene
 
     def spy(scene, *, width, height):
         seen.append((width, height))
         return observe(scene, width=width, height=height)
 
-    monkeypatch.setattr(scorer.Observation, "from_scene", spy)
+    monkeypatch.setattr(observation.Observation, "from_scene", spy)
     for size in (["--height", "40"], ["--width", "60"], []):
         assert cli.main(["score", ASSET, "--observed", ASSET, *size]) == 0
         assert capsys.readouterr().out == f"{ASSET}: iou 1.0/1.0 epe 0.0/0.0\n"

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from aynamics import camera as camlib
 from aynamics import flow as flowlib
-from aynamics import raycast, scorer
+from aynamics import observation, raycast
 from aynamics import scene as scenelib
 from aynamics import simulate as sim
 
@@ -61,7 +61,7 @@ def test_flow_matches_hand_projection(linear, angular):
     """Ray-cast depth + simulated poses give the flow of the analytic rigid motion to < 0.1 px (at 480 wide)."""
     scene = _floating_box(linear, angular)
     frames = [0, 9, 18]
-    obs = scorer.Observation.from_scene(scene, width=160, height=120, frames=frames)
+    obs = observation.Observation.from_scene(scene, width=160, height=120, frames=frames)
     # the observation keeps no depth: cast the same frames again to get it
     cast = raycast.cast_group([scene], scene.structure, obs.frames, obs.width, obs.height, obs.config, 1)
     for fi, k in enumerate(frames):
@@ -94,7 +94,7 @@ def test_motion_field_synthetic_plane():
 
 def test_static_scene_has_zero_flow():
     scene = _floating_box()
-    obs = scorer.Observation.from_scene(scene, width=96, height=64)
+    obs = observation.Observation.from_scene(scene, width=96, height=64)
     assert (obs.segmentation == 0).any()
     assert np.abs(obs.flow).max() < 1e-9  # zero up to round-off of unproject + project
     assert not obs.occluded.any()

@@ -170,7 +170,7 @@ def test_track_objective_averages_over_visible_pairs_only(truth):
 
 def test_refine_with_scorer(truth):
     """Against the fast scorer: a sphere 0.35 m and 0.8 m/s off is pulled towards the observed motion."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     obs = Observation.from_scene(truth)
     pred = _shift(truth, (0.35, -0.25, 0.0), (-0.8, 0.5, 0.0))
@@ -188,8 +188,8 @@ def test_small_budgets_are_kept_with_the_track_stage(truth):
     """The track stage (a fixed ~24 simulations before its polish) runs only when they are left: budgets of 5, 10
     and 25 go to whole CMA-ES generations alone, 30 to the track fit (which finds this start: IoU 0.09 -> 0.99);
     no budget is overspent (before, --budget 5 ran ~25 simulations)."""
+    from aynamics.observation import Observation
     from aynamics.refine import TRACK_STAGE_SIMS
-    from aynamics.scorer import Observation
 
     obs = Observation.from_scene(truth)
     pred = _shift(truth, (0.8, -0.5, 0.0), (-1.0, 0.6, 0.0))
@@ -205,7 +205,7 @@ def test_refine_stages_coarse_to_fine(truth):
     """With friction searched too, positions and velocities go first ("score-kinematic", capped at half the
     simulations left after the start: int(0.5 × 118) = 59 of 120), then all groups ("score"); the trace's best
     value never falls; with the kinematic groups alone there is one stage."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     obs = Observation.from_scene(truth)
     pred = _shift(truth, (0.35, -0.25, 0.0), (-0.8, 0.5, 0.0))
@@ -228,7 +228,7 @@ def test_a_budget_time_cuts_short_still_reaches_every_group(truth):
     """--budget 100000000 --seconds 8 (time the limit) gave the positions-and-velocities stage half of the
     simulations, so it ran until the seconds were gone and the other chosen groups (here friction; by default
     orientation and spin) were never searched. Its share is now of the seconds left too."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     obs = Observation.from_scene(truth)
     pred = _shift(truth, (0.35, -0.25, 0.0), (-0.8, 0.5, 0.0))
@@ -245,7 +245,7 @@ def test_a_budget_time_cuts_short_still_reaches_every_group(truth):
 
 
 def test_refine_warm_starts_from_best_sample(truth):
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     obs = Observation.from_scene(truth)
     far = _shift(truth, (2.0, 2.0, 0.0), (0, 0, 0))
@@ -447,8 +447,8 @@ def test_fit_kinematics_recovers_sliding_motion():
 def test_track_start_from_paper_level_error(truth):
     """From 2 m and 3 m/s off (the paper's MAE level), the fit to the observed mask track lands within 0.1 m and
     0.5 m/s: no simulation, only back-projected centroids and a least-squares fit."""
+    from aynamics.observation import Observation
     from aynamics.refine import Tracks as RTracks
-    from aynamics.scorer import Observation
 
     obs = Observation.from_scene(truth)
     pred = _shift(truth, (2.0, 1.5, 0.0), (-2.5, 2.0, 0.0))
@@ -533,7 +533,7 @@ def test_a_start_sunk_into_the_floor_can_be_raised(truth):
     is not frozen, and the objective falls with the overlap's depth, so refinement raises it out: IoU 0.88 in 100
     simulations (measured: 0 with the height frozen, helper-38; 0.31 unfrozen but every invalid candidate
     scored alike)."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     sunk = _shift(truth, (0.0, 0.0, -0.1), (0.0, 0.0, 0.0))
     assert grounded_dims(sunk) == set()
@@ -558,7 +558,7 @@ def test_ballistic_frames_and_per_object_composition():
 def test_refine_recovers_paper_level_error(truth):
     """Refinement recovers a perturbed synthetic scene: from 2 m / 3 m/s off (IoU 0: no mask overlap), the track
     stage and the scorer stages reach full-sequence IoU >= 0.9 within 1,000 simulations."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     obs = Observation.from_scene(truth)
     pred = _shift(truth, (2.0, 1.5, 0.0), (-2.5, 2.0, 0.0))
@@ -572,7 +572,7 @@ def test_refine_recovers_paper_level_error(truth):
 def test_cli_refine_observed_folder_without_names(tmp_path, capsys, truth):
     """An observed folder (masks only: no names, no camera) 2 m / 3 m/s off: the candidate's own camera projects
     the tracks, and the objective matches objects by mask overlap; IoU goes from 0 to >= 0.9."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     full = Observation.from_scene(truth, frames=np.arange(30))  # every frame at 120×80
     folder = tmp_path / "observed"
@@ -616,8 +616,8 @@ def test_refine_recovers_sampled_scenes_from_paper_level_errors():
     """Three sampled scenes (2, 2 and 3 objects) with every object 3 m off in x and y (position MAE 2 m over x, y,
     z) and 4.5 m/s off in vx and vy (velocity MAE 3 m/s), signs alternating: at least two of three reach
     full-sequence IoU >= 0.9 within 1,000 simulations (the benchmark measures the distribution over 20)."""
+    from aynamics.observation import Observation
     from aynamics.sampler import SamplerConfig, sample_scene, scene_seed
-    from aynamics.scorer import Observation
 
     reached = []
     for i in (0, 3, 5):
@@ -718,8 +718,8 @@ def test_refine_recovers_camera_through_the_scorer(truth):
     segmentation (the scorer's IoU) brings IoU from 0.29 to 0.99 (measured) with the sideways offset and the field
     of view recovered. Height, distance and pitch trade against each other for two objects in a 120×80 view, so
     they are not checked one by one."""
+    from aynamics.observation import Observation
     from aynamics.scene import parse
-    from aynamics.scorer import Observation
 
     two = parse(
         SPHERE.replace(
@@ -760,7 +760,7 @@ def test_trajectory_objective_is_minus_the_mean_centre_distance():
 
 def test_refine_takes_its_groups_as_one_string(truth):
     """`refine(..., params="position")` answered "unknown group 'p'" (the string was taken as its characters)."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     observed = Observation.from_scene(truth)
     one = refine(truth, observed, params="position", budget=4)
@@ -791,7 +791,7 @@ def test_refine_names_a_number_out_of_range(truth, kw, message):
     """What `aynamics refine` refuses as options the function ran with: budget -5 scored the start and returned it
     as refined, sigma_scale -1 or a NaN flow_weight spent 48 simulations moving nowhere, a share of 5 or -1
     was used as given, sigma_scale NaN failed in CMA-ES's assert. Refused before any simulation."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     observed = Observation(np.full((1, 2, 2), -1, np.int16), np.array([0]), 2, 2)  # never simulated
     with pytest.raises(ValueError, match=f"refine: {message}"):
@@ -799,7 +799,7 @@ def test_refine_names_a_number_out_of_range(truth, kw, message):
 
 
 def test_refine_names_what_is_not_a_scene_or_an_observation(truth):
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     observed = Observation(np.full((1, 2, 2), -1, np.int16), np.array([0]), 2, 2)
     with pytest.raises(TypeError, match=r"refine: initial is a str, not a Scene"):
@@ -865,7 +865,7 @@ def test_refine_keeps_the_start_when_the_track_fit_is_worse(truth):
     (fix_grounded off) and a budget of 25: 1 to score the start, 24 (TRACK_STAGE_SIMS) for the track stage, whose
     fits only approximate the truth, and no polish (cap int(0.2 · 25) = 5 < 8) nor score generation (population
     7 > the 1 left). The fits score below 1.0, so the start is returned unchanged."""
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     result = refine(
         truth, Observation.from_scene(truth), params=["position"], budget=25, track_below=1.1, fix_grounded=False
@@ -881,8 +881,8 @@ def test_track_stage_keeps_its_fit_when_the_polish_scores_worse(truth, monkeypat
     IoU) and made to return the sphere 1.2 m off (far outside its 0.3 m radius: IoU ~0 against the fit's),
     the stage returns the fit and the fit's value; made to return the true scene (IoU 1), it takes it."""
     import aynamics.refine as refine_module
+    from aynamics.observation import Observation
     from aynamics.refine_search import Search
-    from aynamics.scorer import Observation
 
     observed = Observation.from_scene(truth)
     pred = _shift(truth, (0.4, -0.3, 0.0), (-0.6, 0.4, 0.0))
@@ -914,7 +914,7 @@ def test_refine_keeps_a_resting_objects_height_and_narrows_its_steps_after_a_tra
     score stage's steps are sigma_scale × track_sigma = 0.3 × 0.3 = 0.09 of the ranges (the polish on the track
     objective keeps the default, 1.0)."""
     import aynamics.refine as refine_module
-    from aynamics.scorer import Observation
+    from aynamics.observation import Observation
 
     scales = []
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from aynamics import cli, raycast, scorer
+from aynamics import cli, observation, raycast
 from aynamics import flow as flowlib
 from aynamics import render as renderlib
 from aynamics import scene as scenelib
@@ -82,7 +82,7 @@ def test_default_render_has_30_frames_and_29_flows(rollout):
 def test_raycast_segmentation_agrees_with_opengl(rollout, size):
     """Ray-cast (scorer) and OpenGL segmentation agree on >= 99.5 % of pixels; depth on objects within 1 cm."""
     w, h = size
-    obs = scorer.Observation.from_scene(SCENE, width=w, height=h)
+    obs = observation.Observation.from_scene(SCENE, width=w, height=h)
     cast = raycast.cast_group([SCENE], SCENE.structure, obs.frames, w, h, obs.config, 1)
     with renderlib.Renderer(w, h) as r:
         frames = r.render(SCENE, rollout, rgb=False, states=obs.frames)
@@ -96,7 +96,7 @@ def test_raycast_segmentation_agrees_with_opengl(rollout, size):
 def test_opengl_flow_matches_raycast_flow(rollout):
     """Flow from OpenGL depth equals the scorer's ray-cast flow where both see the same object (< 0.1 px)."""
     w, h = 120, 80
-    obs = scorer.Observation.from_scene(SCENE, width=w, height=h)
+    obs = observation.Observation.from_scene(SCENE, width=w, height=h)
     with renderlib.Renderer(w, h) as r:
         frames = r.render(SCENE, rollout, rgb=False)
     flow, _ = flowlib.motion_flow(SCENE, rollout, frames.depth, frames.camera, frames.segmentation)

@@ -12,8 +12,9 @@ import torch
 
 from aynamics import reward as rw
 from aynamics.flow import flow_to_color
+from aynamics.observation import Observation
 from aynamics.scene import dump, parse
-from aynamics.scorer import EPE_INVALID, Observation, Score
+from aynamics.scorer import EPE_INVALID, Score
 from aynamics.unlabeled import (
     GeneratedVideos,
     decode_flow_colors,
@@ -154,7 +155,7 @@ def test_a_folders_clip_needs_its_last_image_and_a_limit_reads_only_the_first_fo
 def test_scoring_size_keeps_the_videos_aspect():
     """480×320 -> 120×80; 112×80 stays; 96×64 (fewer rows than 80) stays; a height alone sets the width; a size
     off the aspect is refused, naming both and the width that fits."""
-    from aynamics.scorer import scoring_size
+    from aynamics.observation import scoring_size
 
     assert scoring_size(480, 320) == (120, 80) and scoring_size(112, 80) == (112, 80)
     assert scoring_size(96, 64) == (96, 64) and scoring_size(480, 320, height=40) == (60, 40)

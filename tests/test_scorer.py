@@ -9,7 +9,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from aynamics import raycast, scorer
+from aynamics import observation, raycast, scorer
 from aynamics import scene as scenelib
 
 SCENE = scenelib.parse(
@@ -31,8 +31,8 @@ W, H = 96, 64
 
 
 @pytest.fixture(scope="module")
-def observed() -> scorer.Observation:
-    return scorer.Observation.from_scene(SCENE, width=W, height=H)
+def observed() -> observation.Observation:
+    return observation.Observation.from_scene(SCENE, width=W, height=H)
 
 
 def _moved(scene: scenelib.Scene, dx: float) -> scenelib.Scene:
@@ -77,10 +77,10 @@ def test_observation_from_scene_names_a_bad_size_rate_or_frame_list():
         ({"frames": [[0, 3]]}, r"frames = \[\[0, 3\]\]: must be a list of whole frame indices"),
     ]:
         with pytest.raises(ValueError, match=f"Observation.from_scene: {message}"):
-            scorer.Observation.from_scene(SCENE, **kw)
+            observation.Observation.from_scene(SCENE, **kw)
     with pytest.raises(TypeError, match=r"Observation.from_scene: scene is a str, not a Scene"):
-        scorer.Observation.from_scene(scenelib.dump(SCENE))
-    assert scorer.Observation.from_scene(SCENE, width=6, height=4, frames=[3.0]).frames.tolist() == [3]
+        observation.Observation.from_scene(scenelib.dump(SCENE))
+    assert observation.Observation.from_scene(SCENE, width=6, height=4, frames=[3.0]).frames.tolist() == [3]
 
 
 def test_a_batch_that_fails_is_scored_one_by_one(observed, monkeypatch):
@@ -108,14 +108,14 @@ def test_observed_folder_flow_is_resampled_and_rescaled(tmp_path):
     120×80: masks taken at the nearest pixel centres, flow vectors halved with the width, occlusion kept; it then
     agrees with the scene observed directly at 120×80 (measured: masks 99.9 % equal, flow 1.2 % of its mean length
     off; asserted: 99 % and 5 %)."""
-    full = scorer.Observation.from_scene(SCENE, width=240, height=160, frames=np.arange(30))
+    full = observation.Observation.from_scene(SCENE, width=240, height=160, frames=np.arange(30))
     folder = tmp_path / "observed"
     folder.mkdir()
     np.save(folder / "segmentation.npy", full.segmentation)
     np.save(folder / "flow.npy", full.flow[:29])
     np.save(folder / "occlusion.npy", full.occluded[:29])
-    obs = scorer.Observation.from_dir(folder)
-    direct = scorer.Observation.from_scene(SCENE)
+    obs = observation.Observation.from_dir(folder)
+    direct = observation.Observation.from_scene(SCENE)
     assert (obs.width, obs.height) == (120, 80) and obs.frames.tolist() == direct.frames.tolist()
     rows, cols = np.arange(80) * 2 + 1, np.arange(120) * 2 + 1  # nearest full-resolution pixel centres
     frames = obs.frames
@@ -134,11 +134,11 @@ def test_true_scene_meets_its_own_masks_read_from_a_larger_video(tmp_path, full)
     the scorer's 120×80, keeps the video pixel nearest each scorer pixel; candidates are cast at those pixels'
     centres, so the true scene scores IoU 1 and EPE 0 against it. Cast at the 120×80 pixel centres it scored full
     IoU 0.961 / 0.957 and EPE 0.035 / 0.027 px (measured on this scene before the sample grid)."""
-    obs_full = scorer.Observation.from_scene(SCENE, width=full[0], height=full[1], frames=np.arange(30))
+    obs_full = observation.Observation.from_scene(SCENE, width=full[0], height=full[1], frames=np.arange(30))
     np.save(tmp_path / "segmentation.npy", obs_full.segmentation)
     np.save(tmp_path / "flow.npy", obs_full.flow[:29])
     np.save(tmp_path / "occlusion.npy", obs_full.occluded[:29])
-    obs = scorer.Observation.from_dir(tmp_path)
+    obs = observation.Observation.from_dir(tmp_path)
     assert (obs.width, obs.height) == (120, 80)
     np.testing.assert_array_equal(obs.grid.columns, ((np.arange(120) + 0.5) * full[0] / 120).astype(int))
     (got,) = scorer.score([SCENE], obs)
@@ -191,7 +191,7 @@ def test_candidate_with_other_structure_and_camera(observed):
 
 def test_observation_from_dir_npy_and_png(tmp_path, observed):
     """A folder of the full video's masks (every frame) scores the scene perfectly, as .npy and as PNG."""
-    full = scorer.Observation.from_scene(SCENE, width=W, height=H, frames=range(30))
+    full = observation.Observation.from_scene(SCENE, width=W, height=H, frames=range(30))
     npy = tmp_path / "npy"
     npy.mkdir()
     np.save(npy / "segmentation.npy", full.segmentation)
@@ -206,7 +206,7 @@ def test_observation_from_dir_npy_and_png(tmp_path, observed):
         grey = (m + 1).astype(np.uint8)
         iio.imwrite(la / f"{k:03d}.png", np.stack([grey, np.full_like(grey, 255)], -1))
     for root in (npy, tmp_path / "png", tmp_path / "la"):
-        obs = scorer.Observation.from_dir(root, width=W, height=H)
+        obs = observation.Observation.from_dir(root, width=W, height=H)
         np.testing.assert_array_equal(obs.segmentation, observed.segmentation)
         assert obs.flow is None
         (s,) = scorer.score([SCENE], obs)
@@ -215,24 +215,24 @@ def test_observation_from_dir_npy_and_png(tmp_path, observed):
 
 def test_observation_from_dir_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
-        scorer.Observation.from_dir(tmp_path / "missing")
+        observation.Observation.from_dir(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="segmentation"):
-        scorer.Observation.from_dir(tmp_path)
+        observation.Observation.from_dir(tmp_path)
     np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.float32))
     with pytest.raises(ValueError, match="segmentation.npy.*expected"):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
     np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.int16))
     np.save(tmp_path / "flow.npy", np.zeros((29, 8, 4, 2), np.float32))
     with pytest.raises(ValueError, match="flow.npy"):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
     (tmp_path / "flow.npy").unlink()
     for fps in (0, -30, 29.97, "30", True):  # a zero frame rate divided the duration by zero
         (tmp_path / "meta.json").write_text(json.dumps({"fps": fps}))
         with pytest.raises(ValueError, match=rf"meta.json: fps = {re.escape(repr(fps))}: must be a whole number"):
-            scorer.Observation.from_dir(tmp_path, width=8, height=8)
+            observation.Observation.from_dir(tmp_path, width=8, height=8)
     (tmp_path / "meta.json").write_text(json.dumps({"names": "box_0"}))  # was split into 5 one-letter names
     with pytest.raises(ValueError, match="names = 'box_0': must be a list"):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
     (tmp_path / "meta.json").unlink()
     flow = np.zeros((29, 8, 8, 2), np.float32)
     flow[3, 2, 2] = np.nan  # sampled flow 3: NaN dropped out of the averages, so any prediction scored EPE 0
@@ -240,28 +240,28 @@ def test_observation_from_dir_errors(tmp_path):
     with pytest.raises(
         ValueError, match=r"flow.npy: 1 sampled pixels hold NaN or infinite flow \(the first in flow 3\)"
     ):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
     occluded = np.zeros((29, 8, 8), bool)
     occluded[3, 2, 2] = True  # ... unless occlusion.npy marks the pixel: it is never read
     np.save(tmp_path / "occlusion.npy", occluded)
-    obs = scorer.Observation.from_dir(tmp_path, width=8, height=8)
+    obs = observation.Observation.from_dir(tmp_path, width=8, height=8)
     assert np.isfinite(obs.flow).all() and obs.occluded[1, 2, 2]
     # a pixel moving more than 10 image sizes (10 × 8 = 80 px here) in one frame is refused, named with its
     # place and value (one object pixel of 1e38 px gave the true scene an EPE of 1.9e36 px); 80 px exactly is kept
     flow[6, 4, 5] = (80.0, 0.0)
     np.save(tmp_path / "flow.npy", flow)
-    assert scorer.Observation.from_dir(tmp_path, width=8, height=8).flow[2, 4, 5, 0] == 80.0
+    assert observation.Observation.from_dir(tmp_path, width=8, height=8).flow[2, 4, 5, 0] == 80.0
     flow[6, 4, 5] = (3.0, 1e38)
     np.save(tmp_path / "flow.npy", flow)
     with pytest.raises(ValueError) as err:
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
     assert str(err.value).endswith(
         "flow.npy: 1 sampled pixels move more than 10 image sizes in one frame (the first in flow 6, row 4, "
         f"column 5: [3.0, {float(np.float32(1e38))}] px): is it in pixels per frame?"
     )
     occluded[6, 4, 5] = True  # where occlusion.npy marks it, never read
     np.save(tmp_path / "occlusion.npy", occluded)
-    assert scorer.Observation.from_dir(tmp_path, width=8, height=8).occluded[2, 4, 5]
+    assert observation.Observation.from_dir(tmp_path, width=8, height=8).occluded[2, 4, 5]
 
 
 def test_observed_masks_without_frames_or_pixels_are_named(tmp_path):
@@ -270,7 +270,7 @@ def test_observed_masks_without_frames_or_pixels_are_named(tmp_path):
         np.save(tmp_path / "segmentation.npy", np.zeros(shape, np.int16))
         message = f"segmentation: {what}: need at least one frame of at least 1×1"
         with pytest.raises(ValueError, match=re.escape(message)):
-            scorer.Observation.from_dir(tmp_path)
+            observation.Observation.from_dir(tmp_path)
 
 
 def test_observed_ids_beyond_int16_are_refused(tmp_path):
@@ -280,13 +280,13 @@ def test_observed_ids_beyond_int16_are_refused(tmp_path):
         seg[:, 2:4, 2:4] = bad
         np.save(tmp_path / "segmentation.npy", seg)
         with pytest.raises(ValueError, match=rf"segmentation: object id {bad}: ids must be -1"):
-            scorer.Observation.from_dir(tmp_path, width=8, height=8)
+            observation.Observation.from_dir(tmp_path, width=8, height=8)
     (tmp_path / "segmentation.npy").unlink()
     (tmp_path / "segmentation").mkdir()
     for k in range(30):  # a 16-bit grey mask, v = id + 1
         iio.imwrite(tmp_path / "segmentation" / f"{k:03d}.png", np.full((8, 8), 40001, np.uint16))
     with pytest.raises(ValueError, match="object id 40000"):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
 
 
 def test_unreadable_mask_png_is_named(tmp_path):
@@ -298,7 +298,7 @@ def test_unreadable_mask_png_is_named(tmp_path):
     bad = tmp_path / "segmentation" / "007.png"
     bad.write_bytes(bad.read_bytes()[:30])  # truncated
     with pytest.raises(ValueError, match=r"007.png: not a readable PNG mask"):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
 
 
 @pytest.mark.parametrize("empty_frame", [False, True], ids=["as observed", "frame 2 shows nothing"])
@@ -329,14 +329,14 @@ def test_observed_flow_and_occlusion_shapes_are_checked(tmp_path):
     naming flow.npy and its shape; an occlusion.npy not of the flow's (T-1, H, W) shape likewise."""
     np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.int16))
     np.save(tmp_path / "flow.npy", np.zeros((28, 8, 8, 2), np.float32))
-    assert scorer.Observation.from_dir(tmp_path, width=8, height=8).flow.shape == (10, 8, 8, 2)
+    assert observation.Observation.from_dir(tmp_path, width=8, height=8).flow.shape == (10, 8, 8, 2)
     np.save(tmp_path / "flow.npy", np.zeros((27, 8, 8, 2), np.float32))
     with pytest.raises(ValueError, match=re.escape("flow.npy: shape (27, 8, 8, 2), expected (>= 28, 8, 8, 2)")):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
     np.save(tmp_path / "flow.npy", np.zeros((29, 8, 8, 2), np.float32))
     np.save(tmp_path / "occlusion.npy", np.zeros((29, 8, 4), bool))
     with pytest.raises(ValueError, match=re.escape("occlusion.npy: shape (29, 8, 4), expected (29, 8, 8)")):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
 
 
 def test_colour_png_masks(tmp_path):
@@ -351,7 +351,7 @@ def test_colour_png_masks(tmp_path):
             img[:, 3 * k :] = c  # columns 0-2, 3-5, 6-7
         for k in range(30):
             iio.imwrite(folder / f"{k:03d}.png", img)
-        seg = scorer.Observation.from_dir(tmp_path / name, width=8, height=8).segmentation
+        seg = observation.Observation.from_dir(tmp_path / name, width=8, height=8).segmentation
         expected = [-1] * 3 + [1] * 3 + [0] * 2 if name == "bg" else [1] * 3 + [0] * 3 + [1] * 2
         assert seg.shape == (10, 8, 8) and (seg == np.array(expected)).all()
 
@@ -365,7 +365,7 @@ def test_named_observed_object_never_visible_is_not_stolen():
     cam = "- type: camera\n  position: [0, -2, 3.5]\n"
     box = "- {type: box, name: a, size: [0.15, 0.15, 0.15], state: {position: [-0.5, 1, 0.15]}}\n"
     sphere = "- {{type: sphere, name: {}, radius: 0.2, state: {{position: [0.5, 1, 0.2]}}}}\n"
-    obs = scorer.Observation.from_scene(scenelib.parse(box + sphere.format("b") + cam), width=48, height=32)
+    obs = observation.Observation.from_scene(scenelib.parse(box + sphere.format("b") + cam), width=48, height=32)
     assert all(np.unique(m).tolist() == [-1, 0, 1] for m in obs.segmentation)  # both in view, apart, every frame
     obs = dataclasses.replace(obs, names=("a", "b", "c"))
     (s,) = scorer.score([scenelib.parse(box + sphere.format("c") + cam)], obs)
@@ -379,7 +379,7 @@ def test_epe_first_is_zero_when_frame_0_shows_nothing():
 
     cam = "- type: camera\n  position: [0, -2, 3.5]\n"
     text = "- {{type: sphere, radius: 0.2, state: {{position: [-4, 1, 0.2], linear_velocity: [{}, 0, 0]}}}}\n" + cam
-    obs = scorer.Observation.from_scene(scenelib.parse(text.format(8)), width=48, height=32)
+    obs = observation.Observation.from_scene(scenelib.parse(text.format(8)), width=48, height=32)
     cand = scenelib.parse(text.format(7))
     cast = raycast.cast_group([cand], cand.structure, obs.frames, 48, 32, obs.config, 1)
     assert not (obs.segmentation[0] >= 0).any() and not (cast.seg[0, 0] >= 0).any()
@@ -393,8 +393,8 @@ def test_observation_simulates_up_to_its_last_frame():
     """The rollout covers the last sampled frame and its flow target: frames [0, 40] need 41 frames, 41 / 30 s;
     frames [0, 3] still simulate the whole 30-frame video (1 s)."""
     seg = np.zeros((2, 4, 4), np.int16)
-    assert scorer.Observation(seg, np.array([0, 40]), 4, 4).config.duration == pytest.approx(41 / 30)
-    assert scorer.Observation(seg, np.array([0, 3]), 4, 4).config.duration == pytest.approx(1.0)
+    assert observation.Observation(seg, np.array([0, 40]), 4, 4).config.duration == pytest.approx(41 / 30)
+    assert observation.Observation(seg, np.array([0, 3]), 4, 4).config.duration == pytest.approx(1.0)
 
 
 def test_an_observation_built_directly_is_checked_as_from_dir_checks_its_files():
@@ -404,23 +404,23 @@ def test_an_observation_built_directly_is_checked_as_from_dir_checks_its_files()
     int64 ids."""
     seg, frames = np.zeros((1, 4, 4), np.int16), np.array([0])
     flow = np.zeros((1, 4, 4, 2), np.float32)
-    assert scorer.Observation(seg.astype(np.int64), frames, 4, 4, flow.astype(int)).flow is not None
+    assert observation.Observation(seg.astype(np.int64), frames, 4, 4, flow.astype(int)).flow is not None
     occluded = np.zeros((1, 4, 4), bool)
     occluded[0, 1, 2] = True
     for value, shown in (((np.nan, 0.0), r"\[nan, 0.0\]"), ((1.0, -np.inf), r"\[1.0, -inf\]")):
         bad = flow.copy()
         bad[0, 1, 2] = value
         with pytest.raises(ValueError, match=rf"flow\[0, 1, 2\] = {shown}: 1 pixels not occluded hold NaN or infinite"):
-            scorer.Observation(seg, frames, 4, 4, bad)
-        assert scorer.Observation(seg, frames, 4, 4, bad, occluded).occluded[0, 1, 2]
+            observation.Observation(seg, frames, 4, 4, bad)
+        assert observation.Observation(seg, frames, 4, 4, bad, occluded).occluded[0, 1, 2]
     with pytest.raises(ValueError, match=r"segmentation dtype float64: must be signed int ids, -1 background"):
-        scorer.Observation(seg + 0.7, frames, 4, 4)
+        observation.Observation(seg + 0.7, frames, 4, 4)
     with pytest.raises(ValueError, match=r"segmentation dtype int16, lowest id -2: must be signed int ids"):
-        scorer.Observation(seg - 2, frames, 4, 4)
+        observation.Observation(seg - 2, frames, 4, 4)
     with pytest.raises(ValueError, match=r"occluded ndarray of shape \(1, 4, 4\) dtype int64: must be a bool array"):
-        scorer.Observation(seg, frames, 4, 4, flow, occluded.astype(int))
+        observation.Observation(seg, frames, 4, 4, flow, occluded.astype(int))
     with pytest.raises(ValueError, match=r"occluded ndarray of shape \(1, 4, 2\) dtype bool: must be a bool array"):
-        scorer.Observation(seg, frames, 4, 4, flow, occluded[:, :, :2])
+        observation.Observation(seg, frames, 4, 4, flow, occluded[:, :, :2])
 
 
 def test_unsigned_segmentation_npy_is_refused_naming_the_file(tmp_path):
@@ -428,7 +428,7 @@ def test_unsigned_segmentation_npy_is_refused_naming_the_file(tmp_path):
     traceback from `refine`/`score`); now a ValueError naming the file and the fix."""
     np.save(tmp_path / "segmentation.npy", np.zeros((30, 8, 8), np.uint8))
     with pytest.raises(ValueError, match=r"segmentation.npy: dtype uint8 cannot hold the background id -1"):
-        scorer.Observation.from_dir(tmp_path, width=8, height=8)
+        observation.Observation.from_dir(tmp_path, width=8, height=8)
 
 
 def test_colour_and_palette_masks_follow_the_names_in_meta_json(tmp_path):
@@ -446,9 +446,9 @@ def test_colour_and_palette_masks_follow_the_names_in_meta_json(tmp_path):
         iio.imwrite(rgb / "segmentation" / f"{k:03d}.png", img)
     (rgb / "meta.json").write_text(json.dumps({"names": ["a", "b"]}))
     with pytest.raises(ValueError, match=r"colour masks.*add \"colours\""):
-        scorer.Observation.from_dir(rgb, width=8, height=8)
+        observation.Observation.from_dir(rgb, width=8, height=8)
     (rgb / "meta.json").write_text(json.dumps({"names": ["a", "b"], "colours": [list(red), list(green)]}))
-    seg = scorer.Observation.from_dir(rgb, width=8, height=8).segmentation
+    seg = observation.Observation.from_dir(rgb, width=8, height=8).segmentation
     assert (seg[:, :, :4] == 0).all() and (seg[:, :, 4:] == 1).all()
     pal = tmp_path / "pal"
     (pal / "segmentation").mkdir(parents=True)
@@ -458,7 +458,7 @@ def test_colour_and_palette_masks_follow_the_names_in_meta_json(tmp_path):
         im = Image.fromarray(index, mode="P")
         im.putpalette([0, 0, 0, 128, 0, 0, 0, 128, 0])  # index 2's colour sorts before index 1's
         im.save(pal / "segmentation" / f"{k:03d}.png")
-    seg = scorer.Observation.from_dir(pal, width=8, height=8).segmentation
+    seg = observation.Observation.from_dir(pal, width=8, height=8).segmentation
     assert (seg[:, :, :4] == 0).all() and (seg[:, :, 4:] == 1).all()
 
 
@@ -466,7 +466,7 @@ def test_scoring_size_keeps_the_videos_aspect_from_either_side():
     """A 480×320 video (3:2): by default 80 rows and 80 · 480 / 320 = 120 columns; given the width 60 alone, the
     height is 60 · 320 / 480 = 40; given the height 40 alone, the width is 40 · 480 / 320 = 60. A 100×50 video
     smaller than 80 rows keeps its own 50 rows. 120×90 is off 3:2 by 15 columns: refused."""
-    from aynamics.scorer import scoring_size
+    from aynamics.observation import scoring_size
 
     assert scoring_size(480, 320) == (120, 80)
     assert scoring_size(480, 320, width=60) == (60, 40)
@@ -485,17 +485,17 @@ def test_a_meta_json_frame_rate_out_of_range_is_refused_with_the_range(tmp_path,
     with pytest.raises(
         ValueError, match=re.escape(f"fps = {fps!r}: must be a whole number of frames per second in [1, 1000]")
     ):
-        scorer.Observation.from_dir(tmp_path)
+        observation.Observation.from_dir(tmp_path)
     (tmp_path / "meta.json").write_text(json.dumps({"fps": 1000}))
-    assert scorer.Observation.from_dir(tmp_path).fps == 1000
+    assert observation.Observation.from_dir(tmp_path).fps == 1000
 
 
 def test_from_scene_takes_a_whole_frame_rate_given_as_a_float(observed):
     """fps 30.0 (a clock read from JSON) or numpy's 30.0 was refused as "not a whole number" since the argument checks,
     though `SimConfig` takes 30, 30.0 and numpy's 30 alike (and from_scene did before)."""
     for fps in (30.0, np.float64(30.0), np.int64(30)):
-        obs = scorer.Observation.from_scene(SCENE, width=W, height=H, fps=fps)
+        obs = observation.Observation.from_scene(SCENE, width=W, height=H, fps=fps)
         assert obs.fps == 30 and type(obs.fps) is int
         assert np.array_equal(obs.segmentation, observed.segmentation)
     with pytest.raises(ValueError, match=r"Observation.from_scene: fps = 29.5: must be a whole number in \[1, 1000\]"):
-        scorer.Observation.from_scene(SCENE, width=W, height=H, fps=29.5)
+        observation.Observation.from_scene(SCENE, width=W, height=H, fps=29.5)

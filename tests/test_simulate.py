@@ -469,7 +469,7 @@ def test_tunnelling_through_a_tilted_floor_is_invalid():
 def test_a_camera_inside_an_object_is_an_invalid_rollout():
     """The renderer saw through a box around the camera (its back faces) while the ray-caster saw only the box: a
     true scene scored IoU 0 against its own render. Such a scene is refused, by the simulator and the scorer."""
-    from aynamics import scorer
+    from aynamics import observation, scorer
 
     cam = {"type": "camera", "position": [0.0, 0.0, 1.0], "orientation": 30, "fovy": 60}
     around = box(v=(0, 0, 0), size=(1.0, 1.0, 1.0))  # centre (0, 0, 1): the camera at its centre
@@ -491,7 +491,7 @@ def test_a_camera_inside_an_object_is_an_invalid_rollout():
     }
     s = scene([cyl], camera=cam)
     assert "camera inside cylinder_0" in sim.simulate(s).reason
-    observed = scorer.Observation.from_scene(scene([sphere(x=2.0)], camera=cam), width=12, height=8)
+    observed = observation.Observation.from_scene(scene([sphere(x=2.0)], camera=cam), width=12, height=8)
     (got,) = scorer.score([s], observed)  # the scorer's ray-cast rollout says so too
     assert not got.valid and got.iou_full == 0 and "camera inside cylinder_0" in got.reason
 
