@@ -83,6 +83,7 @@ def _add_render(sub) -> None:
 
 
 def _run_render(args) -> int:
+    from aynamics import appearance
     from aynamics import flow as flowlib
     from aynamics import render as renderlib
     from aynamics import simulate as sim
@@ -94,7 +95,7 @@ def _run_render(args) -> int:
         raise UsageError(f"render: --seed {args.seed}: must be >= 0")
     if args.textures is not None:
         try:
-            renderlib.texture_images(args.textures)
+            appearance.texture_images(args.textures)
         except (FileNotFoundError, ValueError) as e:
             raise UsageError(f"render: --textures {args.textures!r}: {getattr(e, 'strerror', None) or e}") from None
     out = Path(args.out)

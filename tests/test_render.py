@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from aynamics import cli, observation, raycast
+from aynamics import appearance, cli, observation, raycast
 from aynamics import flow as flowlib
 from aynamics import render as renderlib
 from aynamics import scene as scenelib
@@ -109,16 +109,16 @@ def test_opengl_flow_matches_raycast_flow(rollout):
 def test_appearance_from_user_folder(tmp_path):
     import imageio.v3 as iio
 
-    assert renderlib.sample_appearance(3) == renderlib.sample_appearance(3)
-    assert renderlib.sample_appearance(3) != renderlib.sample_appearance(4)
+    assert appearance.sample_appearance(3) == appearance.sample_appearance(3)
+    assert appearance.sample_appearance(3) != appearance.sample_appearance(4)
     with pytest.raises(FileNotFoundError, match="not a folder"):
-        renderlib.sample_appearance(0, tmp_path / "nope")
+        appearance.sample_appearance(0, tmp_path / "nope")
     with pytest.raises(ValueError, match="no images"):
-        renderlib.sample_appearance(0, tmp_path)
+        appearance.sample_appearance(0, tmp_path)
     iio.imwrite(tmp_path / "a.png", np.zeros((8, 8, 3), np.uint8))
-    look = renderlib.sample_appearance(0, tmp_path)
+    look = appearance.sample_appearance(0, tmp_path)
     assert look.floor_image == look.sky_image == tmp_path / "a.png"
-    assert 1 <= len(look.lights) <= 3 and {o.kind for o in renderlib.sample_appearance(0).objects} == {
+    assert 1 <= len(look.lights) <= 3 and {o.kind for o in appearance.sample_appearance(0).objects} == {
         "checker",
         "gradient",
         "plain",
@@ -127,10 +127,10 @@ def test_appearance_from_user_folder(tmp_path):
 
 @needs_gl
 def test_plain_backdrop_is_one_flat_colour(rollout):
-    look = renderlib.sample_appearance(5, backdrop="plain")
+    look = appearance.sample_appearance(5, backdrop="plain")
     assert look.floor_image is None and look.sky_image is None
     with pytest.raises(ValueError, match="backdrop = 'tiles'"):
-        renderlib.sample_appearance(5, backdrop="tiles")
+        appearance.sample_appearance(5, backdrop="tiles")
     with renderlib.Renderer(96, 64) as r:
         plain = r.render(SCENE, rollout, seed=5, backdrop="plain", states=[0])
         photo = r.render(SCENE, rollout, seed=5, states=[0])
@@ -222,7 +222,8 @@ def test_texture_photographs_are_read_as_shown(tmp_path):
     import numpy as np
     from PIL import Image
 
-    from aynamics.render import _load_texture, texture_images
+    from aynamics.appearance import texture_images
+    from aynamics.render import _load_texture
 
     img = Image.new("RGB", (16, 16), (0, 0, 255))
     img.paste((255, 0, 0), (0, 0, 8, 16))  # red left half; orientation 6 shows it rotated 90° clockwise: on top
