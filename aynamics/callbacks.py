@@ -59,7 +59,7 @@ def evaluate_texts(texts: Sequence[str], targets: Sequence[Scene] | None, observ
     Args:
         texts: Model responses (the YAML is taken from <answer> tags when present).
         targets: The true scenes; None for videos without one (no count, composition or state errors then).
-        observations: `scorer.Observation` of each video.
+        observations: `observation.Observation` of each video.
 
     Returns:
         One list per key of `METRIC_KEYS` (floats, 1.0/0.0 for the rates; without targets only validity, IoU and

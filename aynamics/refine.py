@@ -303,7 +303,7 @@ def refine(
     stop_at: float | None = None,
     fix_grounded: bool = True,
 ) -> RefineResult:
-    """Refine a predicted scene against an observed video (an `aynamics.scorer.Observation`).
+    """Refine a predicted scene against an observed video (an `aynamics.observation.Observation`).
 
     Args:
         initial: the prediction, or several (e.g. N samples): the best-scoring one is the warm start.

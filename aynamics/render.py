@@ -99,7 +99,7 @@ def gl_available() -> tuple[bool, str]:
 
 
 # --------------------------------------------------------------------------------------------
-# Appearance
+# The appearance on the MuJoCo model (appearance.py samples it)
 # --------------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=32)
 def _load_texture(path: Path, size: int) -> bytes:
