@@ -1,6 +1,6 @@
 """The range table of every scene field (unit, frame, plausible range, meaning), and how a scene is refused.
 
-`RANGES` is the one source of the fields' meanings and bounds: `scene.py` validates against it, the dataset
+`RANGES` is the one source of the fields' meanings and bounds: `scene_records.py` validates against it, the dataset
 sampler and CMA-ES take their bounds from it, and the README's field reference is `ranges_markdown()` (`aynamics
 ranges --markdown`; a test keeps the README in sync). Every problem found in a scene is a `Problem` (where, what
 value, what is allowed), and all of them are raised at once in one `SceneError`:
