@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from aynamics import cli
 from aynamics import scene as S
+from aynamics import scene_dump as D
 from aynamics import scene_text as T
 
 ASSETS = Path(__file__).parent / "assets"
@@ -546,8 +547,8 @@ def test_unhashable_key_is_not_called_a_tag():
 
 def test_whole_numbers_at_zero_decimals_keep_their_digits():
     """`dump(decimals=0)` wrote 10.0 as `1` and 0.0 as an empty value (trailing zeros stripped without a point)."""
-    assert [S._num(x, 0) for x in (10.0, 0.0, -0.2, 250.0)] == ["10", "0", "0", "250"]
-    assert [S._num(x) for x in (10.0, 0.0, -0.0, 0.25)] == ["10.0", "0.0", "0.0", "0.25"]
+    assert [D._num(x, 0) for x in (10.0, 0.0, -0.2, 250.0)] == ["10", "0", "0", "250"]
+    assert [D._num(x) for x in (10.0, 0.0, -0.0, 0.25)] == ["10.0", "0.0", "0.0", "0.25"]
 
 
 def test_load_counts_characters_not_bytes(tmp_path):
