@@ -107,7 +107,7 @@ def run_preferences(args) -> int:
             clip_times=prompt.frame_times,  # a folder's images at the adapter's times, as predict reads a video
         )
         if args.metric != "iou":  # before sampling: the first valid candidate would stop the run
-            from aynamics.pro import without_flow
+            from aynamics.pro_datamodule import without_flow
 
             missing = without_flow(videos)
             if missing is not None:

@@ -567,7 +567,7 @@ def test_pro_loader_shards_over_the_trainers_ranks(dataset_dir):
     work of one), and a resumed run continues past its first batch; validation videos are shared out too."""
     from types import SimpleNamespace
 
-    from aynamics.pro import ProDataModule
+    from aynamics.pro_datamodule import ProDataModule
     from aynamics.tokenizer_build import TINY_ASSET_DIR
 
     dm = ProDataModule(str(dataset_dir), str(TINY_ASSET_DIR), batch_size=1, num_frames=2)
@@ -606,7 +606,7 @@ def _video_folder(root, value: int) -> None:
 def test_folder_videos_validate_on_val_dir_or_say_they_do_not(tmp_path):
     """A folder of video folders has no splits: with data.val_dir, validation reads those held-out videos; without,
     it scores the first training videos, as before, but now says so."""
-    from aynamics.pro import ProDataModule
+    from aynamics.pro_datamodule import ProDataModule
     from aynamics.tokenizer_build import TINY_ASSET_DIR
 
     for name, value in (("a", 10), ("b", 20)):
@@ -637,7 +637,7 @@ def _flow_logged_keys(tmp_path, kw) -> None:
     every folder, it logs them."""
     import types
 
-    from aynamics.pro import ProDataModule
+    from aynamics.pro_datamodule import ProDataModule
     from aynamics.scorer import Score
     from aynamics.tokenizer_build import TINY_ASSET_DIR
 
@@ -698,7 +698,7 @@ def test_offline_pro_shows_the_frames_on_the_clock_they_were_sampled_on(tmp_path
     """Preferences sampled from a data set's videos (`aynamics preferences`: the prompt takes the videos' clock) are
     trained offline on the same clock: the offline data module kept the default 30 fps clip, so a video's temporal
     positions (second_per_grid_ts) differed from sampling and SFT whenever the data were at another rate."""
-    from aynamics.pro import ProDataModule
+    from aynamics.pro_datamodule import ProDataModule
 
     tiny = lm.ModelSpec().processor_path
     prefs = _handmade_preferences(dataset_dir, tmp_path / "prefs")
@@ -743,7 +743,7 @@ def test_an_epe_reward_on_videos_without_flow_is_refused_before_sampling(tmp_pat
     naming the video."""
     import types
 
-    from aynamics.pro import ProDataModule
+    from aynamics.pro_datamodule import ProDataModule
     from aynamics.tokenizer_build import TINY_ASSET_DIR
 
     _video_folder(tmp_path / "videos" / "a", 10)
@@ -844,7 +844,7 @@ def test_validation_leaves_the_training_random_state_alone(dataset_dir):
     global generator, and a validation step samples the same candidates whatever that generator's state."""
     from types import SimpleNamespace
 
-    from aynamics.pro import ProDataModule
+    from aynamics.pro_datamodule import ProDataModule
     from aynamics.tokenizer_build import TINY_ASSET_DIR
 
     dm = ProDataModule(str(dataset_dir), str(TINY_ASSET_DIR), batch_size=1, num_frames=2, use_flow=False)
