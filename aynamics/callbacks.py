@@ -313,10 +313,10 @@ def write_predictions(path: Path, texts: Sequence[str], records: Sequence[dict],
 
 
 def scorable_records(records: Sequence[dict], where: str = "records") -> list[dict]:
-    """The records (`data.eval_record`) that can be scored, each with its parsed `scene` and the `observation` of
-    it in the video's view; a record whose `scene_yaml` cannot be scored (hand-edited, corrupted) is left out with a
-    warning naming its index among `where` (e.g. "validation records of data.dir = 'DIR'"): it never stops a
-    training run or an evaluation."""
+    """The records (`eval_records.eval_record`) that can be scored, each with its parsed `scene` and the
+    `observation` of it in the video's view; a record whose `scene_yaml` cannot be scored (hand-edited, corrupted)
+    is left out with a warning naming its index among `where` (e.g. "validation records of data.dir = 'DIR'"): it
+    never stops a training run or an evaluation."""
     from aynamics.observation import Observation, scoring_size
     from aynamics.simulate import FPS
 
@@ -349,7 +349,7 @@ def scorable_records(records: Sequence[dict], where: str = "records") -> list[di
 def average_scene_text(train_split) -> str | None:
     """The constant "average scene" (`data.mean_scene` of a training split's scenes) as YAML; None, with a warning,
     when no training scene parses."""
-    from aynamics.data import mean_scene_of_split
+    from aynamics.average_scene import mean_scene_of_split
     from aynamics.scene import dump
 
     try:

@@ -1,4 +1,5 @@
-"""The generated data set as SFT batches: a LightningDataModule (its loaders: `loaders.py`) and the "average scene".
+"""The generated data set as SFT batches: a LightningDataModule (its loaders: `loaders.py`; the records its scene
+evaluation scores: `eval_records.py`; the "average scene" baseline: `average_scene.py`, re-exported).
 
 The data set is the folder written by `aynamics generate` (`datasets.load_from_disk`: train / validation / test,
 columns `scene_yaml`, `target_answer`, `target_think`, `rgb` and `flow` (lists of PIL frames), ...). One example
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +24,10 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset
 
 from aynamics import lm
 from aynamics import scene as scene_lib
+from aynamics.average_scene import mean_scene as mean_scene  # the baseline: README names data.mean_scene
+from aynamics.average_scene import mean_scene_of_split as mean_scene_of_split
 from aynamics.batching import collate
+from aynamics.eval_records import frames_of, readable_eval_record
 from aynamics.loaders import (  # noqa: F401 - re-exported: the loaders the data module builds
     EvalShard,
     ResumableLoader,
@@ -37,7 +40,6 @@ from aynamics.loaders import (  # noqa: F401 - re-exported: the loaders the data
     resumable_loader,
 )
 from aynamics.processor import IGNORE_INDEX, build_sft_example, sample_frames, type_tokens
-from aynamics.scene import Scene, SceneError, from_items, parse, to_items
 from aynamics.visual_targets import token_targets
 
 SPLITS = ("train", "validation", "test")
@@ -91,16 +93,6 @@ def with_clock(prompt: lm.PromptSpec, path: str | Path, split) -> lm.PromptSpec:
     fps = float(dataset_fps(path) or prompt.fps)  # a data set made otherwise: the generator's rate
     frames = used_columns(split, ("frame_indices",))[0].get("frame_indices") if len(split) else None
     return dataclasses.replace(prompt, fps=fps, clip_frames=tuple(frames) if frames else prompt.clip_frames)
-
-
-def frames_of(record: dict[str, Any], modality: str) -> list:
-    """The frames of one record for `modality` ("rgb" or "flow")."""
-    if modality not in lm.MODALITIES:
-        raise ValueError(f"modality = {modality!r}: must be one of {lm.MODALITIES}")
-    frames = record.get(modality)
-    if not frames:
-        raise ValueError(f"record {record.get('index', '?')} has no {modality!r} frames")
-    return list(frames)
 
 
 def used_columns(split, names: tuple[str, ...]):
@@ -466,92 +458,3 @@ class SceneDataModule(L.LightningDataModule):
         steps = dataset_substeps(self.dir)
         found = (readable_eval_record(ds, i, self.processor, self.prompt, where, steps) for i in range(min(n, len(ds))))
         return [r for r in found if r is not None]
-
-
-def readable_eval_record(
-    split, i: int, processor, prompt: lm.PromptSpec, where: str, substeps: int | None = None
-) -> dict[str, Any] | None:
-    """`eval_record` of row `i` of `split`, or None with a warning naming it among `where` when its frames cannot be
-    read (none stored, a broken image): one bad record never stops a training run or an evaluation."""
-    try:
-        return eval_record(split[i], processor, prompt, i, substeps)
-    except (ValueError, OSError) as e:  # PIL's UnidentifiedImageError is an OSError
-        warnings.warn(f"scene evaluation: record {i} of the {where} is left out: its frames cannot be read ({e})")
-        return None
-
-
-def eval_record(
-    record: dict[str, Any], processor, prompt: lm.PromptSpec, position: int = 0, substeps: int | None = None
-) -> dict[str, Any]:
-    """What generating for and scoring one data-set record needs: its `index` (`position` in the split when the
-    record has none), the unbatched `prompt`, the `scene_yaml`, the frames' (width, height) `size` in pixels (the
-    view the scene is scored in), and when they were taken: the video `frames` the model sees (the record's
-    `frame_indices`, None when it has none: the scorer's default) at `fps` (the prompt's clock: `with_clock` sets
-    it to the data set's rate), simulated with the data set's `substeps` (`dataset_store.dataset_substeps`; None:
-    the default for `fps`). The scene is scored at those frames, the times the model saw."""
-    frames = frames_of(record, prompt.modality)
-    shown = record.get("frame_indices")
-    return {
-        "index": record.get("index", position),
-        "prompt": lm.prompt_inputs(processor, prompt, frames),
-        "scene_yaml": record["scene_yaml"],
-        "size": tuple(frames[0].size),
-        "frames": None if shown is None else tuple(int(k) for k in shown),
-        "fps": round(prompt.fps),
-        "substeps": substeps,
-    }
-
-
-# --------------------------------------------------------------------------------------------
-# The constant "average scene" predictor
-# --------------------------------------------------------------------------------------------
-def _mean_value(values: list[Any]) -> Any:
-    """Element-wise mean of numbers / equal-length lists / dicts; the most common value of anything else."""
-    if all(isinstance(v, dict) for v in values):
-        keys = Counter(k for v in values for k in v)
-        return {k: _mean_value([v[k] for v in values if k in v]) for k, c in keys.items() if 2 * c > len(values)}
-    if all(isinstance(v, list) for v in values) and len({len(v) for v in values}) == 1:
-        return [_mean_value([v[i] for v in values]) for i in range(len(values[0]))]
-    if all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
-        return float(np.mean(values))
-    top = Counter(map(repr, values)).most_common(1)[0][0]
-    return next(v for v in values if repr(v) == top)
-
-
-def mean_scene(scenes: list[Scene]) -> Scene:
-    """The "average scene": the most common structure (object types in order) with every number averaged.
-
-    Averages run over the scenes of that structure, object k with object k; an optional field (restitution,
-    the environment item) is kept when more than half of them have it. Quaternions are renormalised.
-    """
-    if not scenes:
-        raise ValueError("mean_scene got 0 scenes")
-    structure = Counter(s.structure for s in scenes).most_common(1)[0][0]
-    same = [to_items(s) for s in scenes if s.structure == structure]
-    by_type: dict[str, list[dict]] = {}
-    for items in same:
-        for k, item in enumerate(items):
-            key = f"{k}:{item['type']}" if k < len(structure) else item["type"]
-            by_type.setdefault(key, []).append(item)
-    items = []
-    for key, group in by_type.items():
-        if 2 * len(group) <= len(same):
-            continue
-        item = _mean_value(group)
-        if "state" in item:
-            q = np.array(item["state"]["orientation"])
-            norm = np.linalg.norm(q)
-            item["state"]["orientation"] = (q / norm).tolist() if norm > 1e-6 else [1.0, 0.0, 0.0, 0.0]
-        items.append(item)
-    return from_items(items)
-
-
-def mean_scene_of_split(split) -> Scene:
-    """`mean_scene` of the `scene_yaml` column of a data-set split (records that do not parse are left out)."""
-    scenes = []
-    for text in split["scene_yaml"]:
-        try:
-            scenes.append(parse(text))
-        except SceneError:
-            continue
-    return mean_scene(scenes)

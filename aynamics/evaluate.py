@@ -267,7 +267,7 @@ def evaluate_adapter(
         ValueError: a split the data set lacks or an empty one, bad counts, an adapter that cannot be loaded, or a
             data set without the adapter's modality.
     """
-    from aynamics import adapters, data, lm
+    from aynamics import adapters, data, eval_records, lm
 
     _check_counts(num, batch_size, max_new_tokens, refine_budget, refine_seconds)
     splits = data.load_splits(data_dir, what="--data", require_train=False)
@@ -290,7 +290,7 @@ def evaluate_adapter(
     from aynamics.dataset_store import dataset_substeps
 
     steps = dataset_substeps(data_dir)  # the physics the videos were made with
-    found = (data.readable_eval_record(rows, i, processor, prompt, where, steps) for i in range(n))
+    found = (eval_records.readable_eval_record(rows, i, processor, prompt, where, steps) for i in range(n))
     items = ([] if r is None else scorable_records([r], where) for r in found)
     records, texts, digests = _generate(
         model, processor, items, n, batch_size, max_new_tokens, f"evaluate {split}", progress, kept

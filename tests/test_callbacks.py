@@ -543,8 +543,8 @@ def test_evaluation_baseline_scores_the_average_training_scene(monkeypatch):
     `summarize(evaluate_texts([dump(avg)] * 2, targets, observations))`; the model's own summary is separate."""
     from types import SimpleNamespace
 
+    from aynamics.average_scene import mean_scene_of_split
     from aynamics.callbacks import SceneEvaluation
-    from aynamics.data import mean_scene_of_split
     from aynamics.observation import scoring_size
     from aynamics.scene import parse
 
@@ -927,7 +927,7 @@ def test_a_record_whose_frames_cannot_be_read_is_left_out_with_its_reason():
     from PIL import UnidentifiedImageError
 
     from aynamics import lm
-    from aynamics.data import readable_eval_record
+    from aynamics.eval_records import readable_eval_record
 
     class Broken:  # a split whose row 0 holds a PNG Pillow cannot identify
         def __getitem__(self, i):
@@ -950,7 +950,7 @@ def test_scene_evaluation_simulates_with_the_data_sets_own_substeps(tmp_path):
     candidates' simulation and the true scene agree: IoU 1."""
     import datasets
 
-    from aynamics import data, lm
+    from aynamics import eval_records, lm
     from aynamics.callbacks import scorable_records
     from aynamics.dataset_store import dataset_substeps
     from aynamics.generate import GenerateConfig, generate_dataset
@@ -964,7 +964,8 @@ def test_scene_evaluation_simulates_with_the_data_sets_own_substeps(tmp_path):
     prompt = lm.PromptSpec(num_frames=2)
     processor = lm.load_processor(lm.ModelSpec(kind="tiny"), prompt)
     split = datasets.load_from_disk(str(path))["train"]
-    records = [data.readable_eval_record(split, i, processor, prompt, "test", dataset_substeps(path)) for i in (0, 1)]
+    steps = dataset_substeps(path)
+    records = [eval_records.readable_eval_record(split, i, processor, prompt, "test", steps) for i in (0, 1)]
     assert [r["substeps"] for r in records] == [2, 2]
     scored = scorable_records(records)
     assert [r["observation"].config.substeps for r in scored] == [2, 2]

@@ -10,7 +10,8 @@ import torch
 from train_fixtures import tiny_dataset
 
 from aynamics import lm
-from aynamics.data import ResumableSampler, SceneDataModule, WarmupViews, frame_windows, load_splits, mean_scene
+from aynamics.average_scene import mean_scene
+from aynamics.data import ResumableSampler, SceneDataModule, WarmupViews, frame_windows, load_splits
 from aynamics.processor import IGNORE_INDEX, IMAGE, TEXT, VIDEO
 from aynamics.scene import parse
 from aynamics.tokenizer_build import TINY_ASSET_DIR

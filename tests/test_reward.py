@@ -187,7 +187,7 @@ def test_videos_of_another_frame_rate_are_scored_on_their_clock(tmp_path):
     (before: simulated at 30 fps, the true scenes of helper-37's 60 fps data set scored IoU 0.20-0.99)."""
     import datasets
 
-    from aynamics import data, lm
+    from aynamics import data, eval_records, lm
     from aynamics.callbacks import scorable_records
     from aynamics.generate import GenerateConfig, generate_dataset
 
@@ -205,7 +205,7 @@ def test_videos_of_another_frame_rate_are_scored_on_their_clock(tmp_path):
         assert obs.fps == 60 and obs.frames.tolist() == rec["frame_indices"]
         s = rw.score_completions([[rec["scene_yaml"]]], [obs])[0][0]
         assert s.iou_full > 0.98 and s.iou_first > 0.98 and s.epe_full < 0.3, (rec["index"], s)
-        (scored,) = scorable_records([data.eval_record(rec, processor, prompt, i)])
+        (scored,) = scorable_records([eval_records.eval_record(rec, processor, prompt, i)])
         seen = scored["observation"]
         assert seen.fps == 60 and seen.frames.tolist() == rec["frame_indices"]
         assert (seen.segmentation == obs.segmentation).mean() > 0.98
