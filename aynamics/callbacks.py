@@ -9,7 +9,7 @@
     val/iou_first, val/iou_full   segmentation IoU (first frame, sampled frames), 0 for invalid responses
     val/epe_first, val/epe_full   flow end-point error in px of a 480-wide image, `scorer.EPE_INVALID` if invalid
     val/position_mae, val/velocity_mae   initial-state errors (m, m/s), the metrics' penalties if unparsable
-    val/baseline/...     the same metrics of the constant "average scene" predictor (`data.mean_scene`)
+    val/baseline/...     the same metrics of the constant "average scene" predictor (`average_scene.mean_scene`)
 
 and writes `eval/predictions_stepNNNNNN.jsonl` and `eval/stepNNNNNN_sampleK.gif` (observed | predicted rollout,
 side by side) under the run folder, plus the text and a frame strip to TensorBoard. A bad response never
@@ -160,8 +160,8 @@ class SceneEvaluation(L.Callback):
         every_n_validations: Evaluate at every n-th validation run (Lightning validates every
             `val_check_interval` steps or each epoch); the one that ends training (max_steps reached, or the
             last batch of the last epoch) is always evaluated.
-        baseline: Also score the constant "average scene" (`data.mean_scene`): the training scenes of the most
-            common object list (in generated data, usually a single object), every number averaged.
+        baseline: Also score the constant "average scene" (`average_scene.mean_scene`): the training scenes of the
+            most common object list (in generated data, usually a single object), every number averaged.
         out_dir: Folder of predictions and animations (default: `<trainer.default_root_dir>/eval`).
     """
 
@@ -347,8 +347,8 @@ def scorable_records(records: Sequence[dict], where: str = "records") -> list[di
 
 
 def average_scene_text(train_split) -> str | None:
-    """The constant "average scene" (`data.mean_scene` of a training split's scenes) as YAML; None, with a warning,
-    when no training scene parses."""
+    """The constant "average scene" (`average_scene.mean_scene` of a training split's scenes) as YAML; None, with a
+    warning, when no training scene parses."""
     from aynamics.average_scene import mean_scene_of_split
     from aynamics.scene import dump
 

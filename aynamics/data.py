@@ -24,7 +24,7 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset
 
 from aynamics import lm
 from aynamics import scene as scene_lib
-from aynamics.average_scene import mean_scene as mean_scene  # the baseline: README names data.mean_scene
+from aynamics.average_scene import mean_scene as mean_scene  # the baseline: the README named data.mean_scene
 from aynamics.average_scene import mean_scene_of_split as mean_scene_of_split
 from aynamics.batching import collate
 from aynamics.eval_records import frames_of, readable_eval_record

@@ -178,7 +178,7 @@ def _predict_gives_the_evaluation_response(cfg, adapter: Path, row: dict) -> Non
     import imageio.v3 as iio
 
     from aynamics.cli import main
-    from aynamics.data import frames_of
+    from aynamics.eval_records import frames_of
     from aynamics.predict import clip_of
 
     spec = hydra.utils.instantiate(cfg.model)
