@@ -1,5 +1,5 @@
 """A tiny generated data set shared by the training tests (one copy per test session, also under xdist), their
-config composition, and a callback that sends the training process SIGTERM.
+config composition, their 2-process runs (`run_two_processes`), and callbacks that send SIGTERM or make a step NaN.
 
 Made by the real generator (`aynamics.generate`) at 64×48 pixels: 12 scenes, split 5 / 4 / 3.
 """
