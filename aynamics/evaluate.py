@@ -87,6 +87,11 @@ class Evaluation:
     refine_timed_out: int = 0
     split_size: int = 0
 
+    @property
+    def invalid_reasons(self) -> dict[str, int]:
+        """Why the model's invalid responses fail, counted (`callbacks.invalid_reasons`)."""
+        return invalid_reasons(self.per_item.get("reason", []))
+
 
 def _check_counts(num: int | None, batch_size: int, max_new_tokens: int, refine_budget: int, refine_seconds: float):
     """The counts and the time limit, each named as the command-line option that sets it."""
@@ -478,6 +483,6 @@ def summary(result: Evaluation) -> dict:
             "left_out": result.left_out,
             "split_size": result.split_size,
             "refine_timed_out": result.refine_timed_out,
-            "invalid_reasons": invalid_reasons(result.per_item.get("reason", [])),
+            "invalid_reasons": result.invalid_reasons,
         }
     )

@@ -20,7 +20,7 @@ import os
 import sys
 from pathlib import Path
 
-from aynamics.callbacks import format_reasons, format_table, invalid_reasons
+from aynamics.callbacks import format_reasons, format_table
 from aynamics.evaluate import (
     AVERAGE_REFINED_KEPT,
     KEPT_FIELDS,
@@ -162,7 +162,7 @@ def run_evaluate(args) -> int:
     else:
         print(describe(result, args.split if args.data else None))
         print(format_table(result.table))
-        if why := format_reasons(invalid_reasons(result.per_item.get("reason", [])), len(result.records)):
+        if why := format_reasons(result.invalid_reasons, len(result.records)):
             print(why)
     return 0
 

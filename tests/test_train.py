@@ -143,6 +143,7 @@ def _evaluate_gives_the_training_evaluation(run: Path, dataset_dir: Path, metric
     written = json.loads((out / "metrics.json").read_text())
     assert written["table"] == table and written["scenes"] == 2 and written["settings"]["split"] == "validation"
     assert written["left_out"] == 0 and written["refine_timed_out"] == 0
+    assert written["invalid_reasons"] == {"no YAML": 2}  # as the training evaluation's line says
     _evaluate_names_the_records_it_leaves_out(run, dataset_dir)
 
 
