@@ -106,14 +106,15 @@ def train(cfg: DictConfig) -> dict[str, float]:
     batches = {} if interval is None else {"val_check_interval": interval * accumulate}
     # before the model: a strategy or precision this machine lacks (deepspeed not installed) fails in seconds
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, **batches)
-    if 0 < steps < trainer.log_every_n_steps:  # a run shorter than the logging interval (null: Lightning's 50)
-        trainer.log_every_n_steps = steps  # logged no training metrics (csv/metrics.csv held its header only)
     use_atomic_checkpoints(trainer)  # a kill or a full disk mid-save never leaves a partial last.ckpt
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # the model's random draws as before the trainer
     spec = hydra.utils.instantiate(cfg.model)
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
     datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
     warn_drifting_validation(datamodule, trainer, interval, accumulate)
+    length = steps if steps > 0 else run_steps(datamodule, trainer, accumulate)
+    if length is not None and 0 < length < trainer.log_every_n_steps:  # shorter than the interval (null: 50)
+        trainer.log_every_n_steps = length  # logged no training metrics (csv/metrics.csv held its header only)
     with model_init_context(trainer):  # trainer=fsdp: only rank 0 loads the base, the others get its weights
         module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
     try:
@@ -312,15 +313,39 @@ def recorded_step(out: Path) -> int | None:
         return None
 
 
+def epoch_batches(datamodule, trainer) -> int | None:
+    """Training batches in one process's epoch, as `loaders.resumable_loader` shards them (SFT: `data.limit_train`
+    or the training split; PRO: its videos or preference rows), or None for a data module that does not say."""
+    if hasattr(datamodule, "splits"):
+        n = len(datamodule.splits["train"])
+        n, size = (min(n, datamodule.limit_train) if datamodule.limit_train else n), datamodule.batch_size
+    elif hasattr(datamodule, "train_set"):
+        n, size = len(datamodule.train_set), datamodule.hparams.batch_size
+    else:
+        return None
+    batches = math.ceil(math.ceil(n / trainer.world_size) / size)
+    limit = trainer.limit_train_batches  # Lightning's own cap: a count, or a share of the epoch
+    if isinstance(limit, int):
+        return min(batches, limit)
+    return int(batches * limit) if isinstance(limit, float) and limit < 1 else batches
+
+
+def run_steps(datamodule, trainer, accumulate: int) -> int | None:
+    """Optimizer steps of a run limited by `trainer.max_epochs` (`max_steps` -1): Lightning steps on every
+    `accumulate`-th batch and on each epoch's last. None where unknown (no epoch limit, another data module)."""
+    batches = epoch_batches(datamodule, trainer)
+    epochs = trainer.max_epochs
+    if batches is None or epochs is None or epochs < 1:
+        return None
+    return epochs * math.ceil(batches / accumulate)
+
+
 def warn_drifting_validation(datamodule, trainer, interval: int | None, accumulate: int) -> None:
     """Warn when validation every `interval` optimizer steps cannot keep to them: Lightning validates every
     `interval * accumulate` batches counted across epochs, and steps the optimizer on each epoch's last batch too,
     so when an epoch's batches are not a multiple of `accumulate` the validations fall later and later in steps."""
-    if interval is None or accumulate <= 1 or not hasattr(datamodule, "splits"):
+    if interval is None or accumulate <= 1 or (batches := epoch_batches(datamodule, trainer)) is None:
         return
-    n = len(datamodule.splits["train"])
-    n = min(n, datamodule.limit_train) if datamodule.limit_train else n
-    batches = math.ceil(math.ceil(n / trainer.world_size) / datamodule.batch_size)
     if batches % accumulate:
         logging.getLogger(__name__).warning(
             f"trainer.val_check_interval = {interval} steps with trainer.accumulate_grad_batches = {accumulate}: an "

@@ -1692,6 +1692,19 @@ def test_a_run_shorter_than_the_logging_interval_logs_its_last_step(tmp_path, da
         assert [int(row["step"]) for row in csv.DictReader(f) if row.get("train/loss")] == [4]
 
 
+def test_an_epoch_limited_run_shorter_than_the_logging_interval_logs_its_last_step(tmp_path, dataset_dir):
+    """`trainer.max_steps=-1` with `trainer.max_epochs=2` over 6 examples in batches of 2, 2 at a time: each epoch
+    is ceil(3 / 2) = 2 optimizer steps (Lightning steps on the epoch's last batch too), 4 in all, under the interval
+    of 5, so step 4 (index 3) logs its training metrics; csv/metrics.csv held its header only before."""
+    out = tmp_path / "run"
+    overrides = ["trainer.max_steps=-1", "trainer.max_epochs=2", "data.limit_train=6", "data.batch_size=2"]
+    overrides += ["trainer.accumulate_grad_batches=2", "trainer.val_check_interval=null", "logger=csv"]
+    train(_cfg(out, f"data.dir={dataset_dir}", *overrides, "callbacks.evaluation=null"))
+    with open(out / "csv" / "metrics.csv") as f:
+        rows = [row for row in csv.DictReader(f) if row.get("train/loss")]
+    assert [int(row["step"]) for row in rows] == [3] and math.isfinite(float(rows[0]["train/loss"]))
+
+
 def test_train_shows_the_steps_bar_and_logs_a_short_run_with_lightnings_defaults(tmp_path, dataset_dir, monkeypatch):
     """train.py puts `StepsProgressBar` on the trainer ("Epoch 0", not "Epoch 0/-2") also where
     `trainer.enable_progress_bar` is null (Lightning's default: a bar), and a run shorter than a null
