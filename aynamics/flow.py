@@ -4,8 +4,11 @@ The flow of a pixel between video frames k and k + 1 is where the surface point 
 frame k + 1: unproject the pixel with its depth to a world point P on body b, carry it with the body
 (`P' = R1 R0ᵀ (P − x0) + x1`), project P' with the camera and subtract the pixel centre (as Kubric's forward
 flow). Static geometry (floor, sky) has zero flow. A flow vector is *occluded* when P' leaves the image, falls
-behind the camera, or is hidden at frame k + 1 (another surface is nearer there, or the target pixel shows a
-different object).
+behind the camera, or is out of sight at frame k + 1: MuJoCo's ray from the camera to P' meets a surface before
+it (`scene_sight`; `raycast` casts the same test in its batches). A floor pixel that an object covers at k + 1
+is occluded too. (Looking P' up in the next frame's depth and segmentation instead flagged 3.6 % of the object
+pixels of 30 sampled scenes rendered at 160×120, the ray 1.2 %: the lookup also flags points landing just off
+their object's edge and on surfaces seen at a slant.)
 
 Frame convention: `simulate` gives T = 31 states for 1 s at 30 FPS (state 0 = initial). The video is the first
 30 states (frames 0..29, frame k at t = k / fps); it has 29 flow maps, flow map k going from frame k to k + 1.
@@ -18,6 +21,9 @@ at the same indices.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 
 from aynamics.camera import CameraMatrices
@@ -25,7 +31,7 @@ from aynamics.scene import Scene, require_scene
 from aynamics.simulate import quat_to_mat
 
 FRAME_STRIDE = 3  # the paper samples every third frame: 10 of 30
-OCCLUSION_TOLERANCE = 0.01  # relative depth slack (1 %) before a carried point counts as hidden
+OCCLUSION_TOLERANCE = 0.01  # slack (1 %) for a rendered depth map's imprecision before a point counts as hidden
 
 
 def sample_frames(n_frames: int, stride: int = FRAME_STRIDE) -> np.ndarray:
@@ -107,6 +113,7 @@ def motion_field(
     next_segmentation: np.ndarray | None = None,
     rays: np.ndarray | None = None,
     occlusion: bool = True,
+    sight: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Flow of one frame to the next from depth, segmentation and the two poses of every object.
 
@@ -120,6 +127,11 @@ def motion_field(
             them only points leaving the image or passing behind the camera count as occluded.
         rays: unused (kept for callers of the ray-based version: pixels are now mapped by `body_homographies`).
         occlusion: False skips the occlusion mask (returned as None) when only the flow is wanted.
+        sight: given the object pixels' points carried to frame k + 1 ((P, 3) world), whether each is the first
+            surface the camera's ray to it meets there (`scene_sight`): the exact test. Without it a carried point
+            is hidden where the next frame's pixel it lands in shows another object or a surface more than
+            `OCCLUSION_TOLERANCE` nearer, which also flags points landing just off their object's edge and on
+            surfaces seen at a slant.
 
     Returns:
         flow (H, W, 2) float32 pixels (dx right, dy down) and occluded (H, W) bool (None if `occlusion` is False).
@@ -148,7 +160,12 @@ def motion_field(
         return flow, None
     # a point without a landing place (a diverged rollout's NaN pose) is lost too; comparisons with NaN are False
     hidden = ~(np.isfinite(u1) & np.isfinite(v1) & (z1 > 0)) | (u1 < 0) | (u1 >= w) | (v1 < 0) | (v1 >= h)
-    if next_depth is not None and next_segmentation is not None:
+    if sight is not None:
+        rot = quat_to_mat(np.asarray(orientation, float))
+        point = cam.position + z[:, None] * (np.stack([u0, v0, np.ones_like(u0)], -1) @ np.linalg.inv(cam.K).T @ cam.R)
+        pos = np.asarray(position, float)
+        hidden |= ~sight(carry_points(point, body, pos[0], rot[0], pos[1], rot[1]))
+    elif next_depth is not None and next_segmentation is not None:
         inside = ~hidden
         tu = np.clip(np.nan_to_num(u1), 0, w - 1).astype(np.intp)  # (NaN cast to an index was -2^63: IndexError)
         tv = np.clip(np.nan_to_num(v1), 0, h - 1).astype(np.intp)
@@ -219,6 +236,7 @@ def motion_flow(
     h, w = depth.shape[1:]
     flow = np.zeros((max(n_frames - 1, 0), h, w, 2), np.float32)
     occluded = np.zeros((max(n_frames - 1, 0), h, w), bool)
+    sight = scene_sight(scene, rollout, cam.position)
     for k in range(n_frames - 1):
         flow[k], occluded[k] = motion_field(
             depth[k],
@@ -228,8 +246,44 @@ def motion_flow(
             rollout.orientation[k : k + 2],
             depth[k + 1],
             segmentation[k + 1],
+            sight=functools.partial(sight, k + 1),
         )
     return flow, occluded
+
+
+def scene_sight(
+    scene: Scene, rollout, origin: np.ndarray, slack: float = OCCLUSION_TOLERANCE
+) -> Callable[[int, np.ndarray], np.ndarray]:
+    """`sight(k, points)`: (P,) whether each world point (P, 3) is what a camera at `origin` sees in its direction at
+    state k of the rollout: MuJoCo's ray from the camera to the point (`mj_multiRay`, floor and objects) meets
+    nothing before `1 - slack` of the way. `slack` covers the depth the point was unprojected from: a rendered
+    depth map's precision (`OCCLUSION_TOLERANCE`, 1 %); ray-cast depth is exact (`raycast.RAY_SLACK`)."""
+    import mujoco
+
+    from aynamics.simulate import compile_scene
+
+    model, tpl = compile_scene(scene)
+    data = mujoco.MjData(model)
+    origin = np.asarray(origin, float)
+    cols = tpl.qpos_adr[:, None] + np.arange(7)
+
+    def sight(k: int, points: np.ndarray) -> np.ndarray:
+        pose = np.concatenate([rollout.position[k], rollout.orientation[k]], axis=-1)  # (N, 7)
+        data.qpos[cols] = np.nan_to_num(pose)  # a diverged rollout's NaN pose: its points are not finite, unseen
+        mujoco.mj_kinematics(model, data)
+        to_point = np.asarray(points, float) - origin
+        length = np.linalg.norm(to_point, axis=1)
+        ok = np.isfinite(length) & (length > 0)
+        seen = np.zeros(len(to_point), bool)
+        if ok.any():
+            vec = np.ascontiguousarray(to_point[ok] / length[ok, None])
+            dist = np.empty(len(vec))
+            geom = np.empty(len(vec), np.int32)
+            mujoco.mj_multiRay(model, data, origin, vec.ravel(), None, True, -1, geom, dist, None, len(vec), np.inf)
+            seen[ok] = (dist < 0) | (dist >= length[ok] * (1 - slack))  # -1: nothing met (a grazing miss)
+        return seen
+
+    return sight
 
 
 # --------------------------------------------------------------------------------------------

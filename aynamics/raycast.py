@@ -5,7 +5,8 @@ pixel (`Batch.ray`: through its centre, or the point a `SampleGrid` gives) at th
 from its own camera. Only pixels inside the image of some object's bounding cube get a ray (the rest can only
 show floor or sky: id -1, zero flow), and results are kept as flat lists of object hits, so the scorer's cost
 follows the objects' size on screen, not the image's.
-The flow of each hit is the exact motion field (see `aynamics.flow`).
+The flow of each hit is the exact motion field (see `aynamics.flow`); with `with_next` its occlusion is the
+exact test there too: a ray from the camera to the point carried to the next frame (`_in_sight`).
 
     cast = cast_group(scenes, structure, frames=np.arange(0, 30, 3), width=120, height=80)
     cast.seg, cast.depth, cast.dense_flow   # (n, F, h, w) arrays when dense ones are wanted
@@ -19,8 +20,10 @@ import numpy as np
 
 from aynamics import camera as camlib
 from aynamics import simulate as sim
-from aynamics.flow import OCCLUSION_TOLERANCE, pixel_rays, quat_to_mat
+from aynamics.flow import carry_points, pixel_rays, quat_to_mat
 from aynamics.scene import Scene
+
+RAY_SLACK = 1e-6  # a carried point's ray may end this share of its length short of it and still meet it
 
 
 @dataclass(frozen=True)
@@ -198,7 +201,9 @@ def cast_group(
     overlaps = [0.0 if o is None else float(o[0]) for o in (raw.overlap or [None] * n)]
     cast = Cast(steps[0], flow, (n, f_count, h, w), reasons, overlaps=overlaps)
     if with_next:
-        cast.occluded = _occlusion(cast, steps[1], uv, z)
+        carried = _carried(steps[0], rays, origins, pos, rot, frames)
+        seen = _in_sight(b, qpos, frames + 1, steps[0], carried, origins)
+        cast.occluded = _occlusion(cast, steps[1], uv, z, seen)
     return cast
 
 
@@ -284,17 +289,62 @@ def _motion(
     return flow, uv * np.array([scale, len(grid.v) / grid.full_h]), z
 
 
-def _occlusion(cast: Cast, next_hits: Hits, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Occluded flow: object points leaving the view or hidden at k + 1; floor points covered at k + 1."""
+def _carried(
+    hits: Hits,
+    rays: np.ndarray,  # (n, h*w, 3)
+    origins: np.ndarray,  # (n, 3)
+    pos: np.ndarray,  # (n, T, N, 3)
+    rot: np.ndarray,  # (n, T, N, 3, 3)
+    frames: np.ndarray,  # (F,)
+) -> np.ndarray:
+    """(P, 3) world point of every hit carried with its body to the next frame: P' = R1 R0ᵀ (P − x0) + x1."""
+    c = hits.c
+    point = origins[c] + hits.depth[:, None] * rays[c, hits.pix]  # rays have optical-axis component 1
+    f_count, n_obj = len(frames), pos.shape[2]
+    pose = (c * f_count + hits.f) * n_obj + hits.obj  # each hit's (candidate, frame, body) in the flat poses
+    at = [(pos[:, k].reshape(-1, 3), rot[:, k].reshape(-1, 3, 3)) for k in (frames, frames + 1)]
+    return carry_points(point, pose, *at[0], *at[1])
+
+
+def _in_sight(
+    b, qpos: np.ndarray, next_frames: np.ndarray, hits: Hits, carried: np.ndarray, origins: np.ndarray
+) -> np.ndarray:
+    """(P,) whether each hit's carried point is what its camera sees there at the next frame: a ray from the
+    camera to the point meets nothing before it (`RAY_SLACK`). Exact, where looking the point up in the next
+    frame's pixels flagged object edges (the landing pixel showed the floor beside the object) and surfaces
+    seen at a slant (a neighbouring pixel's depth, more than 1 % nearer)."""
+    n = qpos.shape[0]
+    seen = np.zeros(len(hits.c), bool)
+    qpos_b = b.bind("qpos")
+    for fi, frame in enumerate(next_frames):
+        sel = np.flatnonzero(hits.f == fi)  # grouped by candidate (`cast_group` sorts the hits so)
+        if len(sel) == 0:
+            continue
+        c = hits.c[sel]
+        counts = np.bincount(c, minlength=n)
+        slot = np.arange(len(sel)) - (np.cumsum(counts) - counts)[c]
+        vec = np.zeros((n, int(counts.max()), 3))
+        vec[..., 2] = -1.0  # padding (and a point without a landing place): straight down, dropped below
+        to_point = carried[sel] - origins[c]
+        finite = np.isfinite(to_point).all(1) & (np.linalg.norm(to_point, axis=1) > 0)
+        vec[c[finite], slot[finite]] = to_point[finite]
+        pnt = np.ascontiguousarray(np.broadcast_to(origins[:, None], vec.shape))
+        qpos_b[...] = np.nan_to_num(qpos[:, frame], nan=0.0, posinf=0.0, neginf=0.0)
+        dist, _ = b.ray(pnt, vec)  # in lengths of vec: the point itself is at 1
+        d = dist[c, slot]
+        seen[sel] = finite & ((d < 0) | (d >= 1 - RAY_SLACK))
+    return seen
+
+
+def _occlusion(cast: Cast, next_hits: Hits, uv: np.ndarray, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Occluded flow: object points leaving the view or out of sight at k + 1 (`seen`, by `_in_sight`); floor
+    points covered at k + 1."""
     n, f_count, h, w = cast.shape
     seg0 = cast.seg
-    seg1, depth1 = next_hits.dense(n, f_count, h, w)
+    seg1, _ = next_hits.dense(n, f_count, h, w)
     occluded = (seg0 < 0) & (seg1 >= 0)
     c, f, pix = cast.hits.c, cast.hits.f, cast.hits.pix
     v, u = pix // w, pix % w
     out = (z <= 0) | (uv[:, 0] < 0) | (uv[:, 0] >= w) | (uv[:, 1] < 0) | (uv[:, 1] >= h) | ~np.isfinite(uv).all(1)
-    tu = np.clip(np.nan_to_num(uv[:, 0]), 0, w - 1).astype(np.intp)
-    tv = np.clip(np.nan_to_num(uv[:, 1]), 0, h - 1).astype(np.intp)
-    hidden = (depth1[c, f, tv, tu] < z * (1 - OCCLUSION_TOLERANCE)) | (seg1[c, f, tv, tu] != cast.hits.obj)
-    occluded[c, f, v, u] = out | hidden
+    occluded[c, f, v, u] = out | ~seen
     return occluded

@@ -353,3 +353,100 @@ def test_a_scene_cast_in_a_batch_gets_the_hits_it_gets_alone():
         for name in ("f", "pix", "obj", "depth"):
             np.testing.assert_array_equal(getattr(both.hits, name)[mine], getattr(alone.hits, name), err_msg=name)
         np.testing.assert_array_equal(both.flow[mine], alone.flow)
+
+
+def _first_hit(origin: np.ndarray, to: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray, np.ndarray]]):
+    """(P,) where along each ray origin + t·to (t in lengths of `to`) the first of the boxes (centre, rotation,
+    half-extents) is met, inf for none: the slab test, by hand."""
+    first = np.full(len(to), np.inf)
+    for centre, rot, half in boxes:
+        o = (origin - centre) @ rot  # the box's frame
+        d = to @ rot
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (-half - o) / d, (half - o) / d
+        near = np.nanmax(np.minimum(t1, t2), axis=1)
+        far = np.nanmin(np.maximum(t1, t2), axis=1)
+        met = (near <= far) & (far > 0)
+        first = np.where(met, np.minimum(first, np.maximum(near, 0.0)), first)
+    return first
+
+
+def _box_scene(linear, angular, occluder: bool) -> scenelib.Scene:
+    """The floating box, and with `occluder` a still box held between it and the camera, in its path."""
+    scene = _floating_box(linear, angular)
+    if occluder:
+        cover = "- type: box\n  name: cover\n  size: [0.15, 0.15, 0.05]\n  state: {position: [0.35, 0.8, 2.0]}\n"
+        cover += "  physics: {mass: 1.0, damping: -6}\n- type: camera"
+        scene = scenelib.parse(scenelib.dump(scene).replace("- type: camera", cover, 1))
+    return scene
+
+
+def _hand_occlusion(scene, rollout, depth, seg, cam, k: int, slack: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Box 0's pixels at frame k (vv, uu) and whether each one's flow is occluded, by hand from the simulated poses:
+    the point unprojected from `depth`, carried by R1 R0ᵀ (P − x0) + x1, projected (outside the view: occluded),
+    and a slab test of the camera's ray to it against every box at frame k + 1 (met before 1 - slack of the way:
+    hidden); also the number hidden."""
+    rot = sim.quat_to_mat(rollout.orientation)  # (T, N, 3, 3)
+    h, w = seg.shape
+    vv, uu = np.nonzero(seg == 0)
+    pix = np.stack([uu + 0.5, vv + 0.5, np.ones(len(uu))], axis=1)
+    world = (depth[vv, uu, None] * (pix @ np.linalg.inv(cam.K).T) - cam.t) @ cam.R
+    x0, x1 = rollout.position[k, 0], rollout.position[k + 1, 0]
+    moved = (world - x0) @ rot[k, 0] @ rot[k + 1, 0].T + x1
+    proj = (moved @ cam.R.T + cam.t) @ cam.K.T
+    u1, v1 = proj[:, 0] / proj[:, 2], proj[:, 1] / proj[:, 2]
+    out = (u1 < 0) | (u1 >= w) | (v1 < 0) | (v1 >= h)
+    boxes = [(rollout.position[k + 1, i], rot[k + 1, i], np.array(o.size)) for i, o in enumerate(scene.objects)]
+    hidden = _first_hit(cam.position, moved - cam.position, boxes) < 1 - slack
+    return (vv, uu), out | hidden, int(hidden.sum())
+
+
+CASES = [
+    ((1.5, 0.5, 0.0), (0, 0, 0), False, False),  # translation in open view: nothing hidden
+    ((0, 0, 0), (20.0, 0, 0), False, True),  # spin about x: faces turn away from the camera
+    ((0, 0, 0), (0, 0, 6.0), False, False),  # spin about z, seen from above: every face stays in sight
+    ((1.5, 0.0, 0.0), (0, 0, 3.0), True, True),  # sliding under a still box held nearer the camera
+]
+
+
+@pytest.mark.parametrize("linear, angular, occluder, hides", CASES)
+def test_cast_occlusion_is_the_first_surface_on_the_ray_to_the_carried_point(linear, angular, occluder, hides):
+    """A flow vector is occluded when its point, carried with its box to the next frame, leaves the view or is not
+    the first surface the camera's ray to it meets there (`_hand_occlusion`, exact: ray-cast depth). The next
+    frame's pixels looked up at the landing point flagged 4.5 % of the object pixels of 60 sampled scenes, 3.3 %
+    wrongly (object edges, slanted surfaces); that rule fails each case here."""
+    scene = _box_scene(linear, angular, occluder)
+    frames = np.arange(0, 15, 2)
+    w, h = 96, 64
+    cast = raycast.cast_group([scene], scene.structure, frames, w, h, sim.SimConfig(), 1, with_next=True)
+    rollout = sim.simulate(scene)
+    cam = camlib.matrices(scene.camera, w, h)
+    hidden = 0
+    for fi, k in enumerate(frames):
+        pixels, expected, n = _hand_occlusion(scene, rollout, cast.depth[0, fi], cast.seg[0, fi], cam, k, 1e-6)
+        np.testing.assert_array_equal(cast.occluded[0, fi][pixels], expected)
+        hidden += n
+    assert (hidden >= 10) == hides and (hidden == 0) == (not hides), hidden
+
+
+@pytest.mark.parametrize("linear, angular, occluder, hides", [c for c in CASES if c[3]])
+def test_rendered_flow_occlusion_is_the_first_surface_on_the_ray_to_the_carried_point(linear, angular, occluder, hides):
+    """The same rule for rendered frames (`motion_flow`), with the rendered depth's 1 % slack
+    (`OCCLUSION_TOLERANCE`; at 0.1 % its imprecision flagged 6.8 % of the object pixels of 30 sampled scenes)."""
+    from aynamics import render as renderlib
+
+    ok, why = renderlib.gl_available()
+    if not ok:
+        pytest.skip(f"no headless OpenGL: {why}")
+    scene = _box_scene(linear, angular, occluder)
+    rollout = sim.simulate(scene)
+    frames = renderlib.render(scene, rollout, width=96, height=64, seed=0)
+    _, occluded = flowlib.motion_flow(scene, rollout, frames.depth, frames.camera, frames.segmentation)
+    hidden = 0
+    for k in range(0, 15, 2):
+        pixels, expected, n = _hand_occlusion(
+            scene, rollout, frames.depth[k], frames.segmentation[k], frames.camera, k, flowlib.OCCLUSION_TOLERANCE
+        )
+        np.testing.assert_array_equal(occluded[k][pixels], expected)
+        hidden += n
+    assert hidden >= 10, hidden
