@@ -13,6 +13,9 @@ joined with ";", "then" or "and", and "it", "its", "them", "their" name the obje
     double the mass of box_0 and halve its friction
     make the sphere 3 times faster               remove box_0
     add a sphere at [1, 2] moving at [-1, 0, 0] m/s        add another box at [0, 1, 2] like box_0 of mass 2 kg
+    put a ball at [1, 2]  (put, place, drop: add)          add two spheres at [1, 2] and [0, 3]
+    replace box_0 with a sphere and double its mass        swap the cylinder for a box named crate
+    turn box_0 into a ball of radius 0.1 m                 replace the boxes with spheres
 
 Directions are world axes as the default camera sees them: "left" is -x, "right" +x, "forward"/"away" +y
 (the camera looks along +y), "back"/"toward the camera" -y, "up" +z, "down" -z. A percentage or factor on a
@@ -23,8 +26,10 @@ to -9 (stronger), where "by 50%" scales the component's size (-1 to -0.5: "reduc
 `damping` is log10 of a decay rate, so "double the damping" doubles the rate and "set the damping to 0.5 /s" sets
 the rate (a plain number sets the log10 value).
 
-An 'add' clause is read in `aynamics.edit_add` (where an added object goes, its name, shape and physics), the
-objects a target phrase or a pronoun names in `aynamics.edit_targets`.
+An 'add' clause is read in `aynamics.edit_add` (where an added object goes, its name, shape and physics; a count
+takes one position each: the "and" between positions joins positions, not clauses), a 'replace' clause in
+`aynamics.edit_replace` (the new object takes the old one's place, pose, velocity and physics, and its extent unless
+the phrases give a shape), the objects a target phrase or a pronoun names in `aynamics.edit_targets`.
 
     result = apply_instruction(scene, "reduce the x-velocity of box_0 by 80%")
     result.scene, result.changes   # the validated edited scene; every leaf that changed, every object removed or
@@ -43,10 +48,11 @@ import math
 import re
 from dataclasses import dataclass
 
-from aynamics.edit_add import ADD_CLAUSE, add_object
+from aynamics.edit_add import ADD_CLAUSE, ADD_VERBS, add_objects
 from aynamics.edit_add import ADD_DEFAULTS as ADD_DEFAULTS
 from aynamics.edit_diff import Change as Change
 from aynamics.edit_diff import diff as diff
+from aynamics.edit_replace import REPLACE_CLAUSE, REPLACE_VERBS, replace_objects
 from aynamics.edit_targets import (
     REMOVED,
     ObjectView,
@@ -221,6 +227,9 @@ def _clause(
         q, comp, t_text = BY_KEY["gravity"], None, None
         g = PLANET_GRAVITY[PLANET_NAMES[m.group(1)]]
         fn = _absolute(q, None, g, "abs", clause)  # the magnitude, along gravity's direction
+    elif m := re.fullmatch(REPLACE_CLAUSE, c):  # before 'set|change ... to': "change box_0 to a sphere"
+        t, n, k, rest = m.group("t", "n", "k", "rest")
+        return replace_objects(t, n, k, rest, items, scene, clause, previous, raw)
     elif m := re.fullmatch(rf"(?P<v>{VERBS_BY}) (?:the )?(?P<s>.+?) by a factor of (?P<k>{FACTOR})", c):
         q_text, t_text = subject(m.group("s"))
         q, comp = quantity(q_text)
@@ -306,7 +315,7 @@ def _clause(
             items[i][REMOVED] = True
         return idx
     elif m := re.fullmatch(ADD_CLAUSE, c):
-        return [add_object(m.group("k"), m.group("rest"), items, scene, clause, previous, raw)]
+        return add_objects(m.group("n"), m.group("k"), m.group("rest"), items, scene, clause, previous, raw)
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
@@ -329,7 +338,7 @@ REMOVE_CLAUSE = r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the sc
 # friction"); elsewhere it joins objects ("box_0 and sphere_1")
 _CLAUSE_START = (
     rf"(?:{VERBS_BY}|set|change|double|triple|quadruple|halve|multiply|scale|reverse|negate|flip|stop|freeze|make|"
-    rf"use|switch to|apply|remove|delete|take away|take out|add|insert|{_MOVE})\b"
+    rf"use|switch to|apply|remove|delete|take away|take out|{ADD_VERBS}|{REPLACE_VERBS}|{_MOVE})\b"
 )
 
 

@@ -1,11 +1,15 @@
 """The add clause of the edit language (`aynamics.edit`): "add a sphere at [1, 2] moving at [-1, 0, 0] m/s",
-"add another box at [0, 1, 2] like box_0 of mass 2 kg".
+"add another box at [0, 1, 2] like box_0 of mass 2 kg", "put a ball at [1, 2]", "add two spheres at [1, 2] and
+[0, 3]"; its phrases are read here for the replace clause (`aynamics.edit_replace`) too.
 
-An added object goes after the others, named `{type}_{k}` (the first k free) unless 'named NAME' says; 'at [x, y]'
-rests it upright on the floor with its lowest point there (leaning with a tilted floor), 'at [x, y, z]' puts its
-centre there upright. Its shape and physics are those of 'like OBJECT', else of the scene's first object of its kind,
-else 0.2 m, 1 kg, friction [0.5, 0.05], damping -4 (`ADD_DEFAULTS`); the phrases set any of them and its velocity; it
-starts at rest otherwise. An object added inside another is the simulation's to refuse (its rollout names the pair).
+'put', 'place', 'drop' and 'insert' are 'add'. An added object goes after the others, named `{type}_{k}` (the first
+k free) unless 'named NAME' says; 'at [x, y]' rests it upright on the floor with its lowest point there (leaning with
+a tilted floor), 'at [x, y, z]' puts its centre there upright. Its shape and physics are those of 'like OBJECT', else
+of the scene's first object of its kind, else 0.2 m, 1 kg, friction [0.5, 0.05], damping -4 (`ADD_DEFAULTS`); the
+phrases set any of them and its velocity; it starts at rest otherwise. A count ('two spheres', '3 boxes': a number
+word up to ten or digits) adds that many, one per position given ('at [0, 0], [1, 0] and [2, 0]', in order), each
+with the other phrases, and no single 'named'. An object added inside another is the simulation's to refuse (its
+rollout names the pair).
 """
 
 from __future__ import annotations
@@ -17,9 +21,19 @@ from aynamics.edit_targets import REMOVED, ObjectView, find_targets, gone
 from aynamics.edit_words import BY_KEY, NUM, UNITS, EditError, read_value
 from aynamics.scene import OBJECT_TYPES
 
-KINDS = {"box": "box", "cube": "box", "sphere": "sphere", "ball": "sphere", "cylinder": "cylinder"}
-# "add a sphere ...", "add another box ...": the kind, then the phrases of `_ADD_PHRASES` in any order
-ADD_CLAUSE = rf"(?:add|insert) (?:a|an|another|one more|a new|a second|a third) (?P<k>{'|'.join(KINDS)})(?P<rest>.*)"
+SINGULAR = {"box": "box", "cube": "box", "sphere": "sphere", "ball": "sphere", "cylinder": "cylinder"}
+PLURAL = {"boxes": "box", "cubes": "box", "spheres": "sphere", "balls": "sphere", "cylinders": "cylinder"}
+KINDS = SINGULAR | PLURAL  # a kind word (singular or plural) -> its object type
+KIND_WORDS = "|".join(sorted(KINDS, key=len, reverse=True))
+CUBES = ("cube", "cubes")  # kind words that ask for equal half-extents
+# how many: an article or ordinal is one ("a second box"), a number word or digits that many ("add two spheres")
+COUNTS = {"a": 1, "an": 1, "another": 1, "a second": 1, "a third": 1, "one": 1}
+COUNTS |= {w: k for k, w in enumerate(("two", "three", "four", "five", "six", "seven", "eight", "nine", "ten"), 2)}
+COUNT = rf"{'|'.join(sorted(COUNTS, key=len, reverse=True))}|\d+"
+# "add a sphere ...", "put another box ...", "add two more spheres ...": the count, the kind, then the phrases of
+# `_ADD_PHRASES` in any order
+ADD_VERBS = r"(?:add|insert|put|place|drop)"
+ADD_CLAUSE = rf"{ADD_VERBS} (?P<n>{COUNT})(?: (?:more|new|other))? (?P<k>{KIND_WORDS})\b(?P<rest>.*)"
 _VEC = r"\[[^\]]*\]"
 # a number and its unit; the word after a bare number is the next phrase's ("of radius 0.1 and height 0.3" read
 # "and" as the radius' unit)
@@ -31,7 +45,8 @@ _VEC_UNIT = rf"{_VEC}(?: ?(?:{_UNIT_WORDS}))?"  # "[1, 0, 0] cm/s", "[10, 10, 10
 _ADD_PHRASES: tuple[tuple[str, str], ...] = (  # (what, regex of its value `v`), matched at the start of the rest
     ("name", r"(?:named|called) (?P<v>[a-z_][\w.-]*)"),
     ("like", r"(?:like|copied from) (?P<v>(?:the )?[\w.-]+)"),  # "like box_0", "like the box", "like it"
-    ("position", rf"at (?:position )?(?P<v>{_VEC_UNIT})"),
+    # one position, or one per object of a count: "at [1, 2] and [0, 3]", "at [0, 0], [1, 0] and [2, 0]"
+    ("position", rf"at (?:positions? )?(?P<v>{_VEC_UNIT}(?:(?: ?, ?(?:and )?| and ){_VEC_UNIT})*)"),
     ("velocity", rf"(?:moving|going|travell?ing|sliding|rolling) (?:at |with )?(?P<v>{_VEC_UNIT})"),
     ("velocity", rf"(?:with )?(?:a |an initial )?velocity (?:of )?(?P<v>{_VEC_UNIT})"),
     ("radius", rf"(?:of |with )?(?:a )?radius (?:of )?(?P<v>{_AMOUNT})"),
@@ -47,26 +62,30 @@ ADD_DEFAULTS = {  # an added object's shape and physics when the scene has no ob
     "physics": {"friction": [0.5, 0.05], "mass": 1.0, "damping": -4.0},
 }
 ADD_WORDS = (
-    "'add a|another box|cube|sphere|ball|cylinder at [x, y] (resting on the floor) | at [x, y, z]', then any of: "
+    "'add a|another box|cube|sphere|ball|cylinder at [x, y] (resting on the floor) | at [x, y, z]' (or 'put', "
+    "'place', 'drop'), or 'add two|3 spheres at [x, y] and [x, y]' (one position each), then any of: "
     "'named NAME', 'like OBJECT' (its shape and physics), 'moving at [vx, vy, vz] m/s', 'of radius R', "
     "'of height H', 'of size [a, b, c]' (half-extents), 'of mass M kg'; the shape and physics not given are "
     "those of the scene's first object of the kind, else a 0.2 m object of 1 kg, friction [0.5, 0.05]"
 )
 
 
-def add_object(
-    kind_word: str,
-    rest: str,
-    items: list[dict],
-    objs: ObjectView,
-    clause: str,
-    previous: list[int] | str | None = None,
-    raw: str = "",
-) -> int:
-    """Insert the object an 'add' clause describes after the objects (in place); its index. `objs`: the items'
-    objects (`object_view`). 'like it' is the object of the clause before (`previous`); 'named NAME' keeps the case
-    NAME has in `raw`, the instruction as typed."""
-    kind = KINDS[kind_word]
+def read_count(word: str, clause: str) -> int:
+    """How many objects a count word names ('a' 1, 'two' 2, '3' 3), at least one."""
+    n = COUNTS[word] if word in COUNTS else int(word)
+    if n < 1:
+        raise EditError(f"{clause!r}: a count is at least 1, not {word!r}")
+    return n
+
+
+def noun(kind: str, n: int) -> str:
+    """'1 sphere', '2 spheres', '2 boxes'."""
+    return f"{n} {kind}" if n == 1 else f"{n} {'boxes' if kind == 'box' else kind + 's'}"
+
+
+def read_phrases(rest: str, clause: str, words: str = ADD_WORDS) -> dict[str, str]:
+    """The phrases of an add (or replace) clause after its kind word, by what they give ('position', 'mass', ...);
+    `words` is what the refusal of text it cannot read lists."""
     given: dict[str, str] = {}
     rest = rest.strip(" ,")
     while rest:
@@ -79,24 +98,31 @@ def add_object(
                 rest = rest[m.end() :].strip(" ,")
                 break
         else:
-            raise EditError(f"{clause!r}: {rest!r} not understood. {ADD_WORDS}")
-    if "position" not in given:
-        raise EditError(f"{clause!r}: say where the {kind} goes: 'at [x, y]' (resting on the floor) or 'at [x, y, z]'")
-    if "like" in given:
-        like = find_targets(given["like"], objs, previous, gone(items))
-        if len(like) != 1 or objs.structure[like[0]] != kind:
-            names = [objs.names[i] for i in like]
-            raise EditError(f"{clause!r}: 'like {given['like']}' must name one {kind}, not {names}")
-        template = items[like[0]]
-    else:
-        template = next((it for it in items if it["type"] == kind and not it.get(REMOVED)), None)
-    if template is None:
-        # deep copies: "set its friction to 0.9" wrote 0.9 into ADD_DEFAULTS' friction list (every later default too)
-        item = {"type": kind, **copy.deepcopy(ADD_DEFAULTS[kind]), "physics": copy.deepcopy(ADD_DEFAULTS["physics"])}
-    else:
-        item = {k: copy.deepcopy(v) for k, v in template.items() if k not in ("name", "state", REMOVED)}
-    if kind_word == "cube" and "size" not in given and len(set(item["size"])) != 1:  # the scene's box is no cube
-        item["size"] = list(ADD_DEFAULTS["box"]["size"])
+            raise EditError(f"{clause!r}: {rest!r} not understood. {words}")
+    return given
+
+
+def positions(text: str) -> list[str]:
+    """The positions of an 'at' phrase, each with its unit: '[100, 0] and [200, 0] cm' -> ['[100, 0] cm',
+    '[200, 0] cm'] (a unit after the last position is that of every position without its own)."""
+    found = [(v, u or "") for v, u in re.findall(rf"({_VEC})(?: ?({_UNIT_WORDS})(?=[ ,]|$))?", text)]
+    last = found[-1][1]
+    return [f"{v} {u or last}".strip() for v, u in found]
+
+
+def like_object(given: dict[str, str], kind: str, items: list[dict], objs: ObjectView, clause: str, previous) -> dict:
+    """The item 'like OBJECT' names; it must be one object of the kind."""
+    like = find_targets(given["like"], objs, previous, gone(items))
+    if len(like) != 1 or objs.structure[like[0]] != kind:
+        names = [objs.names[i] for i in like]
+        raise EditError(f"{clause!r}: 'like {given['like']}' must name one {kind}, not {names}")
+    return items[like[0]]
+
+
+def set_shape(item: dict, given: dict[str, str], kind_word: str, clause: str) -> None:
+    """Write the radius, height, size and mass phrases into an object item (in place); a cube's size must be one
+    half-extent three times."""
+    kind = KINDS[kind_word]
     for what in ("radius", "height", "size", "mass"):
         if what not in given:
             continue
@@ -109,10 +135,17 @@ def add_object(
             raise EditError(f"{clause!r}: the {what} takes a value, not {given[what]!r}")
         if unit:
             value = [v * _unit(unit, "length", what, clause) for v in value]
-        if kind_word == "cube" and what == "size" and len(set(value)) != 1:
+        if kind_word in CUBES and what == "size" and len(set(value)) != 1:
             raise EditError(f"{clause!r}: a cube has equal half-extents, not {value}; say 'a box'")
         (item["physics"] if what == "mass" else item)[q.path[-1]] = value
-    taken = {it["name"].lower() for it in items if it["type"] in OBJECT_TYPES}
+
+
+def new_name(kind: str, given: dict[str, str], items: list[dict], clause: str, raw: str, free: str = "") -> str:
+    """A new object's name: 'named NAME' (in the case `raw`, the instruction as typed, gives it), else `{kind}_{k}`
+    with the first k free. Every object's name is taken, those removed so far included, but `free` (a replaced
+    object's name)."""
+    names = [it["name"] for it in items if it["type"] in OBJECT_TYPES]
+    taken = {n.lower() for n in names} - {free.lower()}
     name = given.get("name") or next(f"{kind}_{k}" for k in range(len(taken) + 1) if f"{kind}_{k}" not in taken)
     if "name" in given and (typed := re.search(rf"\b(?:named|called)\s+({re.escape(name)})(?![\w.-])", raw, re.I)):
         name = typed.group(1)  # "named Ball" named it ball
@@ -121,19 +154,70 @@ def add_object(
             f"{clause!r}: {name!r} is the name of the scene's {name.lower()} item; name the {kind} otherwise"
         )
     if name.lower() in taken:
-        raise EditError(f"{clause!r}: the scene already has an object named {name!r} (its objects: {list(objs.names)})")
-    position, orientation = _placement(given["position"], item, items, clause)
-    velocity = [0.0, 0.0, 0.0]
-    if "velocity" in given:  # "[1, 0, 0] cm/s" was "'cm/s' not understood"
-        vector, unit = _vector_and_unit(given["velocity"])
-        velocity = [
-            v * _unit(unit, "velocity", "velocity", clause) for v in read_value(vector, BY_KEY["linear_velocity"])[0]
-        ]
-    state = {"angular_velocity": [0.0, 0.0, 0.0], "linear_velocity": velocity}
-    item = {"type": kind, "name": name, **item, "state": state | {"orientation": orientation, "position": position}}
-    at = len(objs.names)  # objects come first in the items, the camera and the rest after them
-    items.insert(at, item)
-    return at
+        raise EditError(f"{clause!r}: the scene already has an object named {name!r} (its objects: {names})")
+    return name
+
+
+def velocity(given: dict[str, str], clause: str) -> list[float] | None:
+    """The velocity phrase in m/s ('[1, 0, 0] cm/s' too), or None when there is none."""
+    if "velocity" not in given:
+        return None
+    vector, unit = _vector_and_unit(given["velocity"])  # "[1, 0, 0] cm/s" was "'cm/s' not understood"
+    return [v * _unit(unit, "velocity", "velocity", clause) for v in read_value(vector, BY_KEY["linear_velocity"])[0]]
+
+
+def add_objects(
+    count_word: str,
+    kind_word: str,
+    rest: str,
+    items: list[dict],
+    objs: ObjectView,
+    clause: str,
+    previous: list[int] | str | None = None,
+    raw: str = "",
+) -> list[int]:
+    """Insert the objects an 'add' clause describes after the objects (in place); their indices. `objs`: the items'
+    objects (`object_view`). 'like it' is the object of the clause before (`previous`); 'named NAME' keeps the case
+    NAME has in `raw`, the instruction as typed."""
+    kind, count = KINDS[kind_word], read_count(count_word, clause)
+    given = read_phrases(rest, clause)
+    if "position" not in given:
+        goes = f"the {kind} goes" if count == 1 else f"the {noun(kind, count)} go (one position each)"
+        raise EditError(f"{clause!r}: say where {goes}: 'at [x, y]' (resting on the floor) or 'at [x, y, z]'")
+    at = positions(given["position"])
+    if len(at) != count:
+        raise EditError(
+            f"{clause!r}: {noun(kind, count)} take{'s' if count == 1 else ''} {count} position"
+            f"{'' if count == 1 else 's'} (one each, in order), not {len(at)}: {', '.join(at)}"
+        )
+    if count > 1 and "name" in given:
+        raise EditError(
+            f"{clause!r}: 'named {given['name']}' names one object, not {count}; add them one clause at a time "
+            "to name each"
+        )
+    if "like" in given:
+        template = like_object(given, kind, items, objs, clause, previous)
+    else:
+        template = next((it for it in items if it["type"] == kind and not it.get(REMOVED)), None)
+    if template is None:
+        # deep copies: "set its friction to 0.9" wrote 0.9 into ADD_DEFAULTS' friction list (every later default too)
+        shape = {"type": kind, **copy.deepcopy(ADD_DEFAULTS[kind]), "physics": copy.deepcopy(ADD_DEFAULTS["physics"])}
+    else:
+        shape = {k: copy.deepcopy(v) for k, v in template.items() if k not in ("name", "state", REMOVED)}
+    if kind_word in CUBES and "size" not in given and len(set(shape["size"])) != 1:  # the scene's box is no cube
+        shape["size"] = list(ADD_DEFAULTS["box"]["size"])
+    set_shape(shape, given, kind_word, clause)
+    added = []
+    for where in at:
+        item = copy.deepcopy(shape)
+        name = new_name(kind, given, items, clause, raw)
+        position, orientation = _placement(where, item, items, clause)
+        state = {"angular_velocity": [0.0, 0.0, 0.0], "linear_velocity": velocity(given, clause) or [0.0, 0.0, 0.0]}
+        item = {"type": kind, "name": name, **item, "state": state | {"orientation": orientation, "position": position}}
+        index = sum(it["type"] in OBJECT_TYPES for it in items)  # objects come first, the camera and the rest after
+        items.insert(index, item)
+        added.append(index)
+    return added
 
 
 def _vector_and_unit(text: str) -> tuple[str, str]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import re
 
 from aynamics.edit import REMOVE_CLAUSE, EditResult, split_clauses
-from aynamics.edit_add import ADD_CLAUSE, KINDS
+from aynamics.edit_add import ADD_CLAUSE, KINDS, read_count
 from aynamics.edit_diff import Change, diff
 from aynamics.edit_targets import find_targets
 from aynamics.edit_words import DIRECTIONS, QUANTITIES, EditError
@@ -210,7 +210,7 @@ def named_additions(instruction: str) -> dict[str, int]:
     for clause in split_clauses(instruction):
         if m := re.fullmatch(ADD_CLAUSE, clause):
             kind = KINDS[m.group("k")]
-            out[kind] = out.get(kind, 0) + 1
+            out[kind] = out.get(kind, 0) + read_count(m.group("n"), clause)  # "add two spheres at ..." adds 2
     return out
 
 

@@ -1085,3 +1085,193 @@ def test_the_free_editor_check_reads_pronouns_and_names_of_added_objects(scene, 
         check_output(scene, fine, dump(apply_instruction(scene, fine).scene))
     kept = "add a sphere at [1, 2]; double the mass of box_0 and halve its friction"
     check_output(scene, kept, dump(apply_instruction(scene, kept).scene))
+
+
+# --------------------------------------------------------------------------------------------
+# Replacing objects; put / place / drop; a count of objects to add
+# --------------------------------------------------------------------------------------------
+def _with_box(scene, **state):
+    """The paper's scene with box_0 of half-extents [0.1, 0.2, 0.3], upright at rest on the floor at [1, 2, 0.3]
+    (or as `state` says), of mass 2 kg and restitution 0.5; its velocity [4.3, 2.5, 0] and friction [1.1, 0.3]."""
+    from aynamics.scene import from_items
+
+    items = to_items(scene)
+    items[0]["size"] = [0.1, 0.2, 0.3]
+    items[0]["state"] |= {"position": [1.0, 2.0, 0.3], "orientation": [1, 0, 0, 0], "angular_velocity": [0, 0, 2]}
+    items[0]["state"] |= state
+    items[0]["physics"] |= {"mass": 2.0, "restitution": 0.5}
+    return from_items(items)
+
+
+def test_replace_a_resting_box_with_a_sphere_keeps_its_place_motion_and_physics(scene):
+    """A sphere's radius is the box's mean half-extent, (0.1 + 0.2 + 0.3) / 3 = 0.2; the box rested on the floor
+    (z 0.3 = its half-height), so the sphere rests at the same x, y with its centre one radius up (z 0.2). It is
+    first in the objects, where box_0 was, with box_0's velocity, spin, mass, friction, damping and restitution;
+    the scene validates and simulates."""
+    from aynamics.simulate import simulate
+
+    box = _with_box(scene)
+    result = apply_instruction(box, "replace box_0 with a sphere")
+    assert [str(c) for c in result.changes] == ["box_0: removed (box)", "sphere_0: added (sphere)"]
+    assert result.scene.names == ("sphere_0", "cylinder_0") and result.scene.objects[1] == scene.objects[1]
+    sphere = result.scene.objects[0]
+    assert sphere.radius == pytest.approx(0.2)
+    assert sphere.state.position == pytest.approx((1.0, 2.0, 0.2))
+    assert sphere.state.linear_velocity == (4.3, 2.5, 0.0) and sphere.state.angular_velocity == (0.0, 0.0, 2.0)
+    assert sphere.physics == box.objects[0].physics  # mass 2, friction [1.1, 0.3], damping -4, restitution 0.5
+    rollout = simulate(result.scene)
+    assert rollout.valid, rollout.reason
+    # a cylinder: radius the mean of the x and y half-extents, (0.1 + 0.2) / 2 = 0.15, height 2 × 0.3 = 0.6, z 0.3
+    cyl = apply_instruction(box, "turn box_0 into a cylinder").scene.objects[0]
+    assert (cyl.name, cyl.radius, cyl.height) == ("cylinder_1", pytest.approx(0.15), pytest.approx(0.6))
+    assert cyl.state.position == pytest.approx((1.0, 2.0, 0.3))
+    # a cube: the mean half-extent three times, resting at z 0.2; 'swap ... for' and 'change ... to' read the same
+    for instruction in ("swap box_0 for a cube", "change the box to a cube"):
+        cube = apply_instruction(box, instruction).scene.objects[0]
+        assert (cube.name, cube.size) == ("box_0", pytest.approx((0.2, 0.2, 0.2)))
+        assert cube.state.position == pytest.approx((1.0, 2.0, 0.2))
+
+
+def test_replace_in_the_air_keeps_the_centre_and_the_orientation(scene):
+    """box_0 1 m up, turned 90° about z (w = z = 0.7071): not on the floor, so a cylinder takes its centre and its
+    orientation; 'of radius 10 cm' and 'of mass 3 kg' override the extent's radius 0.15 and the mass 2."""
+    box = _with_box(scene, position=[1.0, 2.0, 1.0], orientation=[0.7071, 0.0, 0.0, 0.7071])
+    cyl = apply_instruction(box, "replace box_0 with a cylinder of radius 10 cm and mass 3 kg").scene.objects[0]
+    assert (cyl.radius, cyl.height, cyl.physics.mass) == (0.1, pytest.approx(0.6), 3.0)
+    assert cyl.state.position == (1.0, 2.0, 1.0) and cyl.state.orientation == (0.7071, 0.0, 0.0, 0.7071)
+
+
+def test_replace_names_pronouns_and_the_paper_scene(scene):
+    """box_0 of the paper's scene ([1, 0.5, 0.4], turned about z only, at z 0.4: resting) replaced by a ball of
+    radius 0.1 rests at z 0.4 + 0.1 - 0.4 = 0.1; 'its' after the clause is the ball's (mass 1 -> 2), not the
+    cylinder's. The lying cylinder_0 (axis horizontal, radius 0.3, height 0.5, at z 0.3) swapped for a box gets
+    half-extents [0.3, 0.3, 0.25] in its frame, lying the same way: its lowest point is again 0.3 below the centre."""
+    result = apply_instruction(scene, "replace box_0 with a ball of radius 0.1 m and double its mass")
+    ball, cyl = result.scene.objects
+    assert (ball.name, ball.radius, ball.physics.mass, cyl.physics.mass) == ("sphere_0", 0.1, 2.0, 1.0)
+    assert ball.state.position == pytest.approx((-5.0, -0.3, 0.1)) and ball.state.linear_velocity == (4.3, 2.5, 0.0)
+    result = apply_instruction(scene, "swap the cylinder for a box named Crate then move it 1 m left")
+    assert [str(c) for c in result.changes] == ["cylinder_0: removed (cylinder)", "Crate: added (box)"]
+    crate = result.scene.object("Crate")
+    assert crate.size == (0.3, 0.3, 0.25) and crate.state.orientation == scene.objects[1].state.orientation
+    assert crate.state.position == pytest.approx((-1.5, 0.8, 0.3), abs=1e-4)
+    # the same kind keeps the name and changes what the phrases say: a lower box_0 rests lower (half-height 0.2)
+    assert apply_instruction(scene, "replace box_0 with a box").changes == ()
+    lower = apply_instruction(scene, "replace box_0 with a box of size [1, 0.5, 0.2]")
+    assert [str(c) for c in lower.changes] == ["box_0.size[2]: 0.4 -> 0.2", "box_0.state.position[2]: 0.4 -> 0.2"]
+    # replacing an added object: the sphere resting on a floor tilted 10° about x (the add test's) becomes a cube
+    # of half-extent 0.1, its lowest point where the sphere's was: (0, 1, tan 10°) + 0.1 n, n = (0, -sin 10°,
+    # cos 10°), = (0, 0.98264, 0.27481), leaning with the floor (cos 5°, sin 5°, 0, 0)
+    from aynamics.scene import from_items
+
+    tilted = from_items([*to_items(scene), {"type": "environment", "floor_tilt": [10.0, 0.0]}])
+    result = apply_instruction(tilted, "add a sphere at [0, 1] and replace it with a cube of size [0.1, 0.1, 0.1]")
+    assert [str(c) for c in result.changes] == ["box_1: added (box)"]
+    cube = result.scene.object("box_1")
+    np.testing.assert_allclose(cube.state.position, [0.0, 0.98264, 0.27481], atol=5e-5)
+    np.testing.assert_allclose(cube.state.orientation, [0.99619, 0.08716, 0.0, 0.0], atol=5e-5)
+    # a smaller sphere in its place (the same kind: its orientation, the floor's, is kept) lies there as well
+    ball = apply_instruction(tilted, "add a sphere at [0, 1] and replace it with a sphere of radius 0.1").scene
+    assert ball.names[-1] == "sphere_0" and ball.objects[-1].radius == 0.1
+    np.testing.assert_allclose(ball.objects[-1].state.position, [0.0, 0.98264, 0.27481], atol=5e-5)
+    np.testing.assert_allclose(ball.objects[-1].state.orientation, [0.99619, 0.08716, 0.0, 0.0], atol=5e-5)
+
+
+def test_replace_several_objects(scene):
+    """'the objects' are box_0 and cylinder_0: each becomes a sphere in its place, named in order; radii the mean
+    half-extents (1 + 0.5 + 0.4) / 3 = 0.63333 and (0.3 + 0.3 + 0.25) / 3 = 0.28333, resting (z = radius)."""
+    for instruction in ("replace the objects with spheres", "replace box_0 and cylinder_0 with two balls"):
+        result = apply_instruction(scene, instruction)
+        assert result.scene.names == ("sphere_0", "sphere_1")
+        assert [o.radius for o in result.scene.objects] == pytest.approx([0.6333, 0.2833], abs=1e-4)
+        assert [o.state.position[2] for o in result.scene.objects] == pytest.approx([0.6333, 0.2833], abs=1e-4)
+    stopped = apply_instruction(scene, "replace all objects with spheres and stop them").scene.objects
+    assert [o.state.linear_velocity for o in stopped] == [(0.0, 0.0, 0.0)] * 2
+
+
+@pytest.mark.parametrize(
+    "instruction, message",
+    [
+        ("replace box_7 with a sphere", r"object 'box_7' not found; the scene has \['box_0', 'cylinder_0'\]"),
+        ("replace box_0 and cylinder_0 with a sphere", r"1 sphere for 2 objects \['box_0', 'cylinder_0'\]"),
+        ("replace all objects with three spheres", r"3 spheres for 2 objects .*; say 'spheres'"),
+        ("replace box_0 with two balls", r"2 spheres for 1 object \['box_0'\]: one replaces each; say 'a sphere'"),
+        ("replace box_0 with a sphere at [1, 2]", r"a replacement goes where the object it replaces was"),
+        ("replace box_0 with a sphere named box_0", "box_0 is a box, so the sphere replacing it needs another name"),
+        ("replace box_0 with a sphere named cylinder_0", "the scene already has an object named 'cylinder_0'"),
+        ("replace the objects with spheres named b", r"'named b' names one object, not the 2 new ones"),
+        ("replace box_0 with a sphere like box_0", r"'like box_0' must name one sphere"),
+        ("replace box_0 with a sphere painted red", r"'painted red' not understood. 'replace\|swap"),
+        ("remove box_0 and replace it with a sphere", "box_0 was removed by an earlier clause"),
+        ("replace box_0 with a sphere; double the mass of box_0", "box_0 was removed by an earlier clause"),
+    ],
+)
+def test_replace_refusals_name_the_problem(scene, instruction, message):
+    with pytest.raises(EditError, match=message):
+        apply_instruction(scene, instruction)
+
+
+@pytest.mark.parametrize(
+    "instruction",
+    ["put a ball at [1, 2]", "place a sphere at [1, 2]", "drop a sphere at [1, 2]", "add one sphere at [1, 2]"],
+)
+def test_put_place_and_drop_add(scene, instruction):
+    """They add as 'add a sphere at [1, 2]' does: radius 0.2, resting at z 0.2."""
+    result = apply_instruction(scene, instruction)
+    assert result == apply_instruction(scene, "add a sphere at [1, 2]")
+    assert result.scene.object("sphere_0").state.position == (1.0, 2.0, 0.2)
+
+
+def test_put_with_velocity_and_after_another_clause(scene):
+    box = apply_instruction(scene, "place a box at [0, 1, 0.5] moving at [1, 0, 0] m/s").scene.object("box_1")
+    assert box.state.position == (0.0, 1.0, 0.5) and box.state.linear_velocity == (1.0, 0.0, 0.0)
+    result = apply_instruction(scene, "stop box_0 and drop a sphere at [0, 0, 1] and double its mass")
+    assert result.scene.object("sphere_0").physics.mass == 2.0 and result.scene.object("box_0").physics.mass == 1.0
+
+
+def test_add_a_count_of_objects_one_position_each(scene):
+    """'two spheres at [1, 2] and [0, 3]': two default spheres (radius 0.2) resting there, in order; '3 boxes' take
+    box_0's shape ([1, 0.5, 0.4]: z 0.4) and each the velocity; 'their' is the three new boxes (mass 1 -> 2, box_0
+    keeps 1); a unit after the last position is every position's: [100, 0] and [200, 0] cm are 1 m and 2 m."""
+    two = apply_instruction(scene, "add two spheres at [1, 2] and [0, 3]")
+    assert [str(c) for c in two.changes] == ["sphere_0: added (sphere)", "sphere_1: added (sphere)"]
+    assert [o.state.position for o in two.scene.objects[2:]] == [(1.0, 2.0, 0.2), (0.0, 3.0, 0.2)]
+    three = apply_instruction(scene, "add 3 boxes at [0, 0], [1, 0] and [2, 0] moving at [1, 0, 0]; double their mass")
+    boxes = three.scene.objects[2:]
+    assert [o.name for o in boxes] == ["box_1", "box_2", "box_3"]
+    assert [o.state.position for o in boxes] == [(0.0, 0.0, 0.4), (1.0, 0.0, 0.4), (2.0, 0.0, 0.4)]
+    assert {(o.size, o.state.linear_velocity, o.physics.mass) for o in boxes} == {((1, 0.5, 0.4), (1, 0, 0), 2)}
+    assert three.scene.object("box_0").physics.mass == 1.0
+    balls = apply_instruction(scene, "add two more balls at [100, 0] and [200, 0] cm").scene.objects[2:]
+    assert [o.state.position for o in balls] == [(1.0, 0.0, 0.2), (2.0, 0.0, 0.2)]
+
+
+@pytest.mark.parametrize(
+    "instruction, message",
+    [
+        ("add two spheres at [1, 2]", r"2 spheres take 2 positions \(one each, in order\), not 1: \[1, 2\]"),
+        ("add 3 boxes at [0, 0] and [1, 0]", r"3 boxes take 3 positions \(one each, in order\), not 2"),
+        ("add a sphere at [1, 2] and [0, 3]", r"1 sphere takes 1 position \(one each, in order\), not 2"),
+        ("add two spheres", r"say where the 2 spheres go \(one position each\)"),
+        ("add two spheres at [1, 2] and [0, 3] named b", "'named b' names one object, not 2"),
+        ("add 0 spheres at [1, 2]", "a count is at least 1, not '0'"),
+    ],
+)
+def test_add_count_refusals_name_both_numbers(scene, instruction, message):
+    with pytest.raises(EditError, match=message):
+        apply_instruction(scene, instruction)
+
+
+def test_positions_and_after_a_count_join_positions_not_clauses():
+    """An "and" between positions is no clause break; one before a verb still is (put, place, drop, replace too)."""
+    from aynamics.edit import split_clauses
+    from aynamics.edit_llm import named_additions
+
+    text = "add two spheres at [1, 2] and [0, 3] and double their mass and replace box_0 with a cube"
+    assert split_clauses(text) == [
+        "add two spheres at [1, 2] and [0, 3]",
+        "double their mass",
+        "replace box_0 with a cube",
+    ]
+    assert split_clauses("stop box_0 and put a ball at [1, 2]") == ["stop box_0", "put a ball at [1, 2]"]
+    assert named_additions("add 3 boxes at [0, 0], [1, 0] and [2, 0]; put a ball at [1, 2]") == {"box": 3, "sphere": 1}
