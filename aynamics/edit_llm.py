@@ -6,7 +6,7 @@ answer is trusted for nothing:
 
 1. it must parse and validate as a scene (`aynamics.scene.parse`, which also strips fences and prose);
 2. it must keep the objects (names, shapes, order) and change something; it may remove the objects the instruction
-   removes and add as many objects of a kind as its 'add' clauses do (`named_additions`);
+   removes or replaces and add as many objects of a kind as its 'add' and 'replace' clauses do (`named_additions`);
 3. every changed field must be one the instruction names (`named_fields`): "double the mass of
    box_0" lets it change `box_0.physics.mass` and nothing else.
 
@@ -19,8 +19,9 @@ from __future__ import annotations
 import re
 
 from aynamics.edit import REMOVE_CLAUSE, EditResult, split_clauses
-from aynamics.edit_add import ADD_CLAUSE, KINDS, read_count
+from aynamics.edit_add import ADD_CLAUSE, KINDS, PLURAL, read_count
 from aynamics.edit_diff import Change, diff
+from aynamics.edit_replace import REPLACE_CLAUSE
 from aynamics.edit_targets import find_targets
 from aynamics.edit_words import DIRECTIONS, QUANTITIES, EditError
 from aynamics.scene import Scene, SceneError, dump, parse, require_scene
@@ -64,7 +65,7 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
     # let the model keep box_0 and move it)
     fields = allowed - set(scene.names)
     bad = [c for c in changes if not c.added and outside([c], allowed if c.removed else fields)]
-    may_add = named_additions(instruction)
+    may_add = named_additions(instruction, scene)
     for kind in sorted({c.after for c in changes if c.added}):
         added = [c for c in changes if c.added and c.after == kind]
         if len(added) > may_add.get(kind, 0):  # "add a sphere" let it add two, or a box
@@ -133,9 +134,11 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
 
     # "add a sphere at [1, 2] and double its mass" named every object's mass (the clause names no object), and a free
     # editor that doubled box_0's passed; so did one that removed box_0 for "... and remove it"
-    new_names, new_kinds, kept, after_add = set(), set(), [], False
+    new_names, new_kinds, kept, after_add, replaced = set(), set(), [], False, []
     for clause in clauses:
-        if m := re.fullmatch(ADD_CLAUSE, clause):
+        if (m := re.fullmatch(ADD_CLAUSE, clause)) or (m := re.fullmatch(REPLACE_CLAUSE, clause)):
+            if "t" in m.groupdict():  # a replacement: its targets are removed (below), its new objects added
+                replaced.append(m.group("t"))
             after_add = True
             new_kinds.add(KINDS[m.group("k")])
             new_names.update(re.findall(r"\b(?:named|called) ([a-z_][\w.-]*)", m.group("rest")))
@@ -187,30 +190,45 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     # (`check_output` keeps the two apart). "remove" anywhere named every field of every object the text named:
     # "double the mass of cylinder_0 and remove box_0" let a free editor move cylinder_0, "remove the spin of box_0"
     # delete box_0
-    for clause in clauses:
-        m = re.fullmatch(REMOVE_CLAUSE, clause)
-        if m is None:
-            continue
-        if re.fullmatch(r"it|them", m.group("t")) and m.group("t") not in lower:
+    removed = [m.group("t") for clause in clauses if (m := re.fullmatch(REMOVE_CLAUSE, clause))]
+    for target in removed + replaced:  # a replacement removes its targets too ("replace box_0 with a sphere")
+        if re.fullmatch(r"it|them", target) and target not in lower:
             fields.update(objs)  # "stop box_0 and remove it": the objects the text names
             continue
         try:
-            fields.update(scene.names[i] for i in find_targets(m.group("t"), scene))
+            fields.update(scene.names[i] for i in find_targets(target, scene))
         except EditError:  # "remove the spin of box_0" removes no object
             pass
     return fields
 
 
-def named_additions(instruction: str) -> dict[str, int]:
-    """How many objects of each kind the instruction's 'add' clauses add ('add a sphere at [1, 0]' -> {'sphere': 1}),
-    for checking a free editor: it may add those and no more."""
+def named_additions(instruction: str, scene: Scene | None = None) -> dict[str, int]:
+    """How many objects of each kind the instruction's 'add' and 'replace' clauses add ('add a sphere at [1, 0]' ->
+    {'sphere': 1}, 'replace box_0 with a ball' -> {'sphere': 1}), for checking a free editor: it may add those and
+    no more. A replacement of several targets by a plural kind ('replace the boxes with spheres') adds one for each
+    of the `scene`'s objects the targets name (without a scene: none, so such an answer is refused)."""
     if not isinstance(instruction, str):
         raise TypeError(f"named_additions: instruction is a {type(instruction).__name__}, not a str")
+    if scene is not None:
+        require_scene(scene, "named_additions: scene")
     out: dict[str, int] = {}
-    for clause in split_clauses(instruction):
+    for clause in split_clauses(instruction, scene.names if scene is not None else ()):
         if m := re.fullmatch(ADD_CLAUSE, clause):
-            kind = KINDS[m.group("k")]
-            out[kind] = out.get(kind, 0) + read_count(m.group("n"), clause)  # "add two spheres at ..." adds 2
+            n = read_count(m.group("n"), clause)  # "add two spheres at ..." adds 2
+        elif m := re.fullmatch(REPLACE_CLAUSE, clause):
+            if m.group("n"):
+                n = read_count(m.group("n"), clause)
+            elif m.group("k") not in PLURAL:
+                n = 1
+            else:
+                try:
+                    n = len(find_targets(m.group("t"), scene)) if scene is not None else 0
+                except EditError:  # names no object of the scene: the deterministic editor refuses it too
+                    n = 0
+        else:
+            continue
+        kind = KINDS[m.group("k")]
+        out[kind] = out.get(kind, 0) + n
     return out
 
 

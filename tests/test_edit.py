@@ -431,6 +431,33 @@ def test_remove_objects(scene):
         check_output(scene, "delete cylinder_0", without_box)
 
 
+def test_check_output_accepts_a_replacement_the_instruction_asks_for(scene):
+    """A free editor's answer to 'replace box_0 with a sphere' may remove box_0 and add one sphere (the deterministic
+    edit's own answer passes), and no more: a second sphere, box_0's removal without 'replace' naming it, or the
+    cylinder's mass changed beside it are refused. 'replace the objects with spheres' adds one per object named
+    (2 here); without a scene named_additions cannot count them (0)."""
+    from aynamics.edit_llm import named_additions
+
+    edited = apply_instruction(scene, "replace box_0 with a sphere").scene
+    answer = f"```yaml\n{dump(edited)}```"
+    changes = check_output(scene, "replace box_0 with a sphere", answer).changes
+    assert [str(c) for c in changes] == ["box_0: removed (box)", "sphere_0: added (sphere)"]
+    assert "box_0" in named_fields("replace box_0 with a sphere", scene)
+    with pytest.raises(EditError, match=r"does not name: box_0: removed \(box\)"):
+        check_output(scene, "replace cylinder_0 with a sphere", answer)
+    two = apply_instruction(scene, "replace box_0 with a sphere; add a ball at [2, 2]").scene
+    with pytest.raises(EditError, match=r"does not name: sphere_1: added \(sphere\)"):
+        check_output(scene, "replace box_0 with a sphere", f"```yaml\n{dump(two)}```")
+    heavier = apply_instruction(scene, "replace box_0 with a sphere; double the mass of cylinder_0").scene
+    with pytest.raises(EditError, match=r"does not name: cylinder_0.physics.mass"):
+        check_output(scene, "replace box_0 with a sphere", f"```yaml\n{dump(heavier)}```")
+    both = apply_instruction(scene, "replace the objects with spheres").scene
+    assert len(check_output(scene, "replace the objects with spheres", f"```yaml\n{dump(both)}```").changes) == 4
+    assert named_additions("replace the objects with spheres", scene) == {"sphere": 2}
+    assert named_additions("replace the objects with spheres") == {"sphere": 0}
+    assert named_additions("swap box_0 and cylinder_0 for two balls; turn it into a box") == {"sphere": 2, "box": 1}
+
+
 def _tiny_chat_model(folder: Path) -> Path:
     """`folder` holding a random-weight Qwen2 (seed 0) built from a config, with the project's tiny tokenizer."""
     torch = pytest.importorskip("torch")
