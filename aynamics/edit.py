@@ -10,6 +10,7 @@ joined with ";", "then" or "and", and "it", "its", "them", "their" name the obje
     stop box_0                                   set the velocity of box_0 to [1, 0, 0]
     make the box twice as heavy                  make sphere_1 slower by 1 m/s
     moon gravity                                 increase the mass by a factor of 3
+    turn off gravity                             zero gravity
     double the mass of box_0 and halve its friction
     make the sphere 3 times faster               remove box_0
     add a sphere at [1, 2] moving at [-1, 0, 0] m/s        add another box at [0, 1, 2] like box_0 of mass 2 kg
@@ -227,6 +228,9 @@ def _clause(
         q, comp, t_text = BY_KEY["gravity"], None, None
         g = PLANET_GRAVITY[PLANET_NAMES[m.group(1)]]
         fn = _absolute(q, None, g, "abs", clause)  # the magnitude, along gravity's direction
+    elif re.fullmatch(NO_GRAVITY, c):  # "turn off gravity": weightless (the vector zero; 'moon gravity' then refused)
+        q, comp, t_text = BY_KEY["gravity"], None, None
+        fn = _absolute(q, None, [0.0, 0.0, 0.0], "abs", clause)
     elif m := re.fullmatch(REPLACE_CLAUSE, c):  # before 'set|change ... to': "change box_0 to a sphere"
         t, n, k, rest = m.group("t", "n", "k", "rest")
         return replace_objects(t, n, k, rest, items, scene, clause, previous, raw)
@@ -332,13 +336,19 @@ def _clause(
 
 
 REMOVE_CLAUSE = r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the scene)?"  # a removal clause
+# "turn off gravity", "no gravity", "zero gravity", "make it weightless" (read before a removal: "remove gravity")
+NO_GRAVITY = (
+    r"(?:(?:turn|switch|shut) off|remove|disable|take away) (?:the )?gravity|(?:use |set |with )?(?:zero|no) gravity"
+    r"|(?:set (?:the )?gravity to (?:zero|0|nothing))|(?:make (?:it|everything|the scene|the objects) )?weightless"
+)
 
 
 # the words a clause starts with: "and" before one of them joins two clauses ("double the mass of box_0 and halve its
 # friction"); elsewhere it joins objects ("box_0 and sphere_1")
 _CLAUSE_START = (
     rf"(?:{VERBS_BY}|set|change|double|triple|quadruple|halve|multiply|scale|reverse|negate|flip|stop|freeze|make|"
-    rf"use|switch to|apply|remove|delete|take away|take out|{ADD_VERBS}|{REPLACE_VERBS}|{_MOVE})\b"
+    rf"use|switch to|apply|remove|delete|take away|take out|switch off|shut off|disable|zero gravity|no gravity|"
+    rf"{ADD_VERBS}|{REPLACE_VERBS}|{_MOVE})\b"
 )
 
 

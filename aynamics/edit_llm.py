@@ -167,6 +167,8 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     fields: set[str] = set()
     if re.search(r"\bzoom\w*", text):
         fields.add("camera.fovy")
+    if re.search(r"\bweightless\w*", text):  # "make everything weightless": the gravity, not the masses
+        fields.add("gravity.gravity")
     if camera:
         fields.update(path for words, path in CAMERA_WORDS if re.search(rf"\b(?:{words})\b", text))
         if any(re.search(rf"\b{re.escape(d)}\b", text) for d in DIRECTIONS):

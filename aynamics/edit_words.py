@@ -109,7 +109,7 @@ UNDERSTOOD = (
     "'increase|decrease QUANTITY [of TARGETS] by a factor of K'; "
     "'make TARGETS twice|half|N times as heavy|fast|bouncy'; 'make TARGETS heavier|lighter|faster|slower|bouncier "
     "by N% | by N UNIT'; 'make TARGETS twice|N times heavier|lighter|faster|slower|bouncier'; "
-    "'moon|mars|earth|jupiter gravity' or 'set the gravity to the moon's'; "
+    "'moon|mars|earth|jupiter gravity' or 'set the gravity to the moon's'; 'turn off gravity' | 'zero gravity'; "
     "'reverse QUANTITY [of TARGETS]'; 'move TARGETS N m DIRECTION' (left -x, right +x, forward/away +y, "
     "back/toward the camera -y, up +z, down -z); 'move TARGETS to [x, y, z]'; 'stop TARGETS'; "
     "'remove|delete TARGETS'; 'add|put|place|drop a|another box|cube|sphere|ball|cylinder at [x, y] | at [x, y, z] "

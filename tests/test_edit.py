@@ -78,6 +78,18 @@ CASES = [
     # "N times as ADJ", "ADJ-er by", "by a factor of K", clauses joined by "and", "it" / "its" for the object before
     ("moon gravity", {"gravity.gravity[2]": -1.62}),
     ("set the gravity to that of mars", {"gravity.gravity[2]": -3.71}),
+    # weightless (they were "not understood"; "remove gravity" a removal of no object)
+    ("turn off gravity", {"gravity.gravity[2]": 0.0}),
+    ("zero gravity and double the mass of box_0", {"gravity.gravity[2]": 0.0, "box_0.physics.mass": 2.0}),
+    (
+        "remove the gravity, then stop cylinder_0",  # its velocity [-0.1, -0.5, 0]
+        {
+            "gravity.gravity[2]": 0.0,
+            "cylinder_0.state.linear_velocity[0]": 0.0,
+            "cylinder_0.state.linear_velocity[1]": 0.0,
+        },
+    ),
+    ("make everything weightless", {"gravity.gravity[2]": 0.0}),
     ("make the box twice as heavy", {"box_0.physics.mass": 2.0}),
     (
         "make cylinder_0 half as fast",  # [-0.1, -0.5, 0] × 0.5
