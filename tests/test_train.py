@@ -1692,6 +1692,27 @@ def test_a_run_shorter_than_the_logging_interval_logs_its_last_step(tmp_path, da
         assert [int(row["step"]) for row in csv.DictReader(f) if row.get("train/loss")] == [4]
 
 
+def test_run_steps_counts_an_epoch_limited_runs_optimizer_steps():
+    """By hand: SFT, 10 training records cut to data.limit_train = 7, 2 processes (4 each), batches of 2: 2
+    batches an epoch, 1 optimizer step with accumulation 2, 3 over 3 epochs. PRO, 5 videos in batches of 2: 3
+    batches; Lightning's limit_train_batches 0.5 keeps int(1.5) = 1, 2 keeps 2; with 3 epochs and accumulation 2,
+    each epoch steps ceil(3 / 2) = 2 times (its last batch steps too): 6. No epoch limit or no known data: None."""
+    from types import SimpleNamespace
+
+    from train import epoch_batches, run_steps
+
+    sft = SimpleNamespace(splits={"train": range(10)}, limit_train=7, batch_size=2)
+    pro = SimpleNamespace(train_set=range(5), hparams=SimpleNamespace(batch_size=2))
+
+    def trainer(world=1, limit=1.0, epochs=3):
+        return SimpleNamespace(world_size=world, limit_train_batches=limit, max_epochs=epochs)
+
+    assert epoch_batches(sft, trainer(world=2)) == 2 and run_steps(sft, trainer(world=2), 2) == 3
+    assert [epoch_batches(pro, trainer(limit=x)) for x in (1.0, 0.5, 2, 10)] == [3, 1, 2, 3]
+    assert run_steps(pro, trainer(), 2) == 6 and run_steps(pro, trainer(), 1) == 9
+    assert run_steps(pro, trainer(epochs=-1), 1) is None and run_steps(SimpleNamespace(), trainer(), 1) is None
+
+
 def test_an_epoch_limited_run_shorter_than_the_logging_interval_logs_its_last_step(tmp_path, dataset_dir):
     """`trainer.max_steps=-1` with `trainer.max_epochs=2` over 6 examples in batches of 2, 2 at a time: each epoch
     is ceil(3 / 2) = 2 optimizer steps (Lightning steps on the epoch's last batch too), 4 in all, under the interval
