@@ -7,6 +7,7 @@ joined with ";", "then" or "and", and "it", "its", "them", "their" name the obje
     increase the y-velocity by 50%  (no object named: every object)
     set the mass of sphere_1 to 2 kg             double the friction of cylinder_0
     move box_0 0.5 m left                        reverse the z-velocity of the sphere
+    put box_0 at [1, 2, 0.4]                     place the cylinder at [0, 1, 0.3]
     stop box_0                                   set the velocity of box_0 to [1, 0, 0]
     make the box twice as heavy                  make sphere_1 slower by 1 m/s
     moon gravity                                 increase the mass by a factor of 3
@@ -49,7 +50,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from aynamics.edit_add import ADD_CLAUSE, ADD_VERBS, add_objects
+from aynamics.edit_add import ADD_CLAUSE, ADD_VERBS, COUNT, KIND_WORDS, add_objects
 from aynamics.edit_add import ADD_DEFAULTS as ADD_DEFAULTS
 from aynamics.edit_diff import Change as Change
 from aynamics.edit_diff import diff as diff
@@ -210,6 +211,8 @@ def _absolute(q: Quantity, comp: int | None, value: float | list[float], kind: s
 
 _ITEM_WORDS = {"camera": r"(?:the )?camera", "gravity": r"(?:the )?(?:scene|world)"}  # targets naming the item
 _MOVE = r"(?:move|shift|push|translate)"
+# "put box_0 at [1, 2, 0.4]", "place the cylinder at [...]": a move to there ("put a ball at [1, 2]" adds one)
+_PUT_AT = rf"(?:put|place) (?!(?:{COUNT})(?: (?:more|new|other))? (?:{KIND_WORDS})\b)(?P<t>.+?) (?:at|to) (?P<a>\[.*\])"
 _DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
 
 
@@ -292,7 +295,7 @@ def _clause(
         if not q.signed:
             raise EditError(f"{clause!r}: only velocity, spin, position and gravity can be reversed, not {q.key}")
         fn = _scale(q, -1.0)
-    elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c):
+    elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c) or re.fullmatch(_PUT_AT, c):
         q, comp, t_text = QUANTITIES[2], None, m.group("t")
         value, _ = read_value(m.group("a"), q)
         fn = _absolute(q, None, value, "abs", clause)

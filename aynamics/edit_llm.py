@@ -184,7 +184,7 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     for words, paths in DESCRIBED:
         if re.search(rf"\b(?:{words})\b", text):
             fields.update(f"{o}.{path}" for o in objs for path in paths)
-    if re.search(r"\b(?:move|shift|push|translate)\b", text) or any(f" {d}" in text for d in DIRECTIONS):
+    if re.search(r"\b(?:move|shift|push|translate|put|place)\b", text) or any(f" {d}" in text for d in DIRECTIONS):
         fields.update(f"{o}.state.position" for o in objs)
     if re.search(r"\b(?:stop|freeze)\b", text):
         fields.update(f"{o}.state.{k}" for o in objs for k in ("linear_velocity", "angular_velocity"))

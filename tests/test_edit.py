@@ -69,6 +69,9 @@ CASES = [
     # a rate added to the decay rate, not subtracted: log10(1e-4 + 1e-4) = log10(2e-4) = -3.69897
     ("increase the damping of box_0 by 0.0001 /s", {"box_0.physics.damping": -3.69897}),
     ("move the cylinder 0.2 m back", {"cylinder_0.state.position[1]": 0.6}),  # back = -y: 0.8 - 0.2
+    # put / place an object of the scene somewhere moves it ("put a ball at ..." adds one)
+    ("place box_0 at [1, 2, 0.4]", {"box_0.state.position[0]": 1.0, "box_0.state.position[1]": 2.0}),
+    ("put the cylinder at [0, 0.8, 0.3]", {"cylinder_0.state.position[0]": 0.0}),
     # stop zeroes the spin too: the spin set first is gone again, so only the velocity changes
     (
         "set the spin of box_0 to [0, 0, 2]; stop box_0",
