@@ -112,7 +112,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
     datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
     warn_drifting_validation(datamodule, trainer, interval, accumulate)
-    length = steps if steps > 0 else run_steps(datamodule, trainer, accumulate)
+    # the run ends at whichever limit comes first: max_steps, or max_epochs' steps
+    limits = [n for n in (steps if steps > 0 else None, run_steps(datamodule, trainer, accumulate)) if n is not None]
+    length = min(limits) if limits else None
     if length is not None and 0 < length < trainer.log_every_n_steps:  # shorter than the interval (null: 50)
         trainer.log_every_n_steps = length  # logged no training metrics (csv/metrics.csv held its header only)
     with model_init_context(trainer):  # trainer=fsdp: only rank 0 loads the base, the others get its weights

@@ -232,6 +232,12 @@ def _clause(
         g = PLANET_GRAVITY[PLANET_NAMES[m.group(1)]]
         fn = _absolute(q, None, g, "abs", clause)  # the magnitude, along gravity's direction
     elif re.fullmatch(NO_GRAVITY, c):  # "turn off gravity": weightless (the vector zero; 'moon gravity' then refused)
+        if re.match(r"make (?:it|them) ", c) and isinstance(previous, list) and previous:
+            names = [scene.names[i] for i in previous]  # "add a ball at [1, 2] and make it weightless"
+            raise EditError(
+                f"{clause!r}: 'it' is {names}, but gravity is the whole scene's: an object cannot be made weightless "
+                "alone; say 'turn off gravity' to make every object weightless"
+            )
         q, comp, t_text = BY_KEY["gravity"], None, None
         fn = _absolute(q, None, [0.0, 0.0, 0.0], "abs", clause)
     elif m := re.fullmatch(REPLACE_CLAUSE, c):  # before 'set|change ... to': "change box_0 to a sphere"

@@ -138,7 +138,7 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     for clause in clauses:
         if (m := re.fullmatch(ADD_CLAUSE, clause)) or (m := re.fullmatch(REPLACE_CLAUSE, clause)):
             if "t" in m.groupdict():  # a replacement: its targets are removed (below), its new objects added
-                replaced.append(m.group("t"))
+                replaced.append((m.group("t"), KINDS[m.group("k")]))
             after_add = True
             new_kinds.add(KINDS[m.group("k")])
             new_names.update(re.findall(r"\b(?:named|called) ([a-z_][\w.-]*)", m.group("rest")))
@@ -192,16 +192,23 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     # (`check_output` keeps the two apart). "remove" anywhere named every field of every object the text named:
     # "double the mass of cylinder_0 and remove box_0" let a free editor move cylinder_0, "remove the spin of box_0"
     # delete box_0
-    removed = [m.group("t") for clause in clauses if (m := re.fullmatch(REMOVE_CLAUSE, clause))]
-    for target in removed + replaced:  # a replacement removes its targets too ("replace box_0 with a sphere")
+    removed = [(m.group("t"), None) for clause in clauses if (m := re.fullmatch(REMOVE_CLAUSE, clause))]
+    for target, kind in removed + replaced:  # a replacement removes its targets too ("replace box_0 with a sphere")
         if re.fullmatch(r"it|them", target) and target not in lower:
             fields.update(objs)  # "stop box_0 and remove it": the objects the text names
             continue
         try:
-            fields.update(scene.names[i] for i in find_targets(target, scene))
+            idx = find_targets(target, scene)
         except EditError:  # "remove the spin of box_0" removes no object
-            pass
+            continue
+        fields.update(scene.names[i] for i in idx)
+        # a replacement by its own kind keeps the name ("replace box_0 with a box of size [...]" is box_0's size
+        # changing, `aynamics.edit_replace`): every field of the object, as the new object's
+        fields.update(f"{scene.names[i]}.{f}" for i in idx if scene.objects[i].type == kind for f in _OBJECT_FIELDS)
     return fields
+
+
+_OBJECT_FIELDS = ("size", "radius", "height", "physics", "state")  # an object's fields but its name and type
 
 
 def named_additions(instruction: str, scene: Scene | None = None) -> dict[str, int]:

@@ -93,6 +93,7 @@ CASES = [
         },
     ),
     ("make everything weightless", {"gravity.gravity[2]": 0.0}),
+    ("make it weightless", {"gravity.gravity[2]": 0.0}),  # no object before: 'it' is the scene
     ("make the box twice as heavy", {"box_0.physics.mass": 2.0}),
     (
         "make cylinder_0 half as fast",  # [-0.1, -0.5, 0] × 0.5
@@ -183,6 +184,9 @@ REFUSED = [
         "double the mass of box_0; set the fov to 60 and move it 1 m back",
         "'it' follows 'set the fov to 60', which edited the camera, so it could mean the camera",
     ),
+    # gravity is the scene's: 'it' naming an object cannot be made weightless alone (every object was)
+    ("add a ball at [1, 2] and make it weightless", "gravity is the whole scene's"),
+    ("stop box_0 and make it weightless", "gravity is the whole scene's"),
 ]
 
 
@@ -471,6 +475,22 @@ def test_check_output_accepts_a_replacement_the_instruction_asks_for(scene):
     assert named_additions("replace the objects with spheres", scene) == {"sphere": 2}
     assert named_additions("replace the objects with spheres") == {"sphere": 0}
     assert named_additions("swap box_0 and cylinder_0 for two balls; turn it into a box") == {"sphere": 2, "box": 1}
+
+
+def test_check_output_accepts_the_deterministic_answer_to_a_same_kind_replacement(scene):
+    """'replace box_0 with a box of size [...]' (or 'with a cube', '... and double its mass') keeps the name box_0
+    and changes its fields (`aynamics.edit_replace`): that answer from a free editor passes; the cylinder's fields
+    stay unnamed."""
+    for instruction in (
+        "replace box_0 with a box of size [0.1, 0.1, 0.1]",
+        "replace box_0 with a cube",
+        "replace box_0 with a box and double its mass",
+    ):
+        edited = apply_instruction(scene, instruction).scene
+        assert check_output(scene, instruction, f"```yaml\n{dump(edited)}```").changes
+    moved = apply_instruction(scene, "replace box_0 with a cube; move cylinder_0 1 m left").scene
+    with pytest.raises(EditError, match=r"does not name: cylinder_0.state.position"):
+        check_output(scene, "replace box_0 with a cube", f"```yaml\n{dump(moved)}```")
 
 
 def _tiny_chat_model(folder: Path) -> Path:

@@ -1746,3 +1746,15 @@ def test_train_shows_the_steps_bar_and_logs_a_short_run_with_lightnings_defaults
     assert seen == [("StepsProgressBar", "Epoch 0")]
     with open(out / "csv" / "metrics.csv") as f:
         assert [int(row["step"]) for row in csv.DictReader(f) if row.get("train/loss")] == [1]
+
+
+def test_a_run_that_both_limits_end_by_its_epochs_logs_its_last_step(tmp_path, dataset_dir):
+    """`trainer.max_steps=200` (more than the run takes) with `trainer.max_epochs=2`: the epochs end the run after
+    4 optimizer steps, under the interval of 5, so step 4 (index 3) logs its training metrics."""
+    out = tmp_path / "run"
+    overrides = ["trainer.max_steps=200", "trainer.max_epochs=2", "data.limit_train=6", "data.batch_size=2"]
+    overrides += ["trainer.accumulate_grad_batches=2", "trainer.val_check_interval=null", "logger=csv"]
+    train(_cfg(out, f"data.dir={dataset_dir}", *overrides, "callbacks.evaluation=null"))
+    with open(out / "csv" / "metrics.csv") as f:
+        rows = [row for row in csv.DictReader(f) if row.get("train/loss")]
+    assert [int(row["step"]) for row in rows] == [3] and math.isfinite(float(rows[0]["train/loss"]))
