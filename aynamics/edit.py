@@ -11,6 +11,8 @@ joined with ";", "then" or "and", and "it", "its", "them", "their" name the obje
     stop box_0                                   set the velocity of box_0 to [1, 0, 0]
     make the box twice as heavy                  make sphere_1 slower by 1 m/s
     moon gravity                                 increase the mass by a factor of 3
+    move the camera 1 m back                     set the camera height to 3 m
+    put the camera at [0, -4, 3]                 increase the tilt of the camera by 10 degrees
     turn off gravity                             zero gravity
     double the mass of box_0 and halve its friction
     make the sphere 3 times faster               remove box_0
@@ -68,6 +70,7 @@ from aynamics.edit_words import (
     AS_OF,
     AS_WORDS,
     BY_KEY,
+    CAMERA_FIELDS,
     ER_WORDS,
     FACTOR,
     FACTORS,
@@ -78,6 +81,7 @@ from aynamics.edit_words import (
     UP,
     VERBS_BY,
     FieldError,
+    camera_quantity,
     quantity,
     read_factor,
     read_times,
@@ -211,6 +215,15 @@ def _absolute(q: Quantity, comp: int | None, value: float | list[float], kind: s
 
 _ITEM_WORDS = {"camera": r"(?:the )?camera", "gravity": r"(?:the )?(?:scene|world)"}  # targets naming the item
 _MOVE = r"(?:move|shift|push|translate)"
+
+
+def _quantity_of(q_text: str, t_text: str | None) -> tuple[Quantity, int | None]:
+    """The quantity (and component) a clause names: one of the camera's fields where its target is the camera."""
+    if t_text is not None and re.fullmatch(_ITEM_WORDS["camera"], t_text):
+        return camera_quantity(q_text)
+    return quantity(q_text)
+
+
 # "put box_0 at [1, 2, 0.4]", "place the cylinder at [...]": a move to there ("put a ball at [1, 2]" adds one)
 _PUT_AT = rf"(?:put|place) (?!(?:{COUNT})(?: (?:more|new|other))? (?:{KIND_WORDS})\b)(?P<t>.+?) (?:at|to) (?P<a>\[.*\])"
 _DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
@@ -245,7 +258,7 @@ def _clause(
         return replace_objects(t, n, k, rest, items, scene, clause, previous, raw)
     elif m := re.fullmatch(rf"(?P<v>{VERBS_BY}) (?:the )?(?P<s>.+?) by a factor of (?P<k>{FACTOR})", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         k = read_factor(m.group("k"), clause)
         up = m.group("v") in UP
         if k < 1:  # "reduce the mass by a factor of 0.5" doubled it, "increase ... by a factor of 0.5" halved it
@@ -256,7 +269,7 @@ def _clause(
         fn = _scale(q, k if up else 1.0 / k)
     elif m := re.fullmatch(rf"(?P<v>{VERBS_BY}) (?:the )?(?P<s>.+?) by (?P<a>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         amount, kind = read_value(m.group("a"), q)
         sign = 1.0 if m.group("v") in UP else -1.0
         fn = _relative(q, comp, sign, amount, kind, clause)
@@ -269,7 +282,7 @@ def _clause(
         # "3 times faster" is 3 times as fast; "3 times slower" / "twice lighter" divide by the factor, as
         # everyday English means them (a factor of 1 or less has no such reading)
         (q_text, sign), t_text = ER_WORDS[m.group("adj")], m.group("t")
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         k = read_times(m.group("f"))
         if k <= 1:
             raise EditError(
@@ -279,36 +292,38 @@ def _clause(
         fn = _scale(q, k if sign > 0 else 1.0 / k)
     elif m := re.fullmatch(rf"make (?P<t>.+?) (?P<adj>{'|'.join(ER_WORDS)}) by (?P<a>.+)", c):
         (q_text, sign), t_text = ER_WORDS[m.group("adj")], m.group("t")
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         amount, kind = read_value(m.group("a"), q)
         fn = _relative(q, comp, sign, amount, kind, clause)
     elif m := re.fullmatch(r"(?:set|change) (?:the )?(?P<s>.+?) (?:to|=) (?P<a>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         value, kind = read_value(m.group("a"), q)
         fn = _absolute(q, comp, value, kind, clause)
     elif m := re.fullmatch(r"(?P<v>double|triple|quadruple|halve) (?:the )?(?P<s>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         fn = _scale(q, FACTORS[m.group("v")])
     elif m := re.fullmatch(rf"(?:multiply|scale) (?:the )?(?P<s>.+?) by (?:a factor of )?(?P<k>{FACTOR})", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         fn = _scale(q, read_factor(m.group("k"), clause, positive=False))
     elif m := re.fullmatch(r"(?:reverse|negate|flip) (?:the )?(?P<s>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = quantity(q_text)
+        q, comp = _quantity_of(q_text, t_text)
         if not q.signed:
             raise EditError(f"{clause!r}: only velocity, spin, position and gravity can be reversed, not {q.key}")
         fn = _scale(q, -1.0)
     elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c) or re.fullmatch(_PUT_AT, c):
-        q, comp, t_text = QUANTITIES[2], None, m.group("t")
+        t_text, comp = m.group("t"), None
+        q = _quantity_of("position", t_text)[0]  # an object's, or the camera's ("put the camera at [0, -4, 3]")
         value, _ = read_value(m.group("a"), q)
         fn = _absolute(q, None, value, "abs", clause)
     elif (m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:by )?(?P<n>{NUM} ?[a-z]*) (?:to the )?(?P<d>{_DIRS})", c)) or (
         m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:to the )?(?P<d>{_DIRS}) by (?P<n>{NUM} ?[a-z]*)", c)
     ):
-        q, t_text = QUANTITIES[2], m.group("t")
+        t_text = m.group("t")
+        q = _quantity_of("position", t_text)[0]  # "move the camera 1 m back"
         comp, sign = DIRECTIONS[m.group("d")]
         amount, kind = read_value(m.group("n"), q)
         if kind != "abs":
@@ -331,6 +346,8 @@ def _clause(
         return add_objects(m.group("n"), m.group("k"), m.group("rest"), items, scene, clause, previous, raw)
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
+    if q.scope == "object" and t_text is not None and re.fullmatch(_ITEM_WORDS["camera"], t_text):
+        raise EditError(f"{clause!r}: the camera has no {q.key}; its fields are {CAMERA_FIELDS}")  # "... as heavy"
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
         t_text = None  # "the field of view of the camera", "the gravity of the scene" name the item itself
     owner = re.match(r"(its|their) ", q_text) if t_text is None and q.scope == "object" else None

@@ -102,7 +102,7 @@ DESCRIBED: tuple[tuple[str, tuple[str, ...]], ...] = (
 CAMERA_WORDS: tuple[tuple[str, str], ...] = (
     (
         r"mov(?:e|es|ing)|shift|push|pull|translat\w*|rais(?:e|es|ing)|lower|higher|closer|further|farther|"
-        r"position|location|place|put",
+        r"position|location|place|put|height|elevation",
         "camera.position",
     ),
     (r"rotat\w*|tilt\w*|pitch\w*|turn\w*|angle\w*|orientation|look\w*|point\w*|aim\w*", "camera.orientation"),

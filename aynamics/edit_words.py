@@ -76,9 +76,24 @@ QUANTITIES: tuple[Quantity, ...] = (  # longest phrases first: "angular velocity
         signed=True,
     ),
     Quantity("fovy", r"field of view|fovy|fov", "camera", ("fovy",), unit="angle"),
+    Quantity("tilt", r"tilt|pitch", "camera", ("orientation",), unit="angle"),  # degrees from straight down
 )
 
 BY_KEY = {q.key: q for q in QUANTITIES}
+
+# the camera's fields, once a clause names the camera ("move the camera 1 m back", "set the camera height to 3 m",
+# "set the orientation of the camera to 30"); "height" is its position's z
+CAMERA_POSITION = Quantity(
+    "camera_position", r"position|location|place", "camera", ("position",), dims=3, unit="length", signed=True
+)
+CAMERA_QUANTITIES: tuple[Quantity, ...] = (
+    CAMERA_POSITION,
+    Quantity("tilt", r"tilt|pitch|orientation|angle", "camera", ("orientation",), unit="angle"),
+    BY_KEY["fovy"],
+)
+CAMERA_FIELDS = (
+    "position ([x, y, z], or its x-, y-, z-position), height, tilt (degrees from straight down), field of view"
+)
 
 DIRECTIONS: dict[str, tuple[int, float]] = {  # word -> (axis, sign); see the module docstring
     "left": (0, -1.0),
@@ -119,7 +134,9 @@ UNDERSTOOD = (
     "with|for|into a sphere|box|... [named NAME] [like OBJECT] [of radius|height R] [of size [a, b, c]] "
     "[of mass M kg]' (its place, velocity and physics; several TARGETS: 'spheres'). "
     "QUANTITY: [x-|y-|z-]velocity, [x-|y-|z-]angular velocity (spin), [x-|y-|z-]position, mass, friction, "
-    "rolling resistance, damping, restitution, radius, height, size, [x-|y-|z-]gravity, field of view. "
+    "rolling resistance, damping, restitution, radius, height, size, [x-|y-|z-]gravity, field of view, tilt; "
+    "of the camera ('move the camera 1 m back', 'set the camera height to 3 m'): "
+    f"{CAMERA_FIELDS}. "
     "TARGETS: object names (box_0, sphere_1 and cylinder_0), 'the box', 'all spheres', 'all objects'; "
     "none named means every object"
 )
@@ -138,10 +155,10 @@ class FieldError(EditError):
     """A field's own value refuses the edit; `aynamics.edit` puts the clause and the field's path in front."""
 
 
-def quantity(text: str) -> tuple[Quantity, int | None]:
+def quantity(text: str, among: tuple[Quantity, ...] = QUANTITIES) -> tuple[Quantity, int | None]:
     """The quantity a phrase names (`x-velocity`, `velocity along z`, `mass`) and its component or None."""
     text = re.sub(r"^(?:the|its|their)\s+", "", text.strip())
-    for q in QUANTITIES:
+    for q in among:
         m = re.fullmatch(
             rf"(?:(?P<c1>[xyz])[- ]?|(?P<vert>vertical) )?(?:{q.words})"
             rf"(?: (?:in|along) (?:the )?(?P<c2>[xyz])(?:[- ]?(?:axis|direction))?)?",
@@ -153,6 +170,17 @@ def quantity(text: str) -> tuple[Quantity, int | None]:
                 raise EditError(f"{text!r}: {q.key} has no {comp} component")
             return q, None if comp is None else "xyz".index(comp)
     raise EditError(f"quantity {text!r} not understood. {UNDERSTOOD}")
+
+
+def camera_quantity(text: str) -> tuple[Quantity, int | None]:
+    """The camera's field a phrase names once the clause named the camera ('position', 'x-position', 'height',
+    'tilt', 'field of view') and its component or None; a field the camera lacks ('mass') is named in the error."""
+    if re.fullmatch(r"(?:the |its )?(?:height|elevation)", text.strip()):
+        return CAMERA_POSITION, 2
+    try:
+        return quantity(text, CAMERA_QUANTITIES)
+    except EditError:
+        raise EditError(f"the camera has no {text.strip()!r}: its fields are {CAMERA_FIELDS}") from None
 
 
 def is_quantity(text: str) -> bool:
@@ -169,6 +197,8 @@ def subject(text: str) -> tuple[str, str | None]:
     m = re.fullmatch(r"(?:the )?(?P<t>[\w ,]+?)'s (?P<q>.+)", text)
     if m:
         return m.group("q"), m.group("t")
+    if m := re.fullmatch(r"(?:the )?camera (?P<q>.+)", text):  # "the camera height", "camera position"
+        return m.group("q"), "the camera"
     splits = [(text[: m.start()], text[m.end() :]) for m in re.finditer(r" (?:of|for) ", text)]
     for q, t in splits:
         try:

@@ -62,6 +62,20 @@ CASES = [
     # a quantity named with "of" (it was split into "field" of "view": helper-38)
     ("set the field of view to 60", {"camera.fovy": 60.0}),
     ("increase the field of view by 10%", {"camera.fovy": 49.5}),
+    # the camera's pose (at [0, -2, 3.5], 45 degrees from straight down): a what-if from another view
+    ("move the camera 1 m back", {"camera.position[1]": -3.0}),
+    ("move the camera up by 50 cm", {"camera.position[2]": 4.0}),
+    (
+        "put the camera at [1, -3, 2]",
+        {"camera.position[0]": 1.0, "camera.position[1]": -3.0, "camera.position[2]": 2.0},
+    ),
+    ("set the camera height to 3 m", {"camera.position[2]": 3.0}),
+    ("increase the height of the camera by 1 m", {"camera.position[2]": 4.5}),
+    ("set the x-position of the camera to 1", {"camera.position[0]": 1.0}),
+    ("set the camera's tilt to 30 degrees", {"camera.orientation": 30.0}),
+    ("increase the tilt by 10 degrees", {"camera.orientation": 55.0}),  # only the camera has a tilt
+    ("set the orientation of the camera to 20", {"camera.orientation": 20.0}),
+    ("move the camera 1 m back and double the mass of box_0", {"camera.position[1]": -3.0, "box_0.physics.mass": 2.0}),
     # an amount on a component adds along the axis, signs included (documented: no jump at zero)
     ("reduce the y-velocity of cylinder_0 by 0.2 m/s", {"cylinder_0.state.linear_velocity[1]": -0.7}),
     ("reduce the z-gravity by 2 m/s^2", {"gravity.gravity[2]": -9.0}),
@@ -145,6 +159,15 @@ def test_speed_by_amount_keeps_direction(scene):
 
 
 REFUSED = [
+    ("double the mass of the camera", "the camera has no 'mass': its fields are position"),
+    ("make the camera twice as heavy", "the camera has no mass; its fields are position"),
+    ("make the camera faster by 1 m/s", "the camera has no 'velocity'"),
+    ("set the tilt of box_0 to 30", "tilt is a property of the camera, not of ['box_0']"),
+    ("set the camera position to [0, -30, 2]", "camera.position[1] = -30.0: must be in [-20, 20] m"),
+    (
+        "move the camera 1 m back and double its mass",
+        "'its' follows 'move the camera 1 m back', which edited the camera",
+    ),
     ("make it fly", "not understood"),
     ("increase the mass of box_9 by 10%", "box_9"),
     ("reduce the x-velocity of box_0 by 150%", "flip the sign"),
