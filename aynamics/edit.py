@@ -7,7 +7,7 @@ joined with ";", "then" or "and", and "it", "its", "them", "their" name the obje
     increase the y-velocity by 50%  (no object named: every object)
     set the mass of sphere_1 to 2 kg             double the friction of cylinder_0
     move box_0 0.5 m left                        reverse the z-velocity of the sphere
-    put box_0 at [1, 2, 0.4]                     place the cylinder at [0, 1, 0.3]
+    put box_0 at [1, 2, 0.4]                     place the cylinder at [0, 1]  (its height kept)
     stop box_0                                   set the velocity of box_0 to [1, 0, 0]
     make the box twice as heavy                  make sphere_1 slower by 1 m/s
     moon gravity                                 increase the mass by a factor of 3
@@ -317,8 +317,14 @@ def _clause(
     elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c) or re.fullmatch(_PUT_AT, c):
         t_text, comp = m.group("t"), None
         q = _quantity_of("position", t_text)[0]  # an object's, or the camera's ("put the camera at [0, -4, 3]")
-        value, _ = read_value(m.group("a"), q)
-        fn = _absolute(q, None, value, "abs", clause)
+        if xy := re.fullmatch(rf"\[\s*({NUM})\s*,\s*({NUM})\s*\]", m.group("a")):  # "put box_0 at [1, 2]"
+            x, y = float(xy.group(1)), float(xy.group(2))  # there on the floor plan, at its height
+            fn = lambda v: [x, y, v[2]]  # noqa: E731
+        else:
+            if m.group("a").count(",") != 2:  # "[1]": read_value's "position takes [x, y, z]" hid [x, y]
+                raise EditError(f"{clause!r}: a move takes [x, y] (its height kept) or [x, y, z], not {m.group('a')}")
+            value, _ = read_value(m.group("a"), q)
+            fn = _absolute(q, None, value, "abs", clause)
     elif (m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:by )?(?P<n>{NUM} ?[a-z]*) (?:to the )?(?P<d>{_DIRS})", c)) or (
         m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:to the )?(?P<d>{_DIRS}) by (?P<n>{NUM} ?[a-z]*)", c)
     ):

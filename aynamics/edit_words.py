@@ -126,7 +126,7 @@ UNDERSTOOD = (
     "by N% | by N UNIT'; 'make TARGETS twice|N times heavier|lighter|faster|slower|bouncier'; "
     "'moon|mars|earth|jupiter gravity' or 'set the gravity to the moon's'; 'turn off gravity' | 'zero gravity'; "
     "'reverse QUANTITY [of TARGETS]'; 'move TARGETS N m DIRECTION' (left -x, right +x, forward/away +y, "
-    "back/toward the camera -y, up +z, down -z); 'move TARGETS to [x, y, z]', 'put|place TARGETS at [x, y, z]'; "
+    "back/toward the camera -y, up +z, down -z); 'move TARGETS to [x, y(, z)]', 'put|place TARGETS at [x, y(, z)]'; "
     "'stop TARGETS'; "
     "'remove|delete TARGETS'; 'add|put|place|drop a|another box|cube|sphere|ball|cylinder at [x, y] | at [x, y, z] "
     "[named NAME] [like OBJECT] [moving at [vx, vy, vz]] [of radius|height R] [of size [a, b, c]] [of mass M kg]'; "

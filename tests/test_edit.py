@@ -72,6 +72,9 @@ CASES = [
     ("set the camera height to 3 m", {"camera.position[2]": 3.0}),
     ("increase the height of the camera by 1 m", {"camera.position[2]": 4.5}),
     ("set the x-position of the camera to 1", {"camera.position[0]": 1.0}),
+    # [x, y]: there on the floor plan, at its height (box_0 at [-5, -0.3, 0.3])
+    ("put box_0 at [1, 2]", {"box_0.state.position[0]": 1.0, "box_0.state.position[1]": 2.0}),
+    ("move the camera to [1, -3]", {"camera.position[0]": 1.0, "camera.position[1]": -3.0}),
     ("set the camera's tilt to 30 degrees", {"camera.orientation": 30.0}),
     ("increase the tilt by 10 degrees", {"camera.orientation": 55.0}),  # only the camera has a tilt
     ("set the orientation of the camera to 20", {"camera.orientation": 20.0}),
@@ -159,6 +162,8 @@ def test_speed_by_amount_keeps_direction(scene):
 
 
 REFUSED = [
+    ("move box_0 to [1]", "'move box_0 to [1]': a move takes [x, y] (its height kept) or [x, y, z], not [1]"),
+    ("put box_0 at [1, 2, 3, 4]", "a move takes [x, y] (its height kept) or [x, y, z], not [1, 2, 3, 4]"),
     ("double the mass of the camera", "the camera has no 'mass': its fields are position"),
     ("make the camera twice as heavy", "the camera has no mass; its fields are position"),
     ("make the camera faster by 1 m/s", "the camera has no 'velocity'"),
