@@ -20,6 +20,7 @@ joined with ";", "then" or "and", and "it", "its", "them", "their" name the obje
     put a ball at [1, 2]  (put, place, drop: add)          add two spheres at [1, 2] and [0, 3]
     replace box_0 with a sphere and double its mass        swap the cylinder for a box named crate
     turn box_0 into a ball of radius 0.1 m                 replace the boxes with spheres
+    replace box_0 with a sphere and cylinder_0 with a box  (one replacement each)
 
 Directions are world axes as the default camera sees them: "left" is -x, "right" +x, "forward"/"away" +y
 (the camera looks along +y), "back"/"toward the camera" -y, "up" +z, "down" -z. A percentage or factor on a
@@ -391,7 +392,23 @@ def split_clauses(instruction: str, names: tuple[str, ...] = ()) -> list[str]:
     text = text.replace("per cent", "percent")
     not_name = rf"(?!(?:{'|'.join(re.escape(n.lower()) for n in names)})\b)" if names else ""
     clauses = [c.strip(" ,") for c in re.split(rf";|,? then |,? and then |,? and {not_name}(?={_CLAUSE_START})", text)]
-    return [re.sub(r"^(?:please|now) ", "", c) for c in clauses if c.strip(" ,")]
+    clauses = [re.sub(r"^(?:please|now) ", "", c) for c in clauses if c.strip(" ,")]
+    return [part for c in clauses for part in _replacements(c)]
+
+
+# "... and cylinder_0 with a box": another target and its kind, after a replace clause's first
+_NEXT_REPLACEMENT = rf",? and (?=.+? (?:with|by|for|into|to) (?:(?:{COUNT})(?: new| other)? )?(?:{KIND_WORDS})\b)"
+
+
+def _replacements(clause: str) -> list[str]:
+    """A replace clause of several replacements as one clause each, the verb repeated: "replace box_0 with a sphere
+    and cylinder_0 with a box" -> "replace box_0 with a sphere", "replace cylinder_0 with a box" (the second was read
+    as the first's phrases, and refused). Any other clause as it is."""
+    if not (m := re.fullmatch(REPLACE_CLAUSE, clause)):
+        return [clause]
+    verb = re.match(REPLACE_VERBS, clause).group(0)
+    first, *more = re.split(_NEXT_REPLACEMENT, m.group("rest"))
+    return [clause[: m.start("rest")] + first, *(f"{verb} {part}" for part in more)]
 
 
 def apply_instruction(scene: Scene, instruction: str) -> EditResult:

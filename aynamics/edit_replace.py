@@ -59,7 +59,8 @@ REPLACE_WORDS = (
     "'replace|swap|turn|change TARGETS with|for|into a|an box|cube|sphere|ball|cylinder' (several targets: "
     "'spheres'), then any of: 'named NAME', 'like OBJECT' (its shape), 'moving at [vx, vy, vz] m/s', 'of radius R', "
     "'of height H', 'of size [a, b, c]' (half-extents), 'of mass M kg'; the new object takes the old one's place, "
-    "velocity and physics, and a shape of the old one's extent where none is given"
+    "velocity and physics, and a shape of the old one's extent where none is given; 'replace box_0 with a sphere "
+    "and cylinder_0 with a box' is two replacements"
 )
 REST_TOLERANCE = 1e-3  # m: an object whose lowest point is this close to the floor plane rests on it
 

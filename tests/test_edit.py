@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from aynamics import cli
-from aynamics.edit import EditError, apply_instruction, diff
+from aynamics.edit import EditError, apply_instruction, diff, split_clauses
 from aynamics.edit_llm import LLMEditor, build_messages, check_output, named_fields, outside
 from aynamics.scene import dump, load, to_items
 
@@ -1277,6 +1277,31 @@ def test_replace_several_objects(scene):
         assert [o.state.position[2] for o in result.scene.objects] == pytest.approx([0.6333, 0.2833], abs=1e-4)
     stopped = apply_instruction(scene, "replace all objects with spheres and stop them").scene.objects
     assert [o.state.linear_velocity for o in stopped] == [(0.0, 0.0, 0.0)] * 2
+
+
+def test_one_replace_clause_with_several_replacements(scene):
+    """'replace box_0 with a sphere and cylinder_0 with a box' is two replacements, the verb repeated (the second
+    was read as the first's phrases and refused: "'cylinder_0 with a box' not understood"); each keeps its own
+    phrases, an 'and' inside the targets still joins objects, and the free editor's check reads both."""
+    from aynamics.edit_llm import named_additions
+
+    assert split_clauses("swap box_0 for a ball named b, and the cylinder for a cube of mass 2 kg and stop it") == [
+        "swap box_0 for a ball named b",
+        "swap the cylinder for a cube of mass 2 kg",
+        "stop it",
+    ]
+    assert split_clauses("replace box_0 and cylinder_0 with spheres") == ["replace box_0 and cylinder_0 with spheres"]
+    for instruction in (
+        "replace box_0 with a sphere and cylinder_0 with a box",
+        "turn box_0 into a ball and the cylinder into a box",
+        "change box_0 to a sphere, and cylinder_0 to a cube",
+    ):
+        result = apply_instruction(scene, instruction)
+        assert [(o.name, o.type) for o in result.scene.objects] == [("sphere_0", "sphere"), ("box_1", "box")]
+        assert named_additions(instruction, scene) == {"sphere": 1, "box": 1}
+        assert check_output(scene, instruction, f"```yaml\n{dump(result.scene)}```").changes == result.changes
+    heavy = apply_instruction(scene, "replace box_0 with a sphere of mass 3 kg and cylinder_0 with a box named crate")
+    assert [(o.name, o.physics.mass) for o in heavy.scene.objects] == [("sphere_0", 3.0), ("crate", 1.0)]
 
 
 @pytest.mark.parametrize(
