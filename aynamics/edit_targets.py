@@ -45,6 +45,7 @@ def find_targets(
         return previous_targets(text, previous, scene)
     if text is None or re.fullmatch(r"(?:all|every|each)(?: (?:the )?objects?)?|everything|the objects", text):
         return [i for i in range(len(scene.names)) if i not in gone]
+    left = [n for i, n in enumerate(scene.names) if i not in gone]  # a same-kind replacement's name once, not twice
     out: list[int] = []
     for part in re.split(r"\s*,\s*(?:and\s+)?|\s+and\s+", text.strip()):
         part = part.strip()
@@ -56,15 +57,14 @@ def find_targets(
         if m is None:
             if is_quantity(part):  # "double the mass of box_0 and the friction": a second quantity, not an object
                 raise EditError(
-                    f"{part!r} is a quantity, not an object of the scene {list(scene.names)}: one clause changes one "
+                    f"{part!r} is a quantity, not an object of the scene {left}: one clause changes one "
                     f"quantity; repeat a verb before {part!r} (e.g. 'double the mass of {scene.names[0]} and halve "
                     "its friction')"
                 )
-            raise EditError(f"object {part!r} not found; the scene has {list(scene.names)}. {UNDERSTOOD}")
+            raise EditError(f"object {part!r} not found; the scene has {left}. {UNDERSTOOD}")
         kind = {"boxes": "box", "spheres": "sphere", "cylinders": "cylinder"}.get(m.group(2), m.group(2))
         idx = [i for i, t in enumerate(scene.structure) if t == kind and i not in gone]
         if not idx:
-            left = [n for i, n in enumerate(scene.names) if i not in gone]
             raise EditError(f"{part!r}: the scene has no {kind}{' left' if gone else ''}; its objects are {left}")
         singular = m.group(2) == kind and m.group(1) in (None, "the")
         if singular and len(idx) > 1:

@@ -1319,6 +1319,9 @@ def test_one_replace_clause_with_several_replacements(scene):
         ("replace box_0 with a sphere painted red", r"'painted red' not understood. 'replace\|swap"),
         ("remove box_0 and replace it with a sphere", "box_0 was removed by an earlier clause"),
         ("replace box_0 with a sphere; double the mass of box_0", "box_0 was removed by an earlier clause"),
+        # the replaced box_0 was listed beside the new one: "['box_0', 'box_0', 'cylinder_0']"
+        ("replace box_0 with a cube; stop box_9", r"'box_9' not found; the scene has \['box_0', 'cylinder_0'\]"),
+        ("remove box_0; double the mass of box_9", r"'box_9' not found; the scene has \['cylinder_0'\]"),
     ],
 )
 def test_replace_refusals_name_the_problem(scene, instruction, message):
