@@ -167,8 +167,12 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     fields: set[str] = set()
     if re.search(r"\bzoom\w*", text):
         fields.add("camera.fovy")
-    if re.search(r"\bweightless\w*", text):  # "make everything weightless": the gravity, not the masses
-        fields.add("gravity.gravity")
+    # "make everything weightless": the gravity, not the masses; "make box_0 weightless" (one object cannot be) names
+    # none, as the edit language refuses it
+    one = [r"\b(?:box(?:es)?|spheres?|cylinders?)\b", *(rf"(?<!\w){re.escape(low)}(?!\w)" for low in lower)]
+    for i, c in enumerate(clauses):  # 'it' in the first clause is the scene ("make it weightless")
+        if re.search(r"\bweightless\w*", c) and not re.search("|".join(one + [r"\b(?:it|them)\b"] * (i > 0)), c):
+            fields.add("gravity.gravity")
     if camera:
         fields.update(path for words, path in CAMERA_WORDS if re.search(rf"\b(?:{words})\b", text))
         if any(re.search(rf"\b{re.escape(d)}\b", text) for d in DIRECTIONS):

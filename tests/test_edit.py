@@ -419,6 +419,18 @@ def test_check_output_accepts_named_change(scene):
     assert [c.path for c in result.changes] == ["box_0.physics.mass"]
 
 
+def test_check_output_reads_weightless_as_the_gravity_only_where_no_object_is_named(scene):
+    """'make everything weightless' names the gravity; 'make box_0 weightless' (one object cannot be, and the edit
+    language refuses it) named it too, so a free editor's answer that zeroed every object's gravity passed."""
+    weightless = _answer(scene, {(3, "gravity"): [0.0, 0.0, 0.0]})
+    named = ("make everything weightless", "make it weightless", "stop box_0 and make everything weightless")
+    for instruction in named:
+        assert [c.path for c in check_output(scene, instruction, weightless).changes] == ["gravity.gravity[2]"]
+    for instruction in ("make box_0 weightless", "make the boxes weightless", "stop box_0 and make it weightless"):
+        with pytest.raises(EditError, match=r"does not name: gravity.gravity\[2\]"):
+            check_output(scene, instruction, weightless)
+
+
 def test_check_output_reads_words_for_quantities(scene):
     """The free editor's instructions describe quantities ("twice as heavy", "faster"): the check lets those
     fields change (it refused its own docstring's example: helper-38), and still nothing else."""
