@@ -244,8 +244,9 @@ def _clause(
     ):
         q, comp, t_text = BY_KEY["gravity"], None, None
         g = PLANET_GRAVITY[PLANET_NAMES[m.group(1)]]
-        fn = _absolute(q, None, g, "abs", clause)  # the magnitude, along gravity's direction
-    elif re.fullmatch(NO_GRAVITY, c):  # "turn off gravity": weightless (the vector zero; 'moon gravity' then refused)
+        along = _absolute(q, None, g, "abs", clause)  # the magnitude, along gravity's direction
+        fn = lambda v: along(v) if any(v) else [0.0, 0.0, -g]  # noqa: E731  none ("turn off gravity then ..."): down
+    elif re.fullmatch(NO_GRAVITY, c):  # "turn off gravity": weightless (the zero vector)
         if re.match(r"make (?:it|them) ", c) and isinstance(previous, list) and previous:
             names = [scene.names[i] for i in previous]  # "add a ball at [1, 2] and make it weightless"
             raise EditError(

@@ -111,6 +111,7 @@ CASES = [
     ),
     ("make everything weightless", {"gravity.gravity[2]": 0.0}),
     ("make it weightless", {"gravity.gravity[2]": 0.0}),  # no object before: 'it' is the scene
+    ("turn off gravity then moon gravity", {"gravity.gravity[2]": -1.62}),  # no direction left: down (was refused)
     ("make the box twice as heavy", {"box_0.physics.mass": 2.0}),
     (
         "make cylinder_0 half as fast",  # [-0.1, -0.5, 0] × 0.5
