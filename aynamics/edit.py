@@ -237,7 +237,7 @@ def _clause(
     'their' in the next clause refer to (`previous`: the last clause's). A clause that edited the gravity passes
     `previous` on; one that edited the camera gives its own text, which a pronoun after it is refused with. `raw`: the
     instruction as typed (the clauses are lower-cased), where an added object's name keeps its case."""
-    c, q_text = clause, ""
+    c, q_text, one_point = clause, "", False  # one_point: the clause puts its objects at one place
     scene = object_view(items)  # names and types as the clauses before left them (added objects included)
     if m := re.fullmatch(rf"(?:set|change) (?:the )?gravity to {PLANET}(?: gravity)?", c) or re.fullmatch(
         rf"(?:use |switch to |apply )?{PLANET} gravity", c
@@ -302,6 +302,7 @@ def _clause(
         q, comp = _quantity_of(q_text, t_text)
         value, kind = read_value(m.group("a"), q)
         fn = _absolute(q, comp, value, kind, clause)
+        one_point = q.key == "position" and isinstance(value, list)  # "set the position of ... to [x, y, z]"
     elif m := re.fullmatch(r"(?P<v>double|triple|quadruple|halve) (?:the )?(?P<s>.+)", c):
         q_text, t_text = subject(m.group("s"))
         q, comp = _quantity_of(q_text, t_text)
@@ -317,7 +318,7 @@ def _clause(
             raise EditError(f"{clause!r}: only velocity, spin, position and gravity can be reversed, not {q.key}")
         fn = _scale(q, -1.0)
     elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c) or re.fullmatch(_PUT_AT, c):
-        t_text, comp = m.group("t"), None
+        t_text, comp, one_point = m.group("t"), None, True
         q = _quantity_of("position", t_text)[0]  # an object's, or the camera's ("put the camera at [0, -4, 3]")
         if xy := re.fullmatch(rf"\[\s*({NUM})\s*,\s*({NUM})\s*\]", m.group("a")):  # "put box_0 at [1, 2]"
             x, y = float(xy.group(1)), float(xy.group(2))  # there on the floor plan, at its height
@@ -364,6 +365,9 @@ def _clause(
         if owner
         else find_targets(t_text, scene, previous, gone(items))
     )
+    if one_point and q.scope == "object" and len(idx) > 1:  # they overlapped, left to the simulation to refuse
+        names = [scene.names[i] for i in idx]
+        raise EditError(f"{clause!r} puts {len(idx)} objects {names} at one place; move one object at a time")
     for item in _items_of(q, items, idx, scene, t_text is not None or owner is not None):
         _edit_field(item, q, comp, fn, repr(clause))
     return idx if q.scope == "object" else clause if q.scope == "camera" else previous
