@@ -28,6 +28,8 @@ vector without a component ("the velocity") scales the whole vector; an amount w
 its magnitude along its direction; on a component ("the x-velocity", "the z-gravity") it adds along that axis,
 signs included: "increase the x-velocity by 1 m/s" takes -1 to 0 and "reduce the z-gravity by 2 m/s^2" takes -7
 to -9 (stronger), where "by 50%" scales the component's size (-1 to -0.5: "reduce ... by 50%").
+A shape change ("double the size of box_0") keeps an object that rests on the floor resting on it (its lowest point
+stays), one in the air its centre.
 `damping` is log10 of a decay rate, so "double the damping" doubles the rate and "set the damping to 0.5 /s" sets
 the rate (a plain number sets the log10 value).
 
@@ -57,7 +59,7 @@ from aynamics.edit_add import ADD_CLAUSE, ADD_VERBS, COUNT, KIND_WORDS, add_obje
 from aynamics.edit_add import ADD_DEFAULTS as ADD_DEFAULTS
 from aynamics.edit_diff import Change as Change
 from aynamics.edit_diff import diff as diff
-from aynamics.edit_replace import REPLACE_CLAUSE, REPLACE_VERBS, replace_objects
+from aynamics.edit_replace import REPLACE_CLAUSE, REPLACE_VERBS, pose_after, replace_objects
 from aynamics.edit_targets import (
     REMOVED,
     ObjectView,
@@ -369,8 +371,14 @@ def _clause(
         names = [scene.names[i] for i in idx]
         raise EditError(f"{clause!r} puts {len(idx)} objects {names} at one place; move one object at a time")
     for item in _items_of(q, items, idx, scene, t_text is not None or owner is not None):
+        before = copy.deepcopy(item)
         _edit_field(item, q, comp, fn, repr(clause))
+        if q.key in SHAPE_KEYS:  # "double the size of box_0": a resting box grew into the floor (overlapping start)
+            item["state"]["position"] = pose_after(before, item, items)[0]
     return idx if q.scope == "object" else clause if q.scope == "camera" else previous
+
+
+SHAPE_KEYS = ("size", "radius", "height")  # an object on the floor keeps resting on it when they change
 
 
 REMOVE_CLAUSE = r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the scene)?"  # a removal clause

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import re
 
-from aynamics.edit import REMOVE_CLAUSE, EditResult, split_clauses
+from aynamics.edit import REMOVE_CLAUSE, SHAPE_KEYS, EditResult, split_clauses
 from aynamics.edit_add import ADD_CLAUSE, KINDS, PLURAL, read_count
 from aynamics.edit_diff import Change, diff
 from aynamics.edit_replace import REPLACE_CLAUSE
@@ -92,7 +92,7 @@ DESCRIBED: tuple[tuple[str, tuple[str, ...]], ...] = (
     (r"slipp(?:ery|erier)|grip(?:py|pier)?|sticky|stickier|rough(?:er)?|smooth(?:er)?", ("physics.friction",)),
     (
         r"big(?:ger)?|large(?:r)?|small(?:er)?|tiny|tall(?:er)?|short(?:er)?|wide(?:r)?|grow|shrink",
-        ("size", "radius", "height"),
+        ("size", "radius", "height", "state.position"),  # a resting object's centre moves with its shape
     ),
 )
 
@@ -184,6 +184,8 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
             suffix = f"[{q.index}]" if q.index is not None else (f"[{'xyz'.index(comp)}]" if comp else "")
             field = ".".join(q.path) + suffix
             fields.update(f"{h}.{field}" for h in (objs if q.scope == "object" else [q.scope]))
+            if q.key in SHAPE_KEYS:  # a resting object's centre moves with its shape (`aynamics.edit`)
+                fields.update(f"{o}.state.position" for o in objs)
             text = text.replace(text_q, " ")  # "angular velocity" must not also count as "velocity"
     for words, paths in DESCRIBED:
         if re.search(rf"\b(?:{words})\b", text):

@@ -114,7 +114,7 @@ def replace_objects(
         item |= _shape(kind, kind_word, old, like)
         item["physics"] = copy.deepcopy(old["physics"])
         set_shape(item, given, kind_word, clause)
-        position, orientation = _pose(old, item, items)
+        position, orientation = pose_after(old, item, items)
         state = old["state"]
         item["state"] = {
             "angular_velocity": list(state["angular_velocity"]),
@@ -151,8 +151,10 @@ def _shape(kind: str, kind_word: str, old: dict, like: dict | None) -> dict:
     return {"radius": (ex + ey) / 2, "height": 2 * ez}
 
 
-def _pose(old: dict, item: dict, items: list[dict]) -> tuple[list[float], list[float]]:
-    """The position and orientation of a replacement `item` of `old` (the module docstring)."""
+def pose_after(old: dict, item: dict, items: list[dict]) -> tuple[list[float], list[float]]:
+    """The position and orientation of a replacement `item` of `old` (the module docstring); for an object whose
+    shape an edit changed (`aynamics.edit`: "double the size of box_0"), `old` is it before: one that rested on the
+    floor rests on it still, one in the air keeps its centre."""
     import numpy as np
 
     from aynamics.mujoco_model import quat_to_mat, tilt_quaternion

@@ -62,6 +62,18 @@ CASES = [
     # a quantity named with "of" (it was split into "field" of "view": helper-38)
     ("set the field of view to 60", {"camera.fovy": 60.0}),
     ("increase the field of view by 10%", {"camera.fovy": 49.5}),
+    # a resting object keeps resting as its shape changes (box_0 [-5, -0.3, 0.4] of size [1, 0.5, 0.4] grew into
+    # the floor: an overlapping start); cylinder_0 lies on its side at z 0.3 = its radius, so its height is level
+    (
+        "double the size of box_0",
+        {"box_0.size[0]": 2.0, "box_0.size[1]": 1.0, "box_0.size[2]": 0.8, "box_0.state.position[2]": 0.8},
+    ),
+    ("double the radius of cylinder_0", {"cylinder_0.radius": 0.6, "cylinder_0.state.position[2]": 0.6}),
+    ("set the height of cylinder_0 to 1", {"cylinder_0.height": 1.0}),
+    (  # in the air (1 m up) it keeps its centre
+        "move box_0 1 m up and halve its size",
+        {"box_0.size[0]": 0.5, "box_0.size[1]": 0.25, "box_0.size[2]": 0.2, "box_0.state.position[2]": 1.4},
+    ),
     # the camera's pose (at [0, -2, 3.5], 45 degrees from straight down): a what-if from another view
     ("move the camera 1 m back", {"camera.position[1]": -3.0}),
     ("move the camera up by 50 cm", {"camera.position[2]": 4.0}),
