@@ -45,7 +45,8 @@ the phrases give a shape), the objects a target phrase or a pronoun names in `ay
 `aynamics edit SCENE.yaml "INSTRUCTION" [--out EDITED.yaml] [--render DIR] [--llm MODEL]` runs it; the optional
 language-model editor lives in `aynamics.edit_llm`, rendering of the what-if in `aynamics.whatif`.
 Instructions it cannot read raise `EditError` listing what it understands; an edit that makes the scene invalid
-is refused with the validation error, and nothing is written.
+is refused with the validation error, one that makes objects start inside each other or the floor with the pair and
+the depth (`check_start`), and nothing is written.
 """
 
 from __future__ import annotations
@@ -447,10 +448,25 @@ def apply_instruction(scene: Scene, instruction: str) -> EditResult:
 
 
 def finish(scene: Scene, items: list[dict], instruction: str) -> EditResult:
-    """Validate edited items into a scene; a scene that fails validation refuses the edit."""
+    """Validate edited items into a scene; a scene that fails validation, or whose objects the edit made start
+    inside each other or the floor (`check_start`), refuses the edit."""
     try:
         edited = from_items(items)
     except SceneError as e:
         problems = "; ".join(str(p) for p in e.problems)
         raise EditError(f"edit refused: {instruction!r} makes the scene invalid: {problems}") from None
+    check_start(scene, edited, f"edit refused: {instruction!r}")
     return EditResult(edited, tuple(diff(scene, edited)))
+
+
+def check_start(scene: Scene, edited: Scene, what: str) -> None:
+    """Refuse an edited scene whose objects start inside each other or the floor where the scene's did not ('add a
+    sphere at [x, y]' where a box stands, 'move box_0 0.5 m down'): the simulation refused it as an overlapping
+    start, after the edit was written. A scene that overlapped before may still (the edit did not cause it)."""
+    from aynamics.simulate import MAX_START_OVERLAP, start_overlap
+
+    if (overlap := start_overlap(edited)) is not None and start_overlap(scene) is None:
+        raise EditError(
+            f"{what} makes objects start inside each other or the floor: {overlap} (more than {MAX_START_OVERLAP} m), "
+            "which the simulation refuses; place them apart"
+        )

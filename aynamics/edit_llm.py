@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import re
 
-from aynamics.edit import REMOVE_CLAUSE, SHAPE_KEYS, EditResult, split_clauses
+from aynamics.edit import REMOVE_CLAUSE, SHAPE_KEYS, EditResult, check_start, split_clauses
 from aynamics.edit_add import ADD_CLAUSE, KINDS, PLURAL, read_count
 from aynamics.edit_diff import Change, diff
 from aynamics.edit_replace import REPLACE_CLAUSE
@@ -76,6 +76,7 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
             f"LLM edit refused: it changes fields that {instruction!r} does not name: {shown}. "
             f"The instruction names: {sorted(allowed) or 'no field the editor knows'}"
         )
+    check_start(scene, edited, "LLM edit refused: the model's answer")
     return EditResult(edited, tuple(changes))
 
 

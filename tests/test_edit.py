@@ -17,7 +17,7 @@ import pytest
 from aynamics import cli
 from aynamics.edit import EditError, apply_instruction, diff, split_clauses
 from aynamics.edit_llm import LLMEditor, build_messages, check_output, named_fields, outside
-from aynamics.scene import dump, load, to_items
+from aynamics.scene import dump, load, parse, to_items
 
 ASSET = Path(__file__).parent / "assets" / "paper_example.yaml"
 
@@ -357,30 +357,56 @@ def test_cli_edit_refusal_leaves_input_untouched(tmp_path, capsys, instruction):
 
 
 def test_cli_edit_render_reports_an_invalid_rollout(tmp_path, capsys):
-    """box_0 (z = 0.4, half-height 0.2) moved 0.5 m down starts 0.3 m into the floor: text mode says the edited
-    rollout is invalid with the simulator's reason on stderr and exits 1 (it exited 0 saying nothing); the edited
-    YAML is still written; --json exits 1 as well and reports edited_valid false."""
+    """The camera put inside box_0 (x [-6, -4], y [-0.8, 0.2], z [0, 0.8]): text mode says the edited rollout is
+    invalid with the simulator's reason on stderr and exits 1 (it exited 0 saying nothing); the edited YAML is still
+    written; --json exits 1 as well and reports edited_valid false. (Objects the edit makes overlap are refused
+    before: `test_an_edit_that_makes_objects_overlap_is_refused_and_writes_nothing`.)"""
     from aynamics.render import gl_available
 
     ok, why = gl_available()
     if not ok:
         pytest.skip(why)
     out = tmp_path / "edited.yaml"
-    argv = ["edit", str(ASSET), "move box_0 0.5 m down", "--render", str(tmp_path / "d"), "--width", "32"]
+    argv = ["edit", str(ASSET), "put the camera at [-5, -0.3, 0.4]", "--render", str(tmp_path / "d"), "--width", "32"]
     assert cli.main([*argv, "--height", "32", "--out", str(out)]) == 1
     err = capsys.readouterr().err
-    assert "edit: the edited scene's rollout is invalid: overlapping start: box_0 and the floor" in err
+    assert "edit: the edited scene's rollout is invalid: camera inside box_0" in err
     assert "original scene" not in err
-    assert load(str(out)).object("box_0").state.position[2] == pytest.approx(-0.1)
+    assert load(str(out)).camera.position == (-5.0, -0.3, 0.4)
     assert cli.main([*argv, "--height", "32", "--json"]) == 1
     captured = capsys.readouterr()
     report = json.loads(captured.out)
     assert report["edited_valid"] is False and report["original_valid"] is True
-    assert "overlapping start" in report["edited_reason"] and "overlapping start" in captured.err
+    assert "camera inside box_0" in report["edited_reason"] and "camera inside box_0" in captured.err
     # the edit that repairs it: the original's invalid rollout is reported, the edit succeeds
-    argv = ["edit", str(out), "move box_0 0.5 m up", "--render", str(tmp_path / "e"), "--width", "32"]
+    argv = ["edit", str(out), "move the camera 3 m back", "--render", str(tmp_path / "e"), "--width", "32"]
     assert cli.main([*argv, "--height", "32"]) == 0
-    assert "edit: the original scene's rollout is invalid: overlapping start" in capsys.readouterr().err
+    assert "edit: the original scene's rollout is invalid: camera inside box_0" in capsys.readouterr().err
+
+
+def test_an_edit_that_makes_objects_overlap_is_refused_and_writes_nothing(tmp_path, capsys, scene):
+    """box_0 (z 0.4, half-height 0.4) moved 0.5 m down starts 0.5 m into the floor, a sphere added where box_0 stands
+    0.4 m into it: the edit is refused (exit 2, nothing written) naming the pair and the depth; the simulation
+    refused them as an overlapping start after the edit was written. A scene that overlapped before may be edited.
+    A free editor's answer is checked alike."""
+    out = tmp_path / "edited.yaml"
+    assert cli.main(["edit", str(ASSET), "move box_0 0.5 m down", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert (
+        "'move box_0 0.5 m down' makes objects start inside each other or the floor: box_0 and the floor by 0.5 m"
+        in err
+    )
+    assert not out.exists()
+    with pytest.raises(EditError, match=r"box_0 and sphere_0 by 0.4 m \(more than 0.05 m\)"):
+        apply_instruction(scene, "add a sphere at [-5, -0.3]")
+    sunk = _answer(scene, {(0, "state", "position"): [-5.0, -0.3, -0.1]})  # box_0 0.5 m into the floor
+    assert [str(c) for c in apply_instruction(parse(sunk), "double the mass of cylinder_0").changes] == [
+        "cylinder_0.physics.mass: 1.0 -> 2.0"
+    ]
+    with pytest.raises(
+        EditError, match=r"LLM edit refused: the model's answer makes objects start inside .* box_0 and"
+    ):
+        check_output(scene, "move box_0 0.5 m down", sunk)
 
 
 def test_cli_edit_missing_file(capsys):
@@ -1370,8 +1396,8 @@ def test_put_place_and_drop_add(scene, instruction):
 
 
 def test_put_with_velocity_and_after_another_clause(scene):
-    box = apply_instruction(scene, "place a box at [0, 1, 0.5] moving at [1, 0, 0] m/s").scene.object("box_1")
-    assert box.state.position == (0.0, 1.0, 0.5) and box.state.linear_velocity == (1.0, 0.0, 0.0)
+    box = apply_instruction(scene, "place a box at [2, 1, 0.5] moving at [1, 0, 0] m/s").scene.object("box_1")
+    assert box.state.position == (2.0, 1.0, 0.5) and box.state.linear_velocity == (1.0, 0.0, 0.0)
     result = apply_instruction(scene, "stop box_0 and drop a sphere at [0, 0, 1] and double its mass")
     assert result.scene.object("sphere_0").physics.mass == 2.0 and result.scene.object("box_0").physics.mass == 1.0
 
@@ -1383,10 +1409,12 @@ def test_add_a_count_of_objects_one_position_each(scene):
     two = apply_instruction(scene, "add two spheres at [1, 2] and [0, 3]")
     assert [str(c) for c in two.changes] == ["sphere_0: added (sphere)", "sphere_1: added (sphere)"]
     assert [o.state.position for o in two.scene.objects[2:]] == [(1.0, 2.0, 0.2), (0.0, 3.0, 0.2)]
-    three = apply_instruction(scene, "add 3 boxes at [0, 0], [1, 0] and [2, 0] moving at [1, 0, 0]; double their mass")
+    three = apply_instruction(
+        scene, "add 3 boxes at [0, -3], [3, -3] and [6, -3] moving at [1, 0, 0]; double their mass"
+    )
     boxes = three.scene.objects[2:]
     assert [o.name for o in boxes] == ["box_1", "box_2", "box_3"]
-    assert [o.state.position for o in boxes] == [(0.0, 0.0, 0.4), (1.0, 0.0, 0.4), (2.0, 0.0, 0.4)]
+    assert [o.state.position for o in boxes] == [(0.0, -3.0, 0.4), (3.0, -3.0, 0.4), (6.0, -3.0, 0.4)]
     assert {(o.size, o.state.linear_velocity, o.physics.mass) for o in boxes} == {((1, 0.5, 0.4), (1, 0, 0), 2)}
     assert three.scene.object("box_0").physics.mass == 1.0
     balls = apply_instruction(scene, "add two more balls at [100, 0] and [200, 0] cm").scene.objects[2:]
