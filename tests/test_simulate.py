@@ -659,6 +659,10 @@ def test_objects_starting_inside_each_other_or_the_floor_are_invalid():
 
     cast = raycast.cast_group([sunk], sunk.structure, np.array([0]), 16, 12, sim.SimConfig(), 1)
     assert cast.reasons[0].startswith("overlapping start: sphere_0 and the floor")
+    # and so does start_overlap, without simulating (the edit language's check)
+    assert sim.start_overlap(scene([box(x=0.0, **big), box(x=3.9, **big)])) == "box_0 and box_1 by 0.1 m"
+    assert sim.start_overlap(sunk) == "sphere_0 and the floor by 1.3 m"
+    assert sim.start_overlap(scene([box(x=0.0, **big), box(x=3.97, **big)])) is None
 
 
 def test_mujoco_warnings_are_log_lines_not_files(tmp_path, monkeypatch, capfd, caplog):
