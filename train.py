@@ -118,7 +118,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if length is not None and 0 < length < trainer.log_every_n_steps:  # shorter than the interval (null: 50)
         trainer.log_every_n_steps = length  # logged no training metrics (csv/metrics.csv held its header only)
     with model_init_context(trainer):  # trainer=fsdp: only rank 0 loads the base, the others get its weights
-        module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
+        try:
+            module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
+        except ValueError as error:  # "lr = -1: ..." is stage.module.lr
+            raise ValueError(name_keys(str(error), "stage.module")) from error
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     except Exception as error:
@@ -401,13 +404,31 @@ def input_error_message(error: BaseException) -> str | None:
         key = re.search(r"full_key: (\S+)", str(error))
         if cause is None or not isinstance(cause, config_errors | TypeError):
             return None
-        return f"{cause} (config: {key.group(1)})" if key else str(cause)
+        return name_keys(_said(cause), key.group(1)) if key else _said(cause)
     if isinstance(error, OmegaConfBaseException):  # its text goes on with full_key and object_type lines
         key = getattr(error, "full_key", None)
         return f"{str(error).splitlines()[0]} (config: {key})" if key else str(error).splitlines()[0]
     if isinstance(error, config_errors):  # flash-attn not installed: ImportError while the model loads
-        return str(error)
+        return _said(error)
     return None
+
+
+def _said(error: BaseException) -> str:
+    """An error's text; a missing file's without "[Errno 2] " ("stage.init_adapter = '/x' holds no ...")."""
+    if isinstance(error, FileNotFoundError):
+        from aynamics.cli import missing_file_message
+
+        return missing_file_message(error)
+    return str(error)
+
+
+def name_keys(message: str, key: str) -> str:
+    """A config node's error with its keys in full: "min_pixels = 0: must be >= 784" from `data` reads
+    "data.min_pixels = 0: must be >= 784"; a message naming no `name = value` before its first ': ' ends
+    "(config: data)"."""
+    head, sep, tail = message.partition(": ")
+    named, n = re.subn(r"(^|, )([a-z_]\w*) = ", rf"\g<1>{key}.\g<2> = ", head)
+    return f"{named}{sep}{tail}" if n else f"{message} (config: {key})"
 
 
 def raised_here(error: BaseException) -> bool:

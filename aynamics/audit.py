@@ -416,7 +416,9 @@ def run_audit(args) -> int:
     if not 30 <= args.step_hz <= 10_000:
         raise UsageError(f"audit: --step-hz {args.step_hz}: must be in [30, 10000] physics steps per second")
     if args.max_causes < 0 or args.max_trajectories < 0:
-        raise UsageError(f"audit: --max-causes {args.max_causes}, --max-trajectories {args.max_trajectories}: >= 0")
+        raise UsageError(
+            f"audit: --max-causes {args.max_causes}, --max-trajectories {args.max_trajectories}: each must be >= 0"
+        )
     if args.seed < 0:
         raise UsageError(f"audit: --seed {args.seed}: must be >= 0")
     if args.held_out_every < 0 or args.held_out_every == 1:

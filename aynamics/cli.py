@@ -145,8 +145,8 @@ def _run_simulate(args) -> int:
     scene = load_scene("simulate", args.scene)
     try:
         config = sim.SimConfig(duration=args.duration, fps=args.fps, substeps=args.substeps)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
+    except ValueError as e:  # "fps = 0: ..." names the option: --fps
+        raise UsageError(f"simulate: --{e}") from None
     if not args.out and not args.json:
         raise UsageError("simulate: nothing to do; give --out TRAJ.npz and/or --json")
     if args.out:  # checked before simulating; numpy would write DIR.npz beside a folder, so the file is opened here
@@ -240,8 +240,10 @@ WRITE_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES,
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser(argv)
+    command = "aynamics"
     try:
         args = parser.parse_args(argv)
+        command = getattr(args, "command", None) or command
         if not getattr(args, "run", None):
             raise UsageError("aynamics: give a command. Run `aynamics --help` for the list.")
         return args.run(args)
@@ -249,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(" ".join(str(e).split()) + "\n")
         return 2
     except FileNotFoundError as e:
-        sys.stderr.write(f"aynamics: {missing_file_message(e)}\n")
+        sys.stderr.write(f"{command}: {missing_file_message(e)}\n")
         return 2
     except BrokenPipeError:  # e.g. `aynamics ... | head`
         sys.stderr.close()

@@ -388,11 +388,13 @@ def prompt_inputs(processor, prompt: PromptSpec, frames: Sequence[Any]) -> dict[
 
 def prompt_mismatch(stored: dict[str, Any], prompt: PromptSpec) -> tuple[str, str] | None:
     """Where `stored` (PROMPT_KEYS values something was made under) differs from `prompt`: ("k=old, ...",
-    "k=new, ...") to name both in an error, or None when they agree. Keys `stored` lacks are not compared."""
+    "data.k=new, ..."; the run's side with its config keys, `stage.target` and `data.*`) to name both in an error,
+    or None when they agree. Keys `stored` lacks are not compared."""
     diff = [k for k in PROMPT_KEYS if k in stored and stored[k] != getattr(prompt, k)]
     if not diff:
         return None
-    return ", ".join(f"{k}={stored[k]!r}" for k in diff), ", ".join(f"{k}={getattr(prompt, k)!r}" for k in diff)
+    config = {k: "stage.target" if k == "target" else f"data.{k}" for k in diff}
+    return ", ".join(f"{k}={stored[k]!r}" for k in diff), ", ".join(f"{config[k]}={getattr(prompt, k)!r}" for k in diff)
 
 
 def tokenizer_fingerprint(tokenizer) -> str:

@@ -206,8 +206,8 @@ def run_edit_command(args) -> int:
 
     scene = load_scene("edit", args.scene)
     if args.render:  # before --out is written: the renderer refused these after it, NumPy's seed naming no option
-        if not (1 <= args.width <= 4096 and 1 <= args.height <= 4096):
-            raise UsageError(f"edit: --width {args.width} --height {args.height}: each must be in [1, 4096]")
+        if not (16 <= args.width <= 4096 and 16 <= args.height <= 4096):  # as `render`: a 5-pixel GIF is no what-if
+            raise UsageError(f"edit: --width {args.width} --height {args.height}: each must be in [16, 4096]")
         if args.seed < 0:
             raise UsageError(f"edit: --seed {args.seed}: must be >= 0")
         check_out_folder("edit", args.render, writes=WHAT_IF_FILES, flag="--render")

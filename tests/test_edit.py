@@ -420,8 +420,8 @@ def test_cli_edit_missing_file(capsys):
         (["--llm", "MODEL", "--max-new-tokens", "0"], "edit: --max-new-tokens 0: must be >= 1"),
         (["--llm", "MODEL", "--max-new-tokens", "-1"], "edit: --max-new-tokens -1: must be >= 1"),
         (["--render", "RENDER", "--seed", "-1"], "edit: --seed -1: must be >= 0"),
-        (["--render", "RENDER", "--width", "0"], "edit: --width 0 --height 160: each must be in [1, 4096]"),
-        (["--render", "RENDER", "--height", "5000"], "edit: --width 240 --height 5000: each must be in [1, 4096]"),
+        (["--render", "RENDER", "--width", "0"], "edit: --width 0 --height 160: each must be in [16, 4096]"),
+        (["--render", "RENDER", "--height", "5000"], "edit: --width 240 --height 5000: each must be in [16, 4096]"),
     ],
 )
 def test_cli_edit_bad_numbers_are_named_before_anything_is_loaded_or_written(tmp_path, capsys, options, message):

@@ -359,7 +359,7 @@ def test_train_stage_pro_online_end_to_end(tmp_path, dataset_dir):
             )
         )
     # the frames' pixel limits are part of the prompt too (other limits: other visual tokens than in training)
-    with pytest.raises(ValueError, match="trained with max_pixels=None, but the data are set to max_pixels=5000"):
+    with pytest.raises(ValueError, match="trained with max_pixels=None, but the data are set to data.max_pixels=5000"):
         train(
             _cfg(
                 tmp_path / "bad2",
@@ -480,7 +480,7 @@ def test_preferences_command_and_offline_training(tmp_path, dataset_dir, capsys)
         load_preferences(tmp_path / "prefs")
     stored = json.loads((tmp_path / "handmade" / "summary.json").read_text())
     (tmp_path / "handmade" / "summary.json").write_text(json.dumps(stored | summary_keys(summary, num_frames=4)))
-    with pytest.raises(ValueError, match="sampled with num_frames=4, but the data are set to num_frames=2"):
+    with pytest.raises(ValueError, match="sampled with num_frames=4, but the data are set to data.num_frames=2"):
         train(_cfg(tmp_path / "frames", *offline, f"stage.preferences_dir={tmp_path / 'handmade'}"))
     (tmp_path / "handmade" / "summary.json").write_text(json.dumps(stored | {"tokenizer": "0" * 16}))
     with pytest.raises(ValueError, match="token ids of another tokenizer"):

@@ -1143,10 +1143,13 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["trainer.max_steps=0"], r"trainer.max_steps = 0: must be >= 1"),
         # each process's share would be split again by Lightning (a ddp run trained on 1 / world of its data)
         (["trainer.use_distributed_sampler=true"], r"trainer.use_distributed_sampler = true: the data modules"),
-        (["callbacks.checkpoint.every_n_train_steps=-5"], r"every_n_train_steps = -5: must be a whole number >= 1"),
+        (
+            ["callbacks.checkpoint.every_n_train_steps=-5"],
+            r"callbacks.checkpoint.every_n_train_steps = -5: must be a whole number >= 1",
+        ),
         (["data.target=think_answer"], r"data.target = 'think_answer': set the target as stage.target=think"),
         (["stage.target=foo"], r"stage.target = 'foo': must be one of \('answer', 'think_answer'\)"),
-        (["stage.module.lr=inf"], r"lr = inf.*need finite lr > 0"),  # trained to NaN and saved the adapter
+        (["stage.module.lr=inf"], r"stage.module.lr = inf.*need finite lr > 0"),  # trained to NaN and saved the adapter
     ]
     from hydra.errors import InstantiationException  # hydra's wrapper of an error in a config's constructor
 
@@ -1222,7 +1225,7 @@ def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_pa
     from hydra.errors import InstantiationException
     from omegaconf import OmegaConf
 
-    from train import input_error_message
+    from train import input_error_message, name_keys
 
     out = tmp_path / "run"
     cmd = [sys.executable, "train.py", f"data.dir={tmp_path / 'nope'}", f"hydra.run.dir={out}"]
@@ -1254,12 +1257,20 @@ def test_cli_input_errors_are_one_paragraph_with_the_traceback_in_the_log(tmp_pa
         "Error in call to target 'aynamics.data.SceneDataModule':\nValueError(..)\nfull_key: data"
     )
     wrapped.__cause__ = ValueError("min_pixels = 0: must be >= 784")
-    assert input_error_message(wrapped) == "min_pixels = 0: must be >= 784 (config: data)"
+    assert input_error_message(wrapped) == "data.min_pixels = 0: must be >= 784"
+    wrapped.__cause__ = ValueError("no data set in 'x'")
+    assert input_error_message(wrapped) == "no data set in 'x' (config: data)"
+    assert name_keys("lr = -1, weight_decay = 0.1: need lr > 0", "stage.module") == (
+        "stage.module.lr = -1, stage.module.weight_decay = 0.1: need lr > 0"
+    )
     try:
         OmegaConf.create({"model": {"path": "???"}}).model.path
     except Exception as missing:
         assert input_error_message(missing) == "Missing mandatory value: model.path (config: model.path)"
     assert input_error_message(FileNotFoundError("no such checkpoint")) == "no such checkpoint"
+    no_adapter = FileNotFoundError(2, "stage.init_adapter = '/x' holds no adapter_config.json", "/x")
+    assert input_error_message(no_adapter) == "stage.init_adapter = '/x' holds no adapter_config.json"  # no [Errno 2]
+    assert input_error_message(FileNotFoundError(2, "No such file or directory", "/y")) == "file not found: /y"
     # once training has started, only the errors this project raises: a ValueError from numpy keeps its traceback
     # and a builtin failing inside our code (an unpacking, `open` on a full disk) is no check of ours either
     import aynamics
