@@ -58,7 +58,8 @@ def test_missing_file_messages_say_what_was_expected(tmp_path, capsys):
     (tmp_path / "pred.yaml").write_text("- {type: sphere, radius: 0.2, state: {position: [0, 1, 0.2]}}\n")
     (tmp_path / "empty").mkdir()
     assert cli.main(["score", str(tmp_path / "pred.yaml"), "--observed", str(tmp_path / "empty")]) == 2
-    assert "has neither segmentation.npy nor segmentation/*.png" in capsys.readouterr().err
+    err = capsys.readouterr().err  # the command's name, not "aynamics: "
+    assert err.startswith("score: ") and "has neither segmentation.npy nor segmentation/*.png" in err
     # an adapter folder without aynamics.json (adapters.read_adapter_meta raises with a message only)
     assert (
         cli.main(["preferences", "--data", str(tmp_path), "--out", str(tmp_path / "p"), "--adapter", str(tmp_path)])
@@ -78,6 +79,20 @@ def test_python_dash_m_reports_usage_errors_without_a_traceback(tmp_path):
     run = subprocess.run(argv, capture_output=True, text=True)
     assert run.returncode == 2 and "Traceback" not in run.stderr
     assert run.stderr.startswith("render: --width 3")
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (["--fps", "0"], "simulate: --fps 0: must be a whole number in [1, 1000]"),
+        (["--substeps", "0"], "simulate: --substeps 0: must be a whole number in [1, 1000]"),
+        (["--duration", "-1"], "simulate: --duration -1.0: must be in (0, 60] s"),
+    ],
+)
+def test_simulate_names_a_bad_option_and_its_value(capsys, option, message):
+    """The configuration's check said "fps = 0: ...", naming neither the command nor the option."""
+    assert cli.main(["simulate", ASSET, "--json", *option]) == 2
+    assert capsys.readouterr().err.strip() == message
 
 
 def test_simulate_out_is_exactly_the_path_given(tmp_path, capsys):
