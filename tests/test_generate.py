@@ -492,6 +492,11 @@ def test_own_scene_files_make_a_data_set(tmp_path, capsys):
     assert f"--scenes {str(tmp_path / 'none')!r} does not exist" in capsys.readouterr().err
     assert main(["generate", "--scenes", str(folder), "--num", "3", "--out", str(new)]) == 2
     assert "not allowed with argument" in capsys.readouterr().err
+    # a sampler setting does nothing with --scenes: it was taken without a word
+    assert main(["generate", "--scenes", str(folder), "--out", str(new), "width=64", "sampler.max_objects=2"]) == 2
+    err = capsys.readouterr().err
+    assert "generate: sampler.max_objects=2 sets the scene sampler, which --scenes does not use" in err
+    assert not new.exists()
 
 
 def test_scene_file_splits_and_resume_do_not_depend_on_how_paths_are_typed(tmp_path, monkeypatch, capsys):
