@@ -1420,7 +1420,7 @@ def test_runs_say_when_their_results_are_from(tmp_path, dataset_dir, caplog, cap
         train(_cfg(acc, *common, "trainer.max_steps=3", f"ckpt_path={acc / 'checkpoints' / 'last.ckpt'}"))
     assert "had reached step 3" in caplog.text and (acc / "metrics.json").read_text() == before
     again = [*common, "trainer.max_steps=4", f"ckpt_path={acc / 'checkpoints' / 'last.ckpt'}", "data.modality=flow"]
-    with pytest.raises(ValueError, match="trained with modality='rgb'.* set to modality='flow'"):
+    with pytest.raises(ValueError, match="trained with modality='rgb'.* set to data.modality='flow'"):
         train(_cfg(tmp_path / "other", *again))
 
 
