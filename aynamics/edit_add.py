@@ -102,12 +102,15 @@ def read_phrases(rest: str, clause: str, words: str = ADD_WORDS) -> dict[str, st
     return given
 
 
-def positions(text: str) -> list[str]:
+def positions(text: str, clause: str = "") -> list[str]:
     """The positions of an 'at' phrase, each with its unit: '[100, 0] and [200, 0] cm' -> ['[100, 0] cm',
-    '[200, 0] cm'] (a unit after the last position is that of every position without its own)."""
+    '[200, 0] cm']. A unit written once, after any position, is that of every position without its own ('[100, 0]
+    cm and [200, 0]' read the second in metres); two units and a position without one is refused (which?)."""
     found = [(v, u or "") for v, u in re.findall(rf"({_VEC})(?: ?({_UNIT_WORDS})(?=[ ,]|$))?", text)]
-    last = found[-1][1]
-    return [f"{v} {u or last}".strip() for v, u in found]
+    units = sorted({u for _, u in found if u})
+    if len(units) > 1 and any(not u for _, u in found):
+        raise EditError(f"{clause!r}: positions in {' and '.join(units)} and one without a unit: give each its unit")
+    return [f"{v} {u or (units[0] if units else '')}".strip() for v, u in found]
 
 
 def like_object(given: dict[str, str], kind: str, items: list[dict], objs: ObjectView, clause: str, previous) -> dict:
@@ -184,7 +187,7 @@ def add_objects(
     if "position" not in given:
         goes = f"the {kind} goes" if count == 1 else f"the {noun(kind, count)} go (one position each)"
         raise EditError(f"{clause!r}: say where {goes}: 'at [x, y]' (resting on the floor) or 'at [x, y, z]'")
-    at = positions(given["position"])
+    at = positions(given["position"], clause)
     if len(at) != count:
         raise EditError(
             f"{clause!r}: {noun(kind, count)} take{'s' if count == 1 else ''} {count} position"

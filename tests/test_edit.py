@@ -1419,6 +1419,13 @@ def test_add_a_count_of_objects_one_position_each(scene):
     assert three.scene.object("box_0").physics.mass == 1.0
     balls = apply_instruction(scene, "add two more balls at [100, 0] and [200, 0] cm").scene.objects[2:]
     assert [o.state.position for o in balls] == [(1.0, 0.0, 0.2), (2.0, 0.0, 0.2)]
+    # a unit written once is every position's, wherever it stands (the second was read in metres: 200 m, refused)
+    balls = apply_instruction(scene, "add two more balls at [100, 0] cm and [200, 0]").scene.objects[2:]
+    assert [o.state.position for o in balls] == [(1.0, 0.0, 0.2), (2.0, 0.0, 0.2)]
+    balls = apply_instruction(scene, "add two balls at [1, 0] m and [300, 0] cm").scene.objects[2:]
+    assert [o.state.position for o in balls] == [(1.0, 0.0, 0.2), (3.0, 0.0, 0.2)]
+    with pytest.raises(EditError, match="positions in cm and m and one without a unit: give each its unit"):
+        apply_instruction(scene, "add 3 balls at [100, 0] cm, [2, 0] m and [3, 1]")
 
 
 @pytest.mark.parametrize(
