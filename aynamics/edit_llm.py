@@ -65,7 +65,13 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
     # let the model keep box_0 and move it)
     fields = allowed - set(scene.names)
     bad = [c for c in changes if not c.added and outside([c], allowed if c.removed else fields)]
-    may_add = named_additions(instruction, scene)
+    # a replacement adds its objects in place of its targets: an answer that keeps them ("replace box_0 with a box":
+    # box_0 kept and box_1 added) may not add those
+    gone = {c.path for c in changes if c.removed}
+    may_add: dict[str, int] = {}
+    for kind, n, replaced in additions(instruction, scene):
+        if replaced is None or all(name in gone for name in replaced):
+            may_add[kind] = may_add.get(kind, 0) + n
     for kind in sorted({c.after for c in changes if c.added}):
         added = [c for c in changes if c.added and c.after == kind]
         if len(added) > may_add.get(kind, 0):  # "add a sphere" let it add two, or a box
@@ -228,23 +234,34 @@ def named_additions(instruction: str, scene: Scene | None = None) -> dict[str, i
     if scene is not None:
         require_scene(scene, "named_additions: scene")
     out: dict[str, int] = {}
+    for kind, n, _ in additions(instruction, scene):
+        out[kind] = out.get(kind, 0) + n
+    return out
+
+
+def additions(instruction: str, scene: Scene | None = None) -> list[tuple[str, int, tuple[str, ...] | None]]:
+    """Per 'add' or 'replace' clause: (kind, how many it adds, the names of the `scene`'s objects it replaces, or
+    None for an add clause or targets that cannot be named without a scene); `named_additions` sums them."""
+    out = []
     for clause in split_clauses(instruction, scene.names if scene is not None else ()):
+        replaced = None
         if m := re.fullmatch(ADD_CLAUSE, clause):
             n = read_count(m.group("n"), clause)  # "add two spheres at ..." adds 2
         elif m := re.fullmatch(REPLACE_CLAUSE, clause):
+            try:
+                targets = find_targets(m.group("t"), scene) if scene is not None else None
+            except EditError:  # names no object of the scene: the deterministic editor refuses it too
+                targets = []
+            replaced = None if targets is None else tuple(scene.names[i] for i in targets)
             if m.group("n"):
                 n = read_count(m.group("n"), clause)
             elif m.group("k") not in PLURAL:
                 n = 1
             else:
-                try:
-                    n = len(find_targets(m.group("t"), scene)) if scene is not None else 0
-                except EditError:  # names no object of the scene: the deterministic editor refuses it too
-                    n = 0
+                n = len(targets) if targets is not None else 0
         else:
             continue
-        kind = KINDS[m.group("k")]
-        out[kind] = out.get(kind, 0) + n
+        out.append((KINDS[m.group("k")], n, replaced))
     return out
 
 

@@ -560,6 +560,17 @@ def test_check_output_accepts_a_replacement_the_instruction_asks_for(scene):
     assert named_additions("swap box_0 and cylinder_0 for two balls; turn it into a box") == {"sphere": 2, "box": 1}
 
 
+def test_check_output_lets_a_replacement_add_only_in_place_of_its_targets(scene):
+    """'replace box_0 with a box' let a free editor keep box_0 and add box_1 beside it (the addition was counted
+    whatever happened to box_0); the box may be added where box_0 is removed."""
+    kept = apply_instruction(scene, "add a box at [2, 2] of size [0.2, 0.2, 0.2]").scene
+    with pytest.raises(EditError, match=r"does not name: box_1: added \(box\)"):
+        check_output(scene, "replace box_0 with a box of size [0.2, 0.2, 0.2]", f"```yaml\n{dump(kept)}```")
+    moved = apply_instruction(scene, "remove box_0 and add a box at [2, 2] of size [0.2, 0.2, 0.2] named crate").scene
+    changes = check_output(scene, "replace box_0 with a box of size [0.2, 0.2, 0.2]", f"```yaml\n{dump(moved)}```")
+    assert [str(c) for c in changes.changes] == ["box_0: removed (box)", "crate: added (box)"]
+
+
 def test_check_output_accepts_the_deterministic_answer_to_a_same_kind_replacement(scene):
     """'replace box_0 with a box of size [...]' (or 'with a cube', '... and double its mass') keeps the name box_0
     and changes its fields (`aynamics.edit_replace`): that answer from a free editor passes; the cylinder's fields
