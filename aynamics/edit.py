@@ -1,7 +1,8 @@
 """Physics editing: change an inferred scene with a plain-English instruction and ask "what if".
 
 A small deterministic instruction language covers the paper's edits and their kin; several clauses can be
-joined with ";", "then" or "and", and "it", "its", "them", "their" name the objects of the clause before:
+joined with ";", "then" or "and", and "it", "its", "them", "their" name the objects of the clause before (or the
+camera, after a clause that edited it):
 
     reduce the x-velocity of box_0 by 80%        decrease gravity by 50%
     increase the y-velocity by 50%  (no object named: every object)
@@ -221,11 +222,27 @@ _ITEM_WORDS = {"camera": r"(?:the )?camera", "gravity": r"(?:the )?(?:scene|worl
 _MOVE = r"(?:move|shift|push|translate)"
 
 
-def _quantity_of(q_text: str, t_text: str | None) -> tuple[Quantity, int | None]:
-    """The quantity (and component) a clause names: one of the camera's fields where its target is the camera."""
+def _quantity_of(
+    q_text: str, t_text: str | None, previous: list[int] | str | None = None
+) -> tuple[Quantity, int | None]:
+    """The quantity (and component) a clause names: one of the camera's fields where its target is the camera, or
+    where 'its' follows a clause that edited the camera ("move the camera 1 m back and set its height to 4")."""
     if t_text is not None and re.fullmatch(_ITEM_WORDS["camera"], t_text):
         return camera_quantity(q_text)
+    if t_text is None and isinstance(previous, str) and (its := re.match(r"its ", q_text)):
+        try:
+            return camera_quantity(q_text)
+        except EditError:  # "move the camera 1 m back and double its mass"
+            raise EditError(
+                f"{its.group(0).strip()!r} follows {previous!r}, which edited the camera, and the camera has no "
+                f"{q_text[its.end() :]!r} (its fields are {CAMERA_FIELDS}); name the object"
+            ) from None
     return quantity(q_text)
+
+
+def _camera_pronoun(t_text: str, previous: list[int] | str | None) -> str:
+    """'it' after a clause that edited the camera is the camera ("set the fov to 60 and move it 1 m back")."""
+    return "the camera" if isinstance(previous, str) and re.fullmatch(r"it|them", t_text) else t_text
 
 
 # "put box_0 at [1, 2, 0.4]", "place the cylinder at [...]": a move to there ("put a ball at [1, 2]" adds one)
@@ -263,7 +280,7 @@ def _clause(
         return replace_objects(t, n, k, rest, items, scene, clause, previous, raw)
     elif m := re.fullmatch(rf"(?P<v>{VERBS_BY}) (?:the )?(?P<s>.+?) by a factor of (?P<k>{FACTOR})", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         k = read_factor(m.group("k"), clause)
         up = m.group("v") in UP
         if k < 1:  # "reduce the mass by a factor of 0.5" doubled it, "increase ... by a factor of 0.5" halved it
@@ -274,7 +291,7 @@ def _clause(
         fn = _scale(q, k if up else 1.0 / k)
     elif m := re.fullmatch(rf"(?P<v>{VERBS_BY}) (?:the )?(?P<s>.+?) by (?P<a>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         amount, kind = read_value(m.group("a"), q)
         sign = 1.0 if m.group("v") in UP else -1.0
         fn = _relative(q, comp, sign, amount, kind, clause)
@@ -287,7 +304,7 @@ def _clause(
         # "3 times faster" is 3 times as fast; "3 times slower" / "twice lighter" divide by the factor, as
         # everyday English means them (a factor of 1 or less has no such reading)
         (q_text, sign), t_text = ER_WORDS[m.group("adj")], m.group("t")
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         k = read_times(m.group("f"))
         if k <= 1:
             raise EditError(
@@ -297,31 +314,31 @@ def _clause(
         fn = _scale(q, k if sign > 0 else 1.0 / k)
     elif m := re.fullmatch(rf"make (?P<t>.+?) (?P<adj>{'|'.join(ER_WORDS)}) by (?P<a>.+)", c):
         (q_text, sign), t_text = ER_WORDS[m.group("adj")], m.group("t")
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         amount, kind = read_value(m.group("a"), q)
         fn = _relative(q, comp, sign, amount, kind, clause)
     elif m := re.fullmatch(r"(?:set|change) (?:the )?(?P<s>.+?) (?:to|=) (?P<a>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         value, kind = read_value(m.group("a"), q)
         fn = _absolute(q, comp, value, kind, clause)
         one_point = q.key == "position" and isinstance(value, list)  # "set the position of ... to [x, y, z]"
     elif m := re.fullmatch(r"(?P<v>double|triple|quadruple|halve) (?:the )?(?P<s>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         fn = _scale(q, FACTORS[m.group("v")])
     elif m := re.fullmatch(rf"(?:multiply|scale) (?:the )?(?P<s>.+?) by (?:a factor of )?(?P<k>{FACTOR})", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         fn = _scale(q, read_factor(m.group("k"), clause, positive=False))
     elif m := re.fullmatch(r"(?:reverse|negate|flip) (?:the )?(?P<s>.+)", c):
         q_text, t_text = subject(m.group("s"))
-        q, comp = _quantity_of(q_text, t_text)
+        q, comp = _quantity_of(q_text, t_text, previous)
         if not q.signed:
             raise EditError(f"{clause!r}: only velocity, spin, position and gravity can be reversed, not {q.key}")
         fn = _scale(q, -1.0)
     elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c) or re.fullmatch(_PUT_AT, c):
-        t_text, comp, one_point = m.group("t"), None, True
+        t_text, comp, one_point = _camera_pronoun(m.group("t"), previous), None, True
         q = _quantity_of("position", t_text)[0]  # an object's, or the camera's ("put the camera at [0, -4, 3]")
         if xy := re.fullmatch(rf"\[\s*({NUM})\s*,\s*({NUM})\s*\]", m.group("a")):  # "put box_0 at [1, 2]"
             x, y = float(xy.group(1)), float(xy.group(2))  # there on the floor plan, at its height
@@ -334,7 +351,7 @@ def _clause(
     elif (m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:by )?(?P<n>{NUM} ?[a-z]*) (?:to the )?(?P<d>{_DIRS})", c)) or (
         m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:to the )?(?P<d>{_DIRS}) by (?P<n>{NUM} ?[a-z]*)", c)
     ):
-        t_text = m.group("t")
+        t_text = _camera_pronoun(m.group("t"), previous)
         q = _quantity_of("position", t_text)[0]  # "move the camera 1 m back"
         comp, sign = DIRECTIONS[m.group("d")]
         amount, kind = read_value(m.group("n"), q)
@@ -360,6 +377,13 @@ def _clause(
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope == "object" and t_text is not None and re.fullmatch(_ITEM_WORDS["camera"], t_text):
         raise EditError(f"{clause!r}: the camera has no {q.key}; its fields are {CAMERA_FIELDS}")  # "... as heavy"
+    if q.scope != "object" and t_text is None and re.match(r"(its|their) ", q_text) and isinstance(previous, list):
+        if previous:  # "double the mass of box_0 and increase its tilt": the camera's tilt was edited
+            raise EditError(
+                f"{clause!r}: {q_text.split()[0]!r} is {[scene.names[i] for i in previous]}, but the {q.key} is "
+                f"{'the camera' if q.scope == 'camera' else 'the whole scene'}'s; name it (e.g. 'the {q.key} of the "
+                f"{'camera' if q.scope == 'camera' else 'scene'}')"
+            )
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
         t_text = None  # "the field of view of the camera", "the gravity of the scene" name the item itself
     owner = re.match(r"(its|their) ", q_text) if t_text is None and q.scope == "object" else None

@@ -180,9 +180,16 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
     for i, c in enumerate(clauses):  # 'it' in the first clause is the scene ("make it weightless")
         if re.search(r"\bweightless\w*", c) and not re.search("|".join(one + [r"\b(?:it|them)\b"] * (i > 0)), c):
             fields.add("gravity.gravity")
-    if camera:
-        fields.update(path for words, path in CAMERA_WORDS if re.search(rf"\b(?:{words})\b", text))
-        if any(re.search(rf"\b{re.escape(d)}\b", text) for d in DIRECTIONS):
+    # "set the fov to 60 and move it 1 m back": 'it' after a clause that edited the camera is the camera
+    camera_words = "|".join(q.words for q in QUANTITIES if q.scope == "camera") + r"|camera|zoom\w*"
+    spoken = [
+        c
+        for before, c in zip(clauses, clauses[1:], strict=False)
+        if re.search(r"\b(?:it|its|them|their)\b", c) and re.search(rf"\b(?:{camera_words})\b", before)
+    ]
+    for said in ([text] if camera else []) + spoken:
+        fields.update(path for words, path in CAMERA_WORDS if re.search(rf"\b(?:{words})\b", said))
+        if any(re.search(rf"\b{re.escape(d)}\b", said) for d in DIRECTIONS):
             fields.add("camera.position")
     for q in QUANTITIES:
         for m in re.finditer(rf"(?:\b(?P<c>[xyz])[- ]?)?\b(?:{q.words})\b", text):

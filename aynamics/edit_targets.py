@@ -79,7 +79,8 @@ def previous_targets(word: str, previous: list[int] | str | None, scene: Scene |
     """The objects an earlier clause named, for 'it', 'its', 'them', 'their' (alone they meant every object:
     "double the mass of box_0; halve its friction" halved every object's friction); in a scene of one object,
     before any clause named one, that object. After a clause that edited the camera (`previous` is its text) the
-    word could mean the camera: "set the fov to 60 and move it 1 m back" moved the object."""
+    word means the camera, which `aynamics.edit` reads where the camera has the field ("... and move it 1 m back");
+    here, where an object's field is asked for ("set the fov to 60 and stop it"), it is refused."""
     if isinstance(previous, str):
         raise EditError(
             f"{word!r} follows {previous!r}, which edited the camera, so it could mean the camera; name the object "

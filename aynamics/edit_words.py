@@ -117,7 +117,7 @@ DIRECTIONS: dict[str, tuple[int, float]] = {  # word -> (axis, sign); see the mo
 
 UNDERSTOOD = (
     "I understand (clauses joined by ';', 'then' or 'and'; 'it', 'its', 'them', 'their' name the objects of the "
-    "clause before): "
+    "clause before, or the camera after a clause that edited it): "
     "'increase|raise|decrease|reduce|lower QUANTITY [of TARGETS] by N% | by N UNIT'; "
     "'set|change QUANTITY [of TARGETS] to N [UNIT] | to [x, y, z]'; "
     "'double|triple|halve QUANTITY [of TARGETS]'; 'multiply|scale QUANTITY [of TARGETS] by K'; "

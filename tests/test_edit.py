@@ -91,6 +91,13 @@ CASES = [
     ("increase the tilt by 10 degrees", {"camera.orientation": 55.0}),  # only the camera has a tilt
     ("set the orientation of the camera to 20", {"camera.orientation": 20.0}),
     ("move the camera 1 m back and double the mass of box_0", {"camera.position[1]": -3.0, "box_0.physics.mass": 2.0}),
+    # 'it' / 'its' after a camera clause: the camera
+    ("set the fov to 60 and move it 1 m back", {"camera.fovy": 60.0, "camera.position[1]": -3.0}),
+    ("move the camera 1 m back and set its height to 4", {"camera.position[1]": -3.0, "camera.position[2]": 4.0}),
+    (
+        "set the field of view to 50 and increase its tilt by 10 degrees",
+        {"camera.fovy": 50.0, "camera.orientation": 55.0},
+    ),
     # an amount on a component adds along the axis, signs included (documented: no jump at zero)
     ("reduce the y-velocity of cylinder_0 by 0.2 m/s", {"cylinder_0.state.linear_velocity[1]": -0.7}),
     ("reduce the z-gravity by 2 m/s^2", {"gravity.gravity[2]": -9.0}),
@@ -185,10 +192,12 @@ REFUSED = [
     ("make the camera twice as heavy", "the camera has no mass; its fields are position"),
     ("make the camera faster by 1 m/s", "the camera has no 'velocity'"),
     ("set the tilt of box_0 to 30", "tilt is a property of the camera, not of ['box_0']"),
+    ("double the mass of box_0 and increase its tilt by 10", "'its' is ['box_0'], but the tilt is the camera's"),
+    ("stop box_0 and halve its gravity", "'its' is ['box_0'], but the gravity is the whole scene's"),
     ("set the camera position to [0, -30, 2]", "camera.position[1] = -30.0: must be in [-20, 20] m"),
     (
         "move the camera 1 m back and double its mass",
-        "'its' follows 'move the camera 1 m back', which edited the camera",
+        "'its' follows 'move the camera 1 m back', which edited the camera, and the camera has no 'mass'",
     ),
     ("make it fly", "not understood"),
     ("increase the mass of box_9 by 10%", "box_9"),
@@ -224,11 +233,9 @@ REFUSED = [
     ("delete box_0; double the mass of box_0", "'double the mass of box_0': box_0 was removed by an earlier clause"),
     ("remove box_0 and cylinder_0", "the scene needs at least one box, sphere or cylinder"),
     ("remove the sphere", "'the sphere': the scene has no sphere"),
-    # after a camera clause "it" could be the camera: it moved box_0 (position[1] -0.3 -> -1.3) as the object before
-    (
-        "double the mass of box_0; set the fov to 60 and move it 1 m back",
-        "'it' follows 'set the fov to 60', which edited the camera, so it could mean the camera",
-    ),
+    # after a camera clause "it" is the camera, where an object's field is asked for refused (it moved box_0,
+    # position[1] -0.3 -> -1.3, as the object before)
+    ("double the mass of box_0; set the fov to 60 and stop it", "'it' follows 'set the fov to 60', which edited the"),
     # gravity is the scene's: 'it' naming an object cannot be made weightless alone (every object was)
     ("add a ball at [1, 2] and make it weightless", "gravity is the whole scene's"),
     ("stop box_0 and make it weightless", "gravity is the whole scene's"),
@@ -251,9 +258,9 @@ def test_its_names_the_only_object_of_a_one_object_scene(scene):
     assert {c.path: c.after for c in apply_instruction(one, "halve its mass").changes} == {"box_0.physics.mass": 0.5}
     with pytest.raises(EditError, match="'it' refers to no object"):
         apply_instruction(scene, "moon gravity and stop it")
-    # "it" after a camera clause could be the camera: the only object was moved 1 m back (-0.3 -> -1.3)
-    with pytest.raises(EditError, match="'it' follows 'set the fov to 60', which edited the camera"):
-        apply_instruction(one, "set the fov to 60 and move it 1 m back")
+    # "it" after a camera clause is the camera (the only object was moved 1 m back: -0.3 -> -1.3)
+    moved = apply_instruction(one, "set the fov to 60 and move it 1 m back").changes
+    assert {c.path: c.after for c in moved} == {"camera.fovy": 60.0, "camera.position[1]": -3.0}
 
 
 def _renamed(scene, names):
