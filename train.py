@@ -121,6 +121,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
         try:
             module = hydra.utils.instantiate(cfg.stage.module)(spec=spec)
         except ValueError as error:  # "lr = -1: ..." is stage.module.lr
+            if not raised_in_init(error):  # the model's build ("lora dropout = 1.5", model.tiny's "hidden_size")
+                raise
             raise ValueError(name_keys(str(error), "stage.module")) from error
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
@@ -420,6 +422,21 @@ def _said(error: BaseException) -> str:
 
         return missing_file_message(error)
     return str(error)
+
+
+def raised_in_init(error: BaseException) -> bool:
+    """Whether a module's own constructor raised the error (its arguments are stage.module's keys), not a function
+    it called: `lm.build_model` refuses the model config's values (model.lora_dropout, model.tiny.hidden_size)."""
+    import lightning as L
+
+    tb = error.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return (
+        tb is not None
+        and tb.tb_frame.f_code.co_name == "__init__"
+        and isinstance(tb.tb_frame.f_locals.get("self"), L.LightningModule)
+    )  # not a transformers config's __init__ inside the model's build
 
 
 def name_keys(message: str, key: str) -> str:

@@ -147,7 +147,7 @@ def _run_simulate(args) -> int:
     try:
         config = sim.SimConfig(duration=args.duration, fps=args.fps, substeps=args.substeps)
     except ValueError as e:  # "fps = 0: ..." names the option: --fps
-        raise UsageError("simulate: " + re.sub(r"^(\w+) = ", r"--\1 ", str(e))) from None
+        raise UsageError("simulate: " + re.sub(r"\b(duration|fps|substeps) = ", r"--\1 ", str(e))) from None
     if not args.out and not args.json:
         raise UsageError("simulate: nothing to do; give --out TRAJ.npz and/or --json")
     if args.out:  # checked before simulating; numpy would write DIR.npz beside a folder, so the file is opened here

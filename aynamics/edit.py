@@ -57,7 +57,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from aynamics.edit_add import ADD_CLAUSE, ADD_VERBS, COUNT, KIND_WORDS, add_objects
+from aynamics.edit_add import ADD_CLAUSE, ADD_VERBS, COUNT, KIND_WORDS, PHRASE_START, add_objects
 from aynamics.edit_add import ADD_DEFAULTS as ADD_DEFAULTS
 from aynamics.edit_diff import Change as Change
 from aynamics.edit_diff import diff as diff
@@ -435,7 +435,9 @@ def split_clauses(instruction: str, names: tuple[str, ...] = ()) -> list[str]:
 
 
 # "... and cylinder_0 with a box": another target and its kind, after a replace clause's first
-_NEXT_REPLACEMENT = rf",? and (?=.+? (?:with|by|for|into|to) (?:(?:{COUNT})(?: new| other)? )?(?:{KIND_WORDS})\b)"
+# (not before a phrase of the first: "of radius 0.2 and of mass 2 kg and cylinder_0 with a box")
+_WITH_KIND = rf" (?:with|by|for|into|to) (?:(?:{COUNT})(?: new| other)? )?(?:{KIND_WORDS})\b"
+_NEXT_REPLACEMENT = rf",? and (?!{PHRASE_START})(?=.+?{_WITH_KIND})"
 
 
 def _replacements(clause: str) -> list[str]:
@@ -445,7 +447,16 @@ def _replacements(clause: str) -> list[str]:
     if not (m := re.fullmatch(REPLACE_CLAUSE, clause)):
         return [clause]
     verb = re.match(REPLACE_VERBS, clause).group(0)
-    first, *more = re.split(_NEXT_REPLACEMENT, m.group("rest"))
+    first, *pieces = re.split(_NEXT_REPLACEMENT, m.group("rest"))
+    more: list[str] = []
+    pending = ""  # a target without its kind joins the next piece ("... and box_1 and cylinder_0 with boxes")
+    for piece in pieces:
+        piece = f"{pending} and {piece}" if pending else piece
+        if re.search(_WITH_KIND, piece):
+            more.append(piece)
+            pending = ""
+        else:
+            pending = piece
     return [clause[: m.start("rest")] + first, *(f"{verb} {part}" for part in more)]
 
 

@@ -39,6 +39,7 @@ _VEC = r"\[[^\]]*\]"
 # "and" as the radius' unit)
 _NEXT = r"(?:and|with|of|a|an|named|called|like|copied|at|moving|going|travell?ing|sliding|rolling|velocity|radius|"
 _NEXT += r"height|size|half-extents|mass|weighing)\b"
+PHRASE_START = _NEXT  # a word that starts a phrase of an add or replace clause (`aynamics.edit`)
 _AMOUNT = rf"{NUM}(?: ?(?!{_NEXT})[a-z/]+)?"
 _UNIT_WORDS = "|".join(sorted({re.escape(u) for table in UNITS.values() for u in table}, key=len, reverse=True))
 _VEC_UNIT = rf"{_VEC}(?: ?(?:{_UNIT_WORDS}))?"  # "[1, 0, 0] cm/s", "[10, 10, 10] cm", "[1, 2]"

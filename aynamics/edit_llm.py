@@ -176,9 +176,10 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
         fields.add("camera.fovy")
     # "make everything weightless": the gravity, not the masses; "make box_0 weightless" (one object cannot be) names
     # none, as the edit language refuses it
-    one = [r"\b(?:box(?:es)?|spheres?|cylinders?)\b", *(rf"(?<!\w){re.escape(low)}(?!\w)" for low in lower)]
-    for i, c in enumerate(clauses):  # 'it' in the first clause is the scene ("make it weightless")
-        if re.search(r"\bweightless\w*", c) and not re.search("|".join(one + [r"\b(?:it|them)\b"] * (i > 0)), c):
+    one = "|".join([r"\b(?:box(?:es)?|spheres?|cylinders?)\b", *(rf"(?<!\w){re.escape(low)}(?!\w)" for low in lower)])
+    for before, c in zip(["", *clauses], clauses, strict=False):  # 'it' names an object after a clause that did
+        pronoun = r"|\b(?:it|them)\b" if re.search(one, before) else ""  # ("moon gravity then make it weightless")
+        if re.search(r"\bweightless\w*", c) and not re.search(one + pronoun, c):
             fields.add("gravity.gravity")
     # "set the fov to 60 and move it 1 m back": 'it' after a clause that edited the camera is the camera
     camera_words = "|".join(q.words for q in QUANTITIES if q.scope == "camera") + r"|camera|zoom\w*"

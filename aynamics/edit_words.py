@@ -84,7 +84,7 @@ BY_KEY = {q.key: q for q in QUANTITIES}
 # the camera's fields, once a clause names the camera ("move the camera 1 m back", "set the camera height to 3 m",
 # "set the orientation of the camera to 30"); "height" is its position's z
 CAMERA_POSITION = Quantity(
-    "camera_position", r"position|location|place", "camera", ("position",), dims=3, unit="length", signed=True
+    "camera position", r"position|location|place", "camera", ("position",), dims=3, unit="length", signed=True
 )
 CAMERA_QUANTITIES: tuple[Quantity, ...] = (
     CAMERA_POSITION,

@@ -406,7 +406,7 @@ def run_generate(args) -> int:
     """Run `aynamics generate` (errors become `UsageError`: exit 2 with one message)."""
     from aynamics.cli import UsageError, missing_file_message, warnings_as_lines
 
-    sampled = [o for o in args.overrides if o.split("=", 1)[0].startswith("sampler.")]
+    sampled = [o for o in args.overrides if o.startswith(("sampler.", "sampler="))]  # sampler.x=1, sampler={...}
     if args.scenes is not None and sampled:  # taken without a word, and changing nothing
         raise UsageError(
             f"generate: {' '.join(sampled)} sets the scene sampler, which --scenes does not use (the scene files are "

@@ -87,6 +87,11 @@ def test_python_dash_m_reports_usage_errors_without_a_traceback(tmp_path):
         (["--fps", "0"], "simulate: --fps 0: must be a whole number in [1, 1000]"),
         (["--substeps", "0"], "simulate: --substeps 0: must be a whole number in [1, 1000]"),
         (["--duration", "-1"], "simulate: --duration -1.0: must be in (0, 60] s"),
+        (
+            ["--fps", "1000", "--duration", "60", "--substeps", "1000"],
+            "simulate: --duration 60.0 s at --fps 1000 with --substeps 1000 is 60000000 physics steps: at most 200000 "
+            "(the default is 1 s x 30 x 8)",
+        ),
     ],
 )
 def test_simulate_names_a_bad_option_and_its_value(capsys, option, message):

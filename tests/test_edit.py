@@ -474,6 +474,7 @@ def test_check_output_reads_weightless_as_the_gravity_only_where_no_object_is_na
     language refuses it) named it too, so a free editor's answer that zeroed every object's gravity passed."""
     weightless = _answer(scene, {(3, "gravity"): [0.0, 0.0, 0.0]})
     named = ("make everything weightless", "make it weightless", "stop box_0 and make everything weightless")
+    named += ("moon gravity then make it weightless", "double the fov and make it weightless")  # 'it': no object
     for instruction in named:
         assert [c.path for c in check_output(scene, instruction, weightless).changes] == ["gravity.gravity[2]"]
     for instruction in ("make box_0 weightless", "make the boxes weightless", "stop box_0 and make it weightless"):
@@ -1475,3 +1476,29 @@ def test_positions_and_after_a_count_join_positions_not_clauses():
     ]
     assert split_clauses("stop box_0 and put a ball at [1, 2]") == ["stop box_0", "put a ball at [1, 2]"]
     assert named_additions("add 3 boxes at [0, 0], [1, 0] and [2, 0]; put a ball at [1, 2]") == {"box": 3, "sphere": 1}
+
+
+def test_several_replacements_split_only_before_a_target():
+    """'and of mass 2 kg' is the first replacement's phrase (it was split off as 'replace of mass 2 kg'); a second
+    replacement's targets may be joined by 'and' ('box_0 and box_1 with cylinders' was split as 'replace box_0')."""
+    from aynamics.edit import split_clauses
+
+    assert split_clauses("replace box_0 with a sphere of radius 0.2 and of mass 2 kg and cylinder_0 with a box") == [
+        "replace box_0 with a sphere of radius 0.2 and of mass 2 kg",
+        "replace cylinder_0 with a box",
+    ]
+    assert split_clauses("replace cylinder_0 with a sphere and box_0 and box_1 with cylinders") == [
+        "replace cylinder_0 with a sphere",
+        "replace box_0 and box_1 with cylinders",
+    ]
+
+
+def test_camera_position_errors_name_no_internal_key():
+    from aynamics.edit import EditError, apply_instruction
+    from aynamics.scene import load
+
+    scene = load(str(Path(__file__).parent / "assets" / "paper_example.yaml"))
+    for text in ("set the camera position to [0, -4]", "set the camera height to 3 kg"):
+        with pytest.raises(EditError) as e:
+            apply_instruction(scene, text)
+        assert "camera_position" not in str(e.value) and "camera position" in str(e.value)

@@ -496,6 +496,8 @@ def test_own_scene_files_make_a_data_set(tmp_path, capsys):
     assert main(["generate", "--scenes", str(folder), "--out", str(new), "width=64", "sampler.max_objects=2"]) == 2
     err = capsys.readouterr().err
     assert "generate: sampler.max_objects=2 sets the scene sampler, which --scenes does not use" in err
+    assert main(["generate", "--scenes", str(folder), "--out", str(new), "sampler={max_objects: 2}"]) == 2
+    assert "generate: sampler={max_objects: 2} sets the scene sampler" in capsys.readouterr().err
     assert not new.exists()
 
 

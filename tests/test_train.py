@@ -1769,3 +1769,14 @@ def test_a_run_that_both_limits_end_by_its_epochs_logs_its_last_step(tmp_path, d
     with open(out / "csv" / "metrics.csv") as f:
         rows = [row for row in csv.DictReader(f) if row.get("train/loss")]
     assert [int(row["step"]) for row in rows] == [3] and math.isfinite(float(rows[0]["train/loss"]))
+
+
+def test_a_model_config_error_is_not_named_as_a_stage_module_key(tmp_path, dataset_dir):
+    """The model is built inside the module's constructor: "lora dropout = 1.5" (model.lora_dropout) read
+    "... (config: stage.module)" and model.tiny.hidden_size "stage.module.hidden_size = 62"."""
+    for override, message in [
+        ("model.lora_dropout=1.5", r"^lora dropout = 1.5: must be in \[0, 1\)$"),
+        ("model.tiny.hidden_size=62", r"^hidden_size = 62, num_heads = 4: head_dim must be an even integer$"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", override))
