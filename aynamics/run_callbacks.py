@@ -171,6 +171,19 @@ class StepsProgressBar(RichProgressBar):
     `trainer.max_steps` has `max_epochs = -1`, which Lightning 2.6 prints as "Epoch 3/-2" (Lightning issue 21925,
     fixed in its later releases)."""
 
+    @property
+    def total_train_batches(self) -> int | float:
+        """The epoch's batches the run trains: Lightning's counts the optimizer steps left as batches (4 batches
+        of accumulation 2 shown "4/2") and, on a resume that starts the bar after its first batch, leaves out the
+        batches of the epoch already run ("2/1"). Here: those run (this one included) + the steps left × the
+        accumulation, at most the epoch's."""
+        t = self.trainer
+        if t.max_epochs != -1 or t.max_steps is None or t.max_steps <= 0:
+            return t.num_training_batches
+        run = t.fit_loop.epoch_loop.batch_progress.current.processed  # 0 at the epoch's start
+        left = (t.max_steps - t.global_step) * t.accumulate_grad_batches
+        return min(t.num_training_batches, run + left)
+
     def _get_train_description(self, current_epoch: int) -> str:
         text = f"Epoch {current_epoch}"
         if self.trainer.max_epochs is not None and self.trainer.max_epochs >= 0:

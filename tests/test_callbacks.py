@@ -1048,6 +1048,33 @@ def test_progress_bar_names_an_epoch_total_only_when_there_is_one(max_epochs, de
     assert isinstance(bar, StepsProgressBar) and seen == [described, described]
 
 
+def test_progress_bar_total_counts_batches_not_steps_and_those_run_before_a_resume():
+    """Lightning 2.6 sized the bar by the optimizer steps left: 2 batches at accumulation 2 read "2/1", and a run
+    resumed at step 3 of max_steps 5 (its bar starts after its first batch, at global step 4) read "2/1". The total
+    is the epoch's batches run + steps left × accumulation, at most the epoch's (3 here); unlimited epochs only."""
+    from types import SimpleNamespace
+
+    from aynamics.run_callbacks import StepsProgressBar
+
+    def total(processed, global_step, accumulate=1, max_steps=5, max_epochs=-1):
+        bar = StepsProgressBar()
+        progress = SimpleNamespace(current=SimpleNamespace(processed=processed))
+        bar._trainer = SimpleNamespace(
+            max_epochs=max_epochs,
+            max_steps=max_steps,
+            global_step=global_step,
+            accumulate_grad_batches=accumulate,
+            num_training_batches=3,
+            fit_loop=SimpleNamespace(epoch_loop=SimpleNamespace(batch_progress=progress)),
+        )
+        return bar.total_train_batches
+
+    assert total(0, 0, accumulate=2, max_steps=1) == 2  # Lightning: 1
+    assert total(1, 4) == 2  # the resumed run's first batch (Lightning: 1)
+    assert total(0, 3) == 2 and total(0, 0) == 3  # at an epoch's start: as Lightning's
+    assert total(0, 0, max_epochs=4, max_steps=-1) == 3
+
+
 def test_invalid_reasons_count_why_responses_fail():
     """The line under the validation table: each invalid response counted once by its kind, the simulation's
     failures by their own first words, most first (ties in the order met); none when every scene simulates."""
