@@ -14,6 +14,7 @@ camera, after a clause that edited it):
     moon gravity                                 increase the mass by a factor of 3
     move the camera 1 m back                     set the camera height to 3 m
     put the camera at [0, -4, 3]                 increase the tilt of the camera by 10 degrees
+    raise the camera by 1 m                      tilt the camera up by 10 degrees  (from straight down)
     turn off gravity                             zero gravity
     double the mass of box_0 and halve its friction
     make the sphere 3 times faster               remove box_0
@@ -76,6 +77,7 @@ from aynamics.edit_words import (
     AS_WORDS,
     BY_KEY,
     CAMERA_FIELDS,
+    CAMERA_POSITION,
     ER_WORDS,
     FACTOR,
     FACTORS,
@@ -275,6 +277,14 @@ def _clause(
             )
         q, comp, t_text = BY_KEY["gravity"], None, None
         fn = _absolute(q, None, [0.0, 0.0, 0.0], "abs", clause)
+    elif m := re.fullmatch(rf"(?P<v>raise|lower) (?:the )?camera (?:by )?(?P<n>{NUM} ?[a-z]*)", c):
+        q, comp, t_text = CAMERA_POSITION, 2, None  # "raise the camera by 1 m": its height
+        amount, _ = read_value(m.group("n"), q)
+        fn = _relative(q, comp, 1.0 if m.group("v") == "raise" else -1.0, amount, "abs", clause)
+    elif m := re.fullmatch(rf"tilt (?:the )?camera (?P<d>up|down) (?:by )?(?P<n>{NUM} ?[a-z]*)", c):
+        q, comp, t_text = BY_KEY["tilt"], None, None  # "tilt the camera up by 10 degrees": from straight down
+        amount, _ = read_value(m.group("n"), q)
+        fn = _relative(q, comp, 1.0 if m.group("d") == "up" else -1.0, amount, "abs", clause)
     elif m := re.fullmatch(REPLACE_CLAUSE, c):  # before 'set|change ... to': "change box_0 to a sphere"
         t, n, k, rest = m.group("t", "n", "k", "rest")
         return replace_objects(t, n, k, rest, items, scene, clause, previous, raw)
@@ -320,9 +330,14 @@ def _clause(
     elif m := re.fullmatch(r"(?:set|change) (?:the )?(?P<s>.+?) (?:to|=) (?P<a>.+)", c):
         q_text, t_text = subject(m.group("s"))
         q, comp = _quantity_of(q_text, t_text, previous)
-        value, kind = read_value(m.group("a"), q)
-        fn = _absolute(q, comp, value, kind, clause)
-        one_point = q.key == "position" and isinstance(value, list)  # "set the position of ... to [x, y, z]"
+        positional = comp is None and (q.path == ("state", "position") or q is CAMERA_POSITION)
+        if positional and (xy := re.fullmatch(rf"\[\s*({NUM})\s*,\s*({NUM})\s*\]", m.group("a"))):
+            x, y = float(xy.group(1)), float(xy.group(2))  # "set the camera position to [0, -4]": its height kept
+            fn, one_point = (lambda v: [x, y, v[2]]), q.key == "position"
+        else:
+            value, kind = read_value(m.group("a"), q)
+            fn = _absolute(q, comp, value, kind, clause)
+            one_point = q.key == "position" and isinstance(value, list)  # "set the position of ... to [x, y, z]"
     elif m := re.fullmatch(r"(?P<v>double|triple|quadruple|halve) (?:the )?(?P<s>.+)", c):
         q_text, t_text = subject(m.group("s"))
         q, comp = _quantity_of(q_text, t_text, previous)
@@ -418,7 +433,7 @@ NO_GRAVITY = (
 # friction"); elsewhere it joins objects ("box_0 and sphere_1")
 _CLAUSE_START = (
     rf"(?:{VERBS_BY}|set|change|double|triple|quadruple|halve|multiply|scale|reverse|negate|flip|stop|freeze|make|"
-    rf"use|switch to|apply|remove|delete|take away|take out|switch off|shut off|disable|zero gravity|no gravity|"
+    rf"use|switch to|apply|remove|delete|take away|take out|switch off|shut off|disable|zero gravity|no gravity|tilt|"
     rf"{ADD_VERBS}|{REPLACE_VERBS}|{_MOVE})\b"
 )
 

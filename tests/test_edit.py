@@ -84,6 +84,15 @@ CASES = [
     ("set the camera height to 3 m", {"camera.position[2]": 3.0}),
     ("increase the height of the camera by 1 m", {"camera.position[2]": 4.5}),
     ("set the x-position of the camera to 1", {"camera.position[0]": 1.0}),
+    ("raise the camera by 1 m", {"camera.position[2]": 4.5}),
+    ("lower the camera by 50 cm", {"camera.position[2]": 3.0}),
+    ("tilt the camera up by 10 degrees", {"camera.orientation": 55.0}),  # from straight down: toward the horizon
+    (
+        "move the camera 1 m back and tilt the camera down by 5",
+        {"camera.position[1]": -3.0, "camera.orientation": 40.0},
+    ),
+    ("set the camera position to [0, -4]", {"camera.position[1]": -4.0}),  # [x, y]: its height kept
+    ("set the position of box_0 to [1, 2]", {"box_0.state.position[0]": 1.0, "box_0.state.position[1]": 2.0}),
     # [x, y]: there on the floor plan, at its height (box_0 at [-5, -0.3, 0.3])
     ("put box_0 at [1, 2]", {"box_0.state.position[0]": 1.0, "box_0.state.position[1]": 2.0}),
     ("move the camera to [1, -3]", {"camera.position[0]": 1.0, "camera.position[1]": -3.0}),
@@ -186,6 +195,7 @@ REFUSED = [
     ("put box_0 and cylinder_0 at [1, 2, 0.4]", "puts 2 objects ['box_0', 'cylinder_0'] at one place"),
     ("move all objects to [1, 2]", "puts 2 objects ['box_0', 'cylinder_0'] at one place"),
     ("set the position to [1, 2, 0.5]", "puts 2 objects ['box_0', 'cylinder_0'] at one place"),
+    ("set the position to [1, 2]", "puts 2 objects ['box_0', 'cylinder_0'] at one place"),
     ("move box_0 to [1]", "'move box_0 to [1]': a move takes [x, y] (its height kept) or [x, y, z], not [1]"),
     ("put box_0 at [1, 2, 3, 4]", "a move takes [x, y] (its height kept) or [x, y, z], not [1, 2, 3, 4]"),
     ("double the mass of the camera", "the camera has no 'mass': its fields are position"),
@@ -1498,7 +1508,7 @@ def test_camera_position_errors_name_no_internal_key():
     from aynamics.scene import load
 
     scene = load(str(Path(__file__).parent / "assets" / "paper_example.yaml"))
-    for text in ("set the camera position to [0, -4]", "set the camera height to 3 kg"):
+    for text in ("set the camera position to [0, -4, 1, 2]", "set the camera height to 3 kg"):
         with pytest.raises(EditError) as e:
             apply_instruction(scene, text)
         assert "camera_position" not in str(e.value) and "camera position" in str(e.value)
