@@ -160,11 +160,8 @@ def motion_field(
         return flow, None
     # a point without a landing place (a diverged rollout's NaN pose) is lost too; comparisons with NaN are False
     hidden = ~(np.isfinite(u1) & np.isfinite(v1) & (z1 > 0)) | (u1 < 0) | (u1 >= w) | (v1 < 0) | (v1 >= h)
-    if sight is not None:
-        rot = quat_to_mat(np.asarray(orientation, float))
-        point = cam.position + z[:, None] * (np.stack([u0, v0, np.ones_like(u0)], -1) @ np.linalg.inv(cam.K).T @ cam.R)
-        pos = np.asarray(position, float)
-        hidden |= ~sight(carry_points(point, body, pos[0], rot[0], pos[1], rot[1]))
+    if sight is not None:  # q = K p' is the carried point in camera axes: P' = Rcᵀ K⁻¹ q + the camera's centre
+        hidden |= ~sight(cam.position + (q @ np.linalg.inv(cam.K).T) @ cam.R)
     elif next_depth is not None and next_segmentation is not None:
         inside = ~hidden
         tu = np.clip(np.nan_to_num(u1), 0, w - 1).astype(np.intp)  # (NaN cast to an index was -2^63: IndexError)
