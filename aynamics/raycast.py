@@ -20,7 +20,7 @@ import numpy as np
 
 from aynamics import camera as camlib
 from aynamics import simulate as sim
-from aynamics.flow import carry_points, pixel_rays, quat_to_mat
+from aynamics.flow import pixel_rays, quat_to_mat
 from aynamics.scene import Scene
 
 RAY_SLACK = 1e-6  # a carried point's ray may end this share of its length short of it and still meet it
@@ -197,11 +197,10 @@ def cast_group(
         steps.append(Hits(*(a[by_c] for a in cat[:3]), cat[3][by_c].astype(np.int16), cat[4][by_c].astype(float)))
 
     rot = quat_to_mat(np.where(np.isfinite(qpos[..., cols_p[:, 3:]]), qpos[..., cols_p[:, 3:]], 1.0))
-    flow, uv, z = _motion(steps[0], cams, rays, pos, rot, frames, grid)
+    flow, uv, z, carried = _motion(steps[0], cams, rays, pos, rot, frames, grid)
     overlaps = [0.0 if o is None else float(o[0]) for o in (raw.overlap or [None] * n)]
     cast = Cast(steps[0], flow, (n, f_count, h, w), reasons, overlaps=overlaps)
     if with_next:
-        carried = _carried(steps[0], rays, origins, pos, rot, frames)
         seen = _in_sight(b, qpos, frames + 1, steps[0], carried, origins)
         cast.occluded = _occlusion(cast, steps[1], uv, z, seen)
     return cast
@@ -260,10 +259,11 @@ def _motion(
     grid: SampleGrid,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Motion field of every hit of every candidate at once: flow (P, 2) in the grid's pixels, target (P, 2) in
-    them (where the point is at the next frame), target depth (P,)."""
+    them (where the point is at the next frame), target depth (P,), and the point carried to the next frame
+    (P, 3) world: P' = R1 R0ᵀ (P − x0) + x1, from its image K p' as P' = Rcᵀ K⁻¹ (K p') + the camera's centre."""
     c, f, pix = hits.c, hits.f, hits.pix
     if len(c) == 0:
-        return np.zeros((0, 2), np.float32), np.zeros((0, 2)), np.zeros(0)
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3))
     body = hits.obj.astype(np.intp)
     # per (candidate, frame, body): homogeneous pixel of the moved point = A P + a, A = K R_cam R1 R0ᵀ,
     # a = K (R_cam (x1 - R1 R0ᵀ x0) + t_cam); with P = o + z r this is (A o + a) + z (A r)
@@ -286,24 +286,8 @@ def _motion(
     w = len(grid.u)
     scale = w / grid.full_w  # full-view pixels -> the grid's (as observed flow is scaled)
     flow = ((uv - np.stack([grid.u[pix % w], grid.v[pix // w]], axis=-1)) * scale).astype(np.float32)
-    return flow, uv * np.array([scale, len(grid.v) / grid.full_h]), z
-
-
-def _carried(
-    hits: Hits,
-    rays: np.ndarray,  # (n, h*w, 3)
-    origins: np.ndarray,  # (n, 3)
-    pos: np.ndarray,  # (n, T, N, 3)
-    rot: np.ndarray,  # (n, T, N, 3, 3)
-    frames: np.ndarray,  # (F,)
-) -> np.ndarray:
-    """(P, 3) world point of every hit carried with its body to the next frame: P' = R1 R0ᵀ (P − x0) + x1."""
-    c = hits.c
-    point = origins[c] + hits.depth[:, None] * rays[c, hits.pix]  # rays have optical-axis component 1
-    f_count, n_obj = len(frames), pos.shape[2]
-    pose = (c * f_count + hits.f) * n_obj + hits.obj  # each hit's (candidate, frame, body) in the flat poses
-    at = [(pos[:, k].reshape(-1, 3), rot[:, k].reshape(-1, 3, 3)) for k in (frames, frames + 1)]
-    return carry_points(point, pose, *at[0], *at[1])
+    carried = origin[c] + np.einsum("pji,pj->pi", R[c], np.einsum("pij,pj->pi", np.linalg.inv(K)[c], hom))
+    return flow, uv * np.array([scale, len(grid.v) / grid.full_h]), z, carried
 
 
 def _in_sight(
