@@ -429,9 +429,7 @@ def raised_in_init(error: BaseException) -> bool:
     it called: `lm.build_model` refuses the model config's values (model.lora_dropout, model.tiny.hidden_size)."""
     import lightning as L
 
-    tb = error.__traceback__
-    while tb is not None and tb.tb_next is not None:
-        tb = tb.tb_next
+    tb = innermost(error)
     return (
         tb is not None
         and tb.tb_frame.f_code.co_name == "__init__"
@@ -448,6 +446,14 @@ def name_keys(message: str, key: str) -> str:
     return f"{named}{sep}{tail}" if n else f"{message} (config: {key})"
 
 
+def innermost(error: BaseException):
+    """The innermost traceback entry of an error (where it was raised), or None for one never raised."""
+    tb = error.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb
+
+
 def raised_here(error: BaseException) -> bool:
     """Whether a check of this project raised the error: the innermost frame of its traceback is a `raise`
     statement in aynamics/ or train.py (a builtin failing there, `open` on a full disk or an unpacking, adds no
@@ -456,9 +462,7 @@ def raised_here(error: BaseException) -> bool:
 
     import aynamics
 
-    tb = error.__traceback__
-    while tb is not None and tb.tb_next is not None:
-        tb = tb.tb_next
+    tb = innermost(error)
     if tb is None:
         return False
     filename = tb.tb_frame.f_code.co_filename

@@ -392,13 +392,13 @@ def _clause(
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope == "object" and t_text is not None and re.fullmatch(_ITEM_WORDS["camera"], t_text):
         raise EditError(f"{clause!r}: the camera has no {q.key}; its fields are {CAMERA_FIELDS}")  # "... as heavy"
-    if q.scope != "object" and t_text is None and re.match(r"(its|their) ", q_text) and isinstance(previous, list):
-        if previous:  # "double the mass of box_0 and increase its tilt": the camera's tilt was edited
-            raise EditError(
-                f"{clause!r}: {q_text.split()[0]!r} is {[scene.names[i] for i in previous]}, but the {q.key} is "
-                f"{'the camera' if q.scope == 'camera' else 'the whole scene'}'s; name it (e.g. 'the {q.key} of the "
-                f"{'camera' if q.scope == 'camera' else 'scene'}')"
-            )
+    its = q.scope != "object" and t_text is None and re.match(r"(its|their) ", q_text)
+    if its and isinstance(previous, list) and previous:  # "double the mass of box_0 and increase its tilt"
+        owner = "camera" if q.scope == "camera" else "scene"  # (the camera's tilt was edited)
+        raise EditError(
+            f"{clause!r}: {q_text.split()[0]!r} is {[scene.names[i] for i in previous]}, but the {q.key} is "
+            f"{'the camera' if owner == 'camera' else 'the whole scene'}'s; name it (e.g. 'the {q.key} of the {owner}')"
+        )
     if q.scope != "object" and t_text is not None and re.fullmatch(_ITEM_WORDS[q.scope], t_text):
         t_text = None  # "the field of view of the camera", "the gravity of the scene" name the item itself
     owner = re.match(r"(its|their) ", q_text) if t_text is None and q.scope == "object" else None
@@ -411,9 +411,9 @@ def _clause(
         names = [scene.names[i] for i in idx]
         raise EditError(f"{clause!r} puts {len(idx)} objects {names} at one place; move one object at a time")
     for item in _items_of(q, items, idx, scene, t_text is not None or owner is not None):
-        before = copy.deepcopy(item)
+        before = copy.deepcopy(item) if q.key in SHAPE_KEYS else None
         _edit_field(item, q, comp, fn, repr(clause))
-        if q.key in SHAPE_KEYS:  # "double the size of box_0": a resting box grew into the floor (overlapping start)
+        if before is not None:  # "double the size of box_0": a resting box grew into the floor (overlapping start)
             item["state"]["position"] = pose_after(before, item, items)[0]
     return idx if q.scope == "object" else clause if q.scope == "camera" else previous
 

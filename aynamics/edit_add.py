@@ -8,8 +8,8 @@ a tilted floor), 'at [x, y, z]' puts its centre there upright. Its shape and phy
 of the scene's first object of its kind, else 0.2 m, 1 kg, friction [0.5, 0.05], damping -4 (`ADD_DEFAULTS`); the
 phrases set any of them and its velocity; it starts at rest otherwise. A count ('two spheres', '3 boxes': a number
 word up to ten or digits) adds that many, one per position given ('at [0, 0], [1, 0] and [2, 0]', in order), each
-with the other phrases, and no single 'named'. An object added inside another is the simulation's to refuse (its
-rollout names the pair).
+with the other phrases, and no single 'named'. An object added inside another is refused when the edit finishes
+(`aynamics.edit.check_start` names the pair).
 """
 
 from __future__ import annotations
@@ -211,12 +211,13 @@ def add_objects(
     if kind_word in CUBES and "size" not in given and len(set(shape["size"])) != 1:  # the scene's box is no cube
         shape["size"] = list(ADD_DEFAULTS["box"]["size"])
     set_shape(shape, given, kind_word, clause)
+    moving = velocity(given, clause) or [0.0, 0.0, 0.0]
     added = []
     for where in at:
         item = copy.deepcopy(shape)
         name = new_name(kind, given, items, clause, raw)
         position, orientation = _placement(where, item, items, clause)
-        state = {"angular_velocity": [0.0, 0.0, 0.0], "linear_velocity": velocity(given, clause) or [0.0, 0.0, 0.0]}
+        state = {"angular_velocity": [0.0, 0.0, 0.0], "linear_velocity": list(moving)}
         item = {"type": kind, "name": name, **item, "state": state | {"orientation": orientation, "position": position}}
         index = sum(it["type"] in OBJECT_TYPES for it in items)  # objects come first, the camera and the rest after
         items.insert(index, item)

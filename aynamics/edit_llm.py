@@ -65,13 +65,7 @@ def check_output(scene: Scene, instruction: str, text: str) -> EditResult:
     # let the model keep box_0 and move it)
     fields = allowed - set(scene.names)
     bad = [c for c in changes if not c.added and outside([c], allowed if c.removed else fields)]
-    # a replacement adds its objects in place of its targets: an answer that keeps them ("replace box_0 with a box":
-    # box_0 kept and box_1 added) may not add those
-    gone = {c.path for c in changes if c.removed}
-    may_add: dict[str, int] = {}
-    for kind, n, replaced in additions(instruction, scene):
-        if replaced is None or all(name in gone for name in replaced):
-            may_add[kind] = may_add.get(kind, 0) + n
+    may_add = named_additions(instruction, scene, removed={c.path for c in changes if c.removed})
     for kind in sorted({c.after for c in changes if c.added}):
         added = [c for c in changes if c.added and c.after == kind]
         if len(added) > may_add.get(kind, 0):  # "add a sphere" let it add two, or a box
@@ -232,18 +226,21 @@ def named_fields(instruction: str, scene: Scene) -> set[str]:
 _OBJECT_FIELDS = ("size", "radius", "height", "physics", "state")  # an object's fields but its name and type
 
 
-def named_additions(instruction: str, scene: Scene | None = None) -> dict[str, int]:
+def named_additions(instruction: str, scene: Scene | None = None, removed: set[str] | None = None) -> dict[str, int]:
     """How many objects of each kind the instruction's 'add' and 'replace' clauses add ('add a sphere at [1, 0]' ->
     {'sphere': 1}, 'replace box_0 with a ball' -> {'sphere': 1}), for checking a free editor: it may add those and
     no more. A replacement of several targets by a plural kind ('replace the boxes with spheres') adds one for each
-    of the `scene`'s objects the targets name (without a scene: none, so such an answer is refused)."""
+    of the `scene`'s objects the targets name (without a scene: none, so such an answer is refused). With `removed`
+    (the names an answer removed) a replacement counts only where its targets are among them: an answer that keeps
+    them ("replace box_0 with a box": box_0 kept and box_1 added) may not add its objects."""
     if not isinstance(instruction, str):
         raise TypeError(f"named_additions: instruction is a {type(instruction).__name__}, not a str")
     if scene is not None:
         require_scene(scene, "named_additions: scene")
     out: dict[str, int] = {}
-    for kind, n, _ in additions(instruction, scene):
-        out[kind] = out.get(kind, 0) + n
+    for kind, n, replaced in additions(instruction, scene):
+        if removed is None or replaced is None or set(replaced) <= removed:
+            out[kind] = out.get(kind, 0) + n
     return out
 
 

@@ -100,6 +100,7 @@ def replace_objects(
             "one clause at a time to name each"
         )
     like = like_object(given, kind, items, objs, clause, previous) if "like" in given else None
+    moving = velocity(given, clause)  # None: each keeps its old one's
     out = []
     for j, i in enumerate(idx):
         at = i + j  # each replacement before this one was inserted after its old item
@@ -118,7 +119,7 @@ def replace_objects(
         state = old["state"]
         item["state"] = {
             "angular_velocity": list(state["angular_velocity"]),
-            "linear_velocity": velocity(given, clause) or list(state["linear_velocity"]),
+            "linear_velocity": list(moving or state["linear_velocity"]),
             "orientation": orientation,
             "position": position,
         }
