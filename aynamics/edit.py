@@ -38,7 +38,8 @@ the rate (a plain number sets the log10 value).
 An 'add' clause is read in `aynamics.edit_add` (where an added object goes, its name, shape and physics; a count
 takes one position each: the "and" between positions joins positions, not clauses), a 'replace' clause in
 `aynamics.edit_replace` (the new object takes the old one's place, pose, velocity and physics, and its extent unless
-the phrases give a shape), the objects a target phrase or a pronoun names in `aynamics.edit_targets`.
+the phrases give a shape), the objects a target phrase or a pronoun names in `aynamics.edit_targets`, where one
+clause ends and the next starts in `aynamics.edit_clauses`.
 
     result = apply_instruction(scene, "reduce the x-velocity of box_0 by 80%")
     result.scene, result.changes   # the validated edited scene; every leaf that changed, every object removed or
@@ -58,11 +59,13 @@ import math
 import re
 from dataclasses import dataclass
 
-from aynamics.edit_add import ADD_CLAUSE, ADD_VERBS, COUNT, KIND_WORDS, PHRASE_START, add_objects
+from aynamics.edit_add import ADD_CLAUSE, COUNT, KIND_WORDS, add_objects
 from aynamics.edit_add import ADD_DEFAULTS as ADD_DEFAULTS
+from aynamics.edit_clauses import MOVE_VERBS, NO_GRAVITY, REMOVE_CLAUSE
+from aynamics.edit_clauses import split_clauses as split_clauses
 from aynamics.edit_diff import Change as Change
 from aynamics.edit_diff import diff as diff
-from aynamics.edit_replace import REPLACE_CLAUSE, REPLACE_VERBS, pose_after, replace_objects
+from aynamics.edit_replace import REPLACE_CLAUSE, pose_after, replace_objects
 from aynamics.edit_targets import (
     REMOVED,
     ObjectView,
@@ -221,7 +224,6 @@ def _absolute(q: Quantity, comp: int | None, value: float | list[float], kind: s
 
 
 _ITEM_WORDS = {"camera": r"(?:the )?camera", "gravity": r"(?:the )?(?:scene|world)"}  # targets naming the item
-_MOVE = r"(?:move|shift|push|translate)"
 
 
 def _quantity_of(
@@ -250,6 +252,9 @@ def _camera_pronoun(t_text: str, previous: list[int] | str | None) -> str:
 # "put box_0 at [1, 2, 0.4]", "place the cylinder at [...]": a move to there ("put a ball at [1, 2]" adds one)
 _PUT_AT = rf"(?:put|place) (?!(?:{COUNT})(?: (?:more|new|other))? (?:{KIND_WORDS})\b)(?P<t>.+?) (?:at|to) (?P<a>\[.*\])"
 _DIRS = "|".join(sorted(DIRECTIONS, key=len, reverse=True))
+# "move box_0 0.5 m left", "shift the camera to the right by 1 m"
+_MOVE_BY = rf"{MOVE_VERBS} (?P<t>.+?) (?:by )?(?P<n>{NUM} ?[a-z]*) (?:to the )?(?P<d>{_DIRS})"
+_MOVE_TOWARD = rf"{MOVE_VERBS} (?P<t>.+?) (?:to the )?(?P<d>{_DIRS}) by (?P<n>{NUM} ?[a-z]*)"
 
 
 def _clause(
@@ -352,7 +357,7 @@ def _clause(
         if not q.signed:
             raise EditError(f"{clause!r}: only velocity, spin, position and gravity can be reversed, not {q.key}")
         fn = _scale(q, -1.0)
-    elif m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) to (?P<a>\[.*\])", c) or re.fullmatch(_PUT_AT, c):
+    elif m := re.fullmatch(rf"{MOVE_VERBS} (?P<t>.+?) to (?P<a>\[.*\])", c) or re.fullmatch(_PUT_AT, c):
         t_text, comp, one_point = _camera_pronoun(m.group("t"), previous), None, True
         q = _quantity_of("position", t_text)[0]  # an object's, or the camera's ("put the camera at [0, -4, 3]")
         if xy := re.fullmatch(rf"\[\s*({NUM})\s*,\s*({NUM})\s*\]", m.group("a")):  # "put box_0 at [1, 2]"
@@ -363,9 +368,7 @@ def _clause(
                 raise EditError(f"{clause!r}: a move takes [x, y] (its height kept) or [x, y, z], not {m.group('a')}")
             value, _ = read_value(m.group("a"), q)
             fn = _absolute(q, None, value, "abs", clause)
-    elif (m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:by )?(?P<n>{NUM} ?[a-z]*) (?:to the )?(?P<d>{_DIRS})", c)) or (
-        m := re.fullmatch(rf"{_MOVE} (?P<t>.+?) (?:to the )?(?P<d>{_DIRS}) by (?P<n>{NUM} ?[a-z]*)", c)
-    ):
+    elif (m := re.fullmatch(_MOVE_BY, c)) or (m := re.fullmatch(_MOVE_TOWARD, c)):
         t_text = _camera_pronoun(m.group("t"), previous)
         q = _quantity_of("position", t_text)[0]  # "move the camera 1 m back"
         comp, sign = DIRECTIONS[m.group("d")]
@@ -419,60 +422,6 @@ def _clause(
 
 
 SHAPE_KEYS = ("size", "radius", "height")  # an object on the floor keeps resting on it when they change
-
-
-REMOVE_CLAUSE = r"(?:remove|delete|take away|take out) (?P<t>.+?)(?: from the scene)?"  # a removal clause
-# "turn off gravity", "no gravity", "zero gravity", "make it weightless" (read before a removal: "remove gravity")
-NO_GRAVITY = (
-    r"(?:(?:turn|switch|shut) off|remove|disable|take away) (?:the )?gravity|(?:use |set |with )?(?:zero|no) gravity"
-    r"|(?:set (?:the )?gravity to (?:zero|0|nothing))|(?:make (?:it|everything|the scene|the objects) )?weightless"
-)
-
-
-# the words a clause starts with: "and" before one of them joins two clauses ("double the mass of box_0 and halve its
-# friction"); elsewhere it joins objects ("box_0 and sphere_1")
-_CLAUSE_START = (
-    rf"(?:{VERBS_BY}|set|change|double|triple|quadruple|halve|multiply|scale|reverse|negate|flip|stop|freeze|make|"
-    rf"use|switch to|apply|remove|delete|take away|take out|switch off|shut off|disable|zero gravity|no gravity|tilt|"
-    rf"{ADD_VERBS}|{REPLACE_VERBS}|{_MOVE})\b"
-)
-
-
-def split_clauses(instruction: str, names: tuple[str, ...] = ()) -> list[str]:
-    """The clauses of an instruction, lower-cased; "and" before an object's name joins objects even where the name is
-    a clause verb ("stop box_0 and scale" for an object named scale was refused as the clause "scale")."""
-    text = " ".join(instruction.strip().split()).rstrip(".!").lower()
-    text = text.replace("per cent", "percent")
-    not_name = rf"(?!(?:{'|'.join(re.escape(n.lower()) for n in names)})\b)" if names else ""
-    clauses = [c.strip(" ,") for c in re.split(rf";|,? then |,? and then |,? and {not_name}(?={_CLAUSE_START})", text)]
-    clauses = [re.sub(r"^(?:please|now) ", "", c) for c in clauses if c.strip(" ,")]
-    return [part for c in clauses for part in _replacements(c)]
-
-
-# "... and cylinder_0 with a box": another target and its kind, after a replace clause's first
-# (not before a phrase of the first: "of radius 0.2 and of mass 2 kg and cylinder_0 with a box")
-_WITH_KIND = rf" (?:with|by|for|into|to) (?:(?:{COUNT})(?: new| other)? )?(?:{KIND_WORDS})\b"
-_NEXT_REPLACEMENT = rf",? and (?!{PHRASE_START})(?=.+?{_WITH_KIND})"
-
-
-def _replacements(clause: str) -> list[str]:
-    """A replace clause of several replacements as one clause each, the verb repeated: "replace box_0 with a sphere
-    and cylinder_0 with a box" -> "replace box_0 with a sphere", "replace cylinder_0 with a box" (the second was read
-    as the first's phrases, and refused). Any other clause as it is."""
-    if not (m := re.fullmatch(REPLACE_CLAUSE, clause)):
-        return [clause]
-    verb = re.match(REPLACE_VERBS, clause).group(0)
-    first, *pieces = re.split(_NEXT_REPLACEMENT, m.group("rest"))
-    more: list[str] = []
-    pending = ""  # a target without its kind joins the next piece ("... and box_1 and cylinder_0 with boxes")
-    for piece in pieces:
-        piece = f"{pending} and {piece}" if pending else piece
-        if re.search(_WITH_KIND, piece):
-            more.append(piece)
-            pending = ""
-        else:
-            pending = piece
-    return [clause[: m.start("rest")] + first, *(f"{verb} {part}" for part in more)]
 
 
 def apply_instruction(scene: Scene, instruction: str) -> EditResult:

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import re
 
-from aynamics.edit import REMOVE_CLAUSE, SHAPE_KEYS, EditResult, check_start, split_clauses
+from aynamics.edit import SHAPE_KEYS, EditResult, check_start
 from aynamics.edit_add import ADD_CLAUSE, KINDS, PLURAL, read_count
+from aynamics.edit_clauses import REMOVE_CLAUSE, split_clauses
 from aynamics.edit_diff import Change, diff
 from aynamics.edit_replace import REPLACE_CLAUSE
 from aynamics.edit_targets import find_targets

@@ -51,10 +51,8 @@ from aynamics.edit_words import EditError
 REPLACE_VERBS = r"(?:replace|swap(?: out)?|turn|change)"
 # "replace box_0 with a sphere ...", "swap the boxes for spheres ...": the targets, the count (none: one, or one per
 # target for a plural kind), the kind, then the add clause's phrases
-REPLACE_CLAUSE = (
-    rf"{REPLACE_VERBS} (?P<t>.+?) (?:with|by|for|into|to) (?:(?P<n>{COUNT})(?: new| other)? )?(?P<k>{KIND_WORDS})\b"
-    r"(?P<rest>.*)"
-)
+WITH_KIND = rf"(?:with|by|for|into|to) (?:(?P<n>{COUNT})(?: new| other)? )?(?P<k>{KIND_WORDS})\b"  # "with two spheres"
+REPLACE_CLAUSE = rf"{REPLACE_VERBS} (?P<t>.+?) {WITH_KIND}(?P<rest>.*)"
 REPLACE_WORDS = (
     "'replace|swap|turn|change TARGETS with|for|into a|an box|cube|sphere|ball|cylinder' (several targets: "
     "'spheres'), then any of: 'named NAME', 'like OBJECT' (its shape), 'moving at [vx, vy, vz] m/s', 'of radius R', "
