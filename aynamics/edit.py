@@ -458,14 +458,27 @@ def finish(scene: Scene, items: list[dict], instruction: str) -> EditResult:
     return EditResult(edited, tuple(diff(scene, edited)))
 
 
-def check_start(scene: Scene, edited: Scene, what: str) -> None:
-    """Refuse an edited scene whose objects start inside each other or the floor where the scene's did not ('add a
-    sphere at [x, y]' where a box stands, 'move box_0 0.5 m down'): the simulation refused it as an overlapping
-    start, after the edit was written. A scene that overlapped before may still (the edit did not cause it)."""
-    from aynamics.simulate import MAX_START_OVERLAP, start_overlap
+OVERLAP_TOLERANCE = 1e-6  # m: an overlap the scene had, unchanged by the edit, may differ by float noise
 
-    if (overlap := start_overlap(edited)) is not None and start_overlap(scene) is None:
-        raise EditError(
-            f"{what} makes objects start inside each other or the floor: {overlap} (more than {MAX_START_OVERLAP} m), "
-            "which the simulation refuses; place them apart"
-        )
+
+def check_start(scene: Scene, edited: Scene, what: str) -> None:
+    """Refuse an edited scene whose objects start inside each other or the floor (deeper than the simulation
+    allows) where the scene's did not, or deeper than they did ('add a sphere at [x, y]' where a box stands, 'move
+    box_0 0.5 m down'): the simulation refused it as an overlapping start, after the edit was written. Overlaps the
+    scene had are kept as they were (the edit did not cause them); pairs are named by the objects' names, so an
+    overlapping object replaced by one of another name is a new pair. 0.9 ms a scene."""
+    from aynamics.simulate import MAX_START_OVERLAP, overlap_words, start_overlap_pairs
+
+    after = start_overlap_pairs(edited)
+    if not after:
+        return
+    before = start_overlap_pairs(scene)
+    worse = {pair: depth for pair, depth in after.items() if depth > before.get(pair, 0.0) + OVERLAP_TOLERANCE}
+    if not worse:
+        return
+    (a, b), depth = max(worse.items(), key=lambda p: p[1])
+    was = f", {before[a, b]:.3g} m before" if (a, b) in before else ""
+    raise EditError(
+        f"{what} makes objects start inside each other or the floor: {overlap_words(a, b, depth)}{was} (more "
+        f"than {MAX_START_OVERLAP} m), which the simulation refuses; place them apart"
+    )

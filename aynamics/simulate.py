@@ -264,20 +264,25 @@ def _unit(q: np.ndarray) -> np.ndarray:
 def start_overlaps(b: mjbatch.Batch, tpl: Template, n_sim: int) -> tuple:
     """Per simulation of a batch at its initial state: (depth, i, j) of the deepest contact deeper than
     `MAX_START_OVERLAP` (objects i, j; j = N for the floor), else None. ~0.07 ms a scene (one mj_forward)."""
+    found = (max(pairs.items(), key=lambda p: p[1], default=None) for pairs in _deep_pairs(b, tpl, n_sim))
+    return tuple(None if f is None else (f[1], *f[0]) for f in found)
+
+
+def _deep_pairs(b: mjbatch.Batch, tpl: Template, n_sim: int) -> list[dict[tuple[int, int], float]]:
+    """Per simulation at its initial state: {(i, j): depth} of every pair of objects (j = N for the floor) whose
+    deepest contact is deeper than `MAX_START_OVERLAP`, in contact order."""
     obj_of = {int(g): i for i, g in enumerate(tpl.geom_ids)} | {int(tpl.floor_geom): len(tpl.geom_ids)}
     out = []
     model = data = None
     for k in range(n_sim):
         model, data = b.get_model(k, model), b.get_data(k, data)
         mujoco.mj_forward(model, data)
-        dist = data.contact.dist[: data.ncon]
-        if len(dist) and dist.min() < -MAX_START_OVERLAP:
-            c = int(np.argmin(dist))
-            i, j = sorted((obj_of[int(data.contact.geom1[c])], obj_of[int(data.contact.geom2[c])]))
-            out.append((float(-dist[c]), i, j))
-        else:
-            out.append(None)
-    return tuple(out)
+        pairs: dict[tuple[int, int], float] = {}
+        for c in np.flatnonzero(data.contact.dist[: data.ncon] < -MAX_START_OVERLAP):
+            pair = tuple(sorted((obj_of[int(data.contact.geom1[c])], obj_of[int(data.contact.geom2[c])])))
+            pairs[pair] = max(pairs.get(pair, 0.0), float(-data.contact.dist[c]))
+        out.append(pairs)
+    return out
 
 
 def rollout_raw(
@@ -400,19 +405,25 @@ def overlap_of(raw: RawRollout, k: int, names: tuple[str, ...]) -> str | None:
     return _overlap_words(raw.overlap[k] if raw.overlap is not None else None, names)
 
 
-def start_overlap(scene: Scene) -> str | None:
-    """A scene's objects' deepest overlap at t = 0 deeper than `MAX_START_OVERLAP`, with each other or the floor, in
-    words ("box_0 and sphere_0 by 0.31 m"), else None: what `simulate` refuses as an overlapping start, found by one
-    mj_forward without simulating (0.9 ms for the paper's two-object scene once its template is compiled)."""
+def start_overlap_pairs(scene: Scene) -> dict[tuple[str, str], float]:
+    """Every pair of a scene's objects, or an object and "the floor", that start inside each other deeper than
+    `MAX_START_OVERLAP`, with the depth of its deepest contact in m (the edit language compares a scene's before
+    and after its edit with it)."""
     b, tpl = prepare_batch([scene], scene.structure, nthread=1)
-    return _overlap_words(start_overlaps(b, tpl, 1)[0], scene.names)
+    names = (*scene.names, "the floor")
+    return {(names[i], names[j]): depth for (i, j), depth in _deep_pairs(b, tpl, 1)[0].items()}
 
 
 def _overlap_words(found: tuple | None, names: tuple[str, ...]) -> str | None:
     if found is None:
         return None
     depth, i, j = found
-    return f"{names[i]} and {'the floor' if j == len(names) else names[j]} by {depth:.3g} m"
+    return overlap_words(names[i], "the floor" if j == len(names) else names[j], depth)
+
+
+def overlap_words(a: str, b: str, depth: float) -> str:
+    """How an overlap is named: "box_0 and the floor by 0.31 m"."""
+    return f"{a} and {b} by {depth:.3g} m"
 
 
 def check_states(

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from aynamics import cli
+from aynamics import simulate as sim
 from aynamics.edit import EditError, apply_instruction, diff, split_clauses
 from aynamics.edit_llm import LLMEditor, build_messages, check_output, named_fields, outside
 from aynamics.scene import dump, load, parse, to_items
@@ -404,7 +405,8 @@ def test_cli_edit_render_reports_an_invalid_rollout(tmp_path, capsys):
 def test_an_edit_that_makes_objects_overlap_is_refused_and_writes_nothing(tmp_path, capsys, scene):
     """box_0 (z 0.4, half-height 0.4) moved 0.5 m down starts 0.5 m into the floor, a sphere added where box_0 stands
     0.4 m into it: the edit is refused (exit 2, nothing written) naming the pair and the depth; the simulation
-    refused them as an overlapping start after the edit was written. A scene that overlapped before may be edited.
+    refused them as an overlapping start after the edit was written. A scene that overlapped before may be edited,
+    its overlaps kept; a new one, or one made deeper, is refused there too.
     A free editor's answer is checked alike."""
     out = tmp_path / "edited.yaml"
     assert cli.main(["edit", str(ASSET), "move box_0 0.5 m down", "--out", str(out)]) == 2
@@ -424,6 +426,14 @@ def test_an_edit_that_makes_objects_overlap_is_refused_and_writes_nothing(tmp_pa
         EditError, match=r"LLM edit refused: the model's answer makes objects start inside .* box_0 and"
     ):
         check_output(scene, "move box_0 0.5 m down", sunk)
+    # in a scene that overlapped before, a new overlap or a deeper one is refused all the same (both were taken)
+    # a sphere of radius 0.2 at z 0.2 under cylinder_0's axis (z 0.3, radius 0.3, lying): 0.3 + 0.2 - 0.1 m deep
+    with pytest.raises(EditError, match=r"cylinder_0 and sphere_0 by 0.4 m \(more than"):
+        apply_instruction(parse(sunk), "add a sphere at [-0.5, 0.8]")
+    with pytest.raises(EditError, match=r"box_0 and the floor by 0.7 m, 0.5 m before \(more than"):
+        apply_instruction(parse(sunk), "move box_0 0.2 m down")
+    lifted = apply_instruction(parse(sunk), "move box_0 0.2 m up").scene  # 0.3 m in: better, taken
+    assert sim.start_overlap_pairs(lifted) == {("box_0", "the floor"): pytest.approx(0.3)}
 
 
 def test_cli_edit_missing_file(capsys):

@@ -659,10 +659,22 @@ def test_objects_starting_inside_each_other_or_the_floor_are_invalid():
 
     cast = raycast.cast_group([sunk], sunk.structure, np.array([0]), 16, 12, sim.SimConfig(), 1)
     assert cast.reasons[0].startswith("overlapping start: sphere_0 and the floor")
-    # and so does start_overlap, without simulating (the edit language's check)
-    assert sim.start_overlap(scene([box(x=0.0, **big), box(x=3.9, **big)])) == "box_0 and box_1 by 0.1 m"
-    assert sim.start_overlap(sunk) == "sphere_0 and the floor by 1.3 m"
-    assert sim.start_overlap(scene([box(x=0.0, **big), box(x=3.97, **big)])) is None
+    # and so does start_overlap_pairs, without simulating (the edit language's check), naming every pair
+    assert sim.start_overlap_pairs(scene([box(x=0.0, **big), box(x=3.9, **big)])) == {
+        ("box_0", "box_1"): pytest.approx(0.1)
+    }
+    assert sim.start_overlap_pairs(sunk) == {("sphere_0", "the floor"): pytest.approx(1.3)}
+    assert sim.start_overlap_pairs(scene([box(x=0.0, **big), box(x=3.97, **big)])) == {}
+    sunk_box = box(x=7.7, **big)  # 0.2 m into box_1, and 0.3 m into the floor:
+    sunk_box["state"]["position"][2] = 1.7
+    three = scene([box(x=0.0, **big), box(x=3.9, **big), sunk_box])
+    assert sim.start_overlap_pairs(three) == {
+        ("box_0", "box_1"): pytest.approx(0.1),
+        ("box_1", "box_2"): pytest.approx(0.2),
+        ("box_2", "the floor"): pytest.approx(0.3),
+    }
+    r = sim.simulate(three)  # the rollout names the deepest
+    assert not r.valid and r.reason.startswith("overlapping start: box_2 and the floor by 0.3 m")
 
 
 def test_mujoco_warnings_are_log_lines_not_files(tmp_path, monkeypatch, capfd, caplog):
