@@ -125,7 +125,11 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 raise
             raise ValueError(name_keys(str(error), "stage.module")) from error
     try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        with warnings.catch_warnings():
+            # Lightning warns when an epoch has fewer batches than the logging interval, but it counts the interval
+            # over the run's steps, epochs together (and a run shorter than it logs its last step, above)
+            warnings.filterwarnings("ignore", r"The number of training batches \(\d+\) is smaller than the logging")
+            trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     except Exception as error:
         with contextlib.suppress(AttributeError):
             error.raised_in_fit = True  # see input_error_message

@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -1735,6 +1736,22 @@ def test_an_epoch_limited_run_shorter_than_the_logging_interval_logs_its_last_st
     with open(out / "csv" / "metrics.csv") as f:
         rows = [row for row in csv.DictReader(f) if row.get("train/loss")]
     assert [int(row["step"]) for row in rows] == [3] and math.isfinite(float(rows[0]["train/loss"]))
+
+
+def test_epochs_shorter_than_the_logging_interval_log_over_the_run_without_lightnings_warning(tmp_path, dataset_dir):
+    """3 epochs of 2 steps (4 examples in batches of 2) under the interval of 5: Lightning counts the interval over
+    the run's steps, so step 5 (index 4, in the third epoch) logs its training metrics, and its warning that "the
+    number of training batches (2) is smaller than the logging interval" (shown on every such run) is not shown."""
+    out = tmp_path / "run"
+    overrides = ["trainer.max_steps=-1", "trainer.max_epochs=3", "data.limit_train=4", "data.batch_size=2"]
+    overrides += ["trainer.val_check_interval=null", "logger=csv", "callbacks.evaluation=null"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        train(_cfg(out, f"data.dir={dataset_dir}", *overrides))
+    assert not [w for w in caught if "logging interval" in str(w.message)]
+    with open(out / "csv" / "metrics.csv") as f:
+        rows = [row for row in csv.DictReader(f) if row.get("train/loss")]
+    assert [(int(row["step"]), int(row["epoch"])) for row in rows] == [(4, 2)]
 
 
 def test_train_shows_the_steps_bar_and_logs_a_short_run_with_lightnings_defaults(tmp_path, dataset_dir, monkeypatch):
