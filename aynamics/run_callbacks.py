@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
 import threading
 from collections.abc import Sequence
@@ -144,11 +145,10 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     Lightning's own writes the checkpoint to a temporary file under $TMPDIR and moves it: where the run folder is on
     another filesystem (node-local /tmp, a shared run folder) the move copies over the final path, truncating it
     first, so a kill (SLURM after its grace time, the OOM killer) or a full disk during the copy left an empty or
-    partial `last.ckpt` in place of the previous good one."""
+    partial `last.ckpt` in place of the previous good one. Once a file is in place, the `.NAME.tmp-PID` files beside
+    it whose process is gone (a kill mid-write left them: a whole checkpoint's size each) are deleted."""
 
     def save_checkpoint(self, checkpoint: dict, path, storage_options=None) -> None:
-        import os
-
         from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
 
         if storage_options is not None or not _is_local_file_protocol(str(path)):
@@ -164,6 +164,21 @@ class AtomicCheckpointIO(TorchCheckpointIO):
             os.replace(tmp, path)  # atomic: the file at `path` is the old checkpoint or the new one, whole
         finally:
             tmp.unlink(missing_ok=True)
+        for leftover in path.parent.glob(f".{path.name}.tmp-*"):
+            pid = leftover.name.rpartition("-")[2]
+            if pid.isdigit() and not _alive(int(pid)) and leftover.is_file() and not leftover.is_symlink():
+                leftover.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process of this id runs on this machine."""
+    try:
+        os.kill(pid, 0)
+    except PermissionError:  # another user's
+        return True
+    except (ProcessLookupError, OverflowError):  # none, or past what a process id can be
+        return False
+    return True
 
 
 class StepsProgressBar(RichProgressBar):

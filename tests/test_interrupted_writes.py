@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import errno
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -93,6 +95,17 @@ def test_a_checkpoint_interrupted_while_written_leaves_the_previous_one(tmp_path
     monkeypatch.setattr(torch, "save", real)
     assert torch.load(path, weights_only=True)["global_step"] == 1
     assert sorted(p.name for p in path.parent.iterdir()) == ["last.ckpt"]
+    # a kill mid-write leaves its .last.ckpt.tmp-PID (a whole checkpoint's size): the next write deletes those of
+    # processes that are gone, and keeps a live writer's and files of other names
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    leftovers = [f".last.ckpt.tmp-{int(dead.stdout)}", f".last.ckpt.tmp-{os.getppid()}", ".last.ckpt.tmp-mine"]
+    for name in [*leftovers, ".other.ckpt.tmp-99999999"]:
+        (path.parent / name).write_bytes(b"partial")
+    io.save_checkpoint({"global_step": 3}, path)
+    assert torch.load(path, weights_only=True)["global_step"] == 3
+    assert sorted(p.name for p in path.parent.iterdir()) == sorted(
+        [*leftovers[1:], ".other.ckpt.tmp-99999999", "last.ckpt"]
+    )
 
 
 def test_an_adapter_folder_is_replaced_whole(tmp_path, monkeypatch):
