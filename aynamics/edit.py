@@ -391,6 +391,17 @@ def _clause(
         return idx
     elif m := re.fullmatch(ADD_CLAUSE, c):
         return add_objects(m.group("n"), m.group("k"), m.group("rest"), items, scene, clause, previous, raw)
+    elif re.match(r"tilt (?:the )?camera\b", c):  # "tilt the camera by 10 degrees": which way?
+        raise EditError(
+            f"{clause!r}: say which way, 'tilt the camera up|down by N degrees' (up from straight down), or set it: "
+            "'set the camera's tilt to N degrees'"
+        )
+    elif re.match(r"(?:pan|yaw|rotate|swivel|turn|aim|point) (?:the )?camera\b", c):
+        raise EditError(
+            f"{clause!r}: the camera does not turn: it faces +y, its tilt the angle from straight down; move it "
+            f"('move the camera 1 m left', 'put the camera at [x, y, z]') or tilt it up|down. Its fields are "
+            f"{CAMERA_FIELDS}"
+        )
     else:
         raise EditError(f"instruction {clause!r} not understood. {UNDERSTOOD}")
     if q.scope == "object" and t_text is not None and re.fullmatch(_ITEM_WORDS["camera"], t_text):

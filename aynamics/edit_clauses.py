@@ -32,7 +32,7 @@ NO_GRAVITY = (
 _CLAUSE_START = (
     rf"(?:{VERBS_BY}|set|change|double|triple|quadruple|halve|multiply|scale|reverse|negate|flip|stop|freeze|make|"
     rf"use|switch to|apply|remove|delete|take away|take out|switch off|shut off|disable|zero gravity|no gravity|tilt|"
-    rf"{ADD_VERBS}|{REPLACE_VERBS}|{MOVE_VERBS})\b"
+    rf"pan|{ADD_VERBS}|{REPLACE_VERBS}|{MOVE_VERBS})\b"
 )
 
 

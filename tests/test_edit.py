@@ -436,6 +436,25 @@ def test_an_edit_that_makes_objects_overlap_is_refused_and_writes_nothing(tmp_pa
     assert sim.start_overlap_pairs(lifted) == {("box_0", "the floor"): pytest.approx(0.3)}
 
 
+@pytest.mark.parametrize(
+    ("instruction", "message"),
+    [
+        ("tilt the camera by 10 degrees", r"say which way, 'tilt the camera up\|down by N degrees'"),
+        (
+            "stop box_0 and pan the camera left by 10 degrees",
+            r"'pan the camera left by 10 degrees': the camera does not",
+        ),
+        ("rotate the camera 90 degrees", r"the camera does not turn: it faces \+y"),
+    ],
+)
+def test_camera_turns_the_camera_cannot_make_are_named(scene, instruction, message):
+    """A tilt without up or down, and a pan or turn (the camera has no yaw: it faces +y), get their own message, not
+    the whole list of what is understood; 'pan' starts a clause after 'and'."""
+    with pytest.raises(EditError, match=message) as caught:
+        apply_instruction(scene, instruction)
+    assert "I understand" not in str(caught.value)
+
+
 def test_cli_edit_missing_file(capsys):
     assert cli.main(["edit", "no/such.yaml", "stop box_0"]) == 2
     assert "no/such.yaml" in capsys.readouterr().err
