@@ -13,7 +13,13 @@ Physical meaning of the fields (see `aynamics.scene.RANGES`):
 - damping d: free-joint damping of mass·c on the linear and I_i·c on the angular dofs, c = expm1(10^d·dt)/dt, so
   that MuJoCo's implicit damping step decays v and ω by exp(-10^d dt) per step: exp(-10^d t) whatever the mass.
 - restitution e (optional): the direct contact form solref = (-k, -b) with k = 1e4 and b chosen so that
-  a damped spring of that stiffness rebounds with coefficient e.
+  a damped spring of that stiffness rebounds with coefficient e. Every contact is an explicit pair (floor-object
+  and object-object, `Template.contact_pairs`) whose friction rows keep MuJoCo's default reference
+  (solreffriction (0.02, 1)): with the geom's solref they took the spring's damping b as their own, a viscous
+  -b·v_slip below μg/b instead of Coulomb friction (e = 0.95, b = 3.3/s: a box at μ = 1, 1 m/s slid 6.6 times
+  v²/2μg, at e = 0.8 1.56 times). The pairs follow MuJoCo's rules for geom contacts: the object's friction and
+  solref against the floor (priority), the larger of each friction and the element-wise smaller solref between two
+  objects (the average where both are MuJoCo's standard form).
 - magnus k and friction_slope κ (optional): a spin lift k·ω×v (world force on the body's centre) and a sliding
   μ + κ·|v_horizontal| recomputed before every physics step from the current state (a Python stepping hook
   over the whole batch, `simulate.step_hooked`). MuJoCo's ellipsoid fluid model has a Magnus term too, but it comes
@@ -130,6 +136,7 @@ class Template:
     qpos_adr: np.ndarray  # (N,) start of each free joint in qpos
     dof_adr: np.ndarray  # (N,) start in qvel
     pairs: tuple[tuple[int, int], ...]  # contact sensors: (i, j) objects, j = -1 for the floor
+    contact_pairs: np.ndarray  # (len(pairs),) MuJoCo pair id of each of `pairs`: every contact is an explicit pair
 
 
 def build_spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
@@ -143,13 +150,23 @@ def build_spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # exact Coulomb cone; c_rr·g/1.4 for c_rr ≤ μ/2 (README)
     spec.visual.headlight.active = 0  # lighting comes from the scene's lights (rendering randomises them)
     world = spec.worldbody
-    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=[0, 0, 0])
+    # contype = conaffinity = 0: no automatic contacts; each pair below is an explicit one (module docstring)
+    world.add_geom(
+        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=[0, 0, 0], contype=0, conaffinity=0
+    )
     for i, kind in enumerate(structure):
         body = world.add_body(name=f"obj{i}", pos=[0, 0, 1])
         body.add_freejoint(name=f"obj{i}_joint")
-        body.add_geom(name=f"obj{i}_geom", type=_GEOM[kind], size=[0.1, 0.1, 0.1], priority=1, condim=6)
+        body.add_geom(
+            name=f"obj{i}_geom", type=_GEOM[kind], size=[0.1, 0.1, 0.1], priority=1, condim=6, contype=0, conaffinity=0
+        )
     world.add_camera(name="camera", pos=[0, -2, 3.5], quat=[1, 0, 0, 0], fovy=45)
     n = len(structure)
+    for i, j in _pair_list(n):
+        other = "floor" if j < 0 else f"obj{j}_geom"
+        spec.add_pair(
+            name=_pair_name(i, j), geomname1=f"obj{i}_geom", geomname2=other, condim=6, solreffriction=FRICTION_SOLREF
+        )
     for i in range(n):
         spec.add_sensor(
             name=f"contact_floor_{i}",
@@ -174,6 +191,18 @@ def build_spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
     return spec
 
 
+FRICTION_SOLREF = (0.02, 1.0)  # friction rows of every contact: MuJoCo's default reference, whatever the solref
+
+
+def _pair_list(n: int) -> tuple[tuple[int, int], ...]:
+    """(i, -1) floor contacts first, then (i, j) object pairs, i < j: the order of `Template.pairs`."""
+    return tuple((i, -1) for i in range(n)) + tuple((i, j) for i in range(n) for j in range(i + 1, n))
+
+
+def _pair_name(i: int, j: int) -> str:
+    return f"pair_floor_{i}" if j < 0 else f"pair_{i}_{j}"
+
+
 @functools.lru_cache(maxsize=64)
 def template(structure: tuple[str, ...]) -> Template:
     """The compiled template model for a structure (cached)."""
@@ -181,7 +210,7 @@ def template(structure: tuple[str, ...]) -> Template:
     n = len(structure)
     body_ids = np.array([model.body(f"obj{i}").id for i in range(n)])
     joints = [model.joint(f"obj{i}_joint") for i in range(n)]
-    pairs = tuple((i, -1) for i in range(n)) + tuple((i, j) for i in range(n) for j in range(i + 1, n))
+    pairs = _pair_list(n)
     return Template(
         model=model,
         structure=structure,
@@ -192,6 +221,7 @@ def template(structure: tuple[str, ...]) -> Template:
         qpos_adr=np.array([j.qposadr[0] for j in joints]),
         dof_adr=np.array([j.dofadr[0] for j in joints]),
         pairs=pairs,
+        contact_pairs=np.array([model.pair(_pair_name(i, j)).id for i, j in pairs], dtype=int),
     )
 
 
@@ -202,6 +232,8 @@ PARAM_FIELDS = (
     "geom_aabb",
     "geom_friction",
     "geom_solref",
+    "pair_friction",
+    "pair_solref",
     "geom_pos",
     "geom_quat",
     "body_mass",
@@ -242,6 +274,7 @@ def scene_params(scene: Scene, tpl: Template, timestep: float = RESTITUTION_TIME
         # makes every step decay by exactly exp(-k·dt), so v(t) = v0 exp(-k t) at the frames as documented.
         rate = math.expm1(10.0**obj.physics.damping * timestep) / timestep
         p["dof_damping"][d : d + 6] = rate * np.concatenate([np.full(3, obj.physics.mass), moments])
+    write_pairs(p, tpl)
     c = tpl.camera_id
     p["cam_pos"][c] = scene.camera.position
     p["cam_quat"][c] = camlib.gl_quaternion(scene.camera)
@@ -256,6 +289,30 @@ def scene_params(scene: Scene, tpl: Template, timestep: float = RESTITUTION_TIME
         p["geom_pos"][f] = [0.0, 0.0, env.floor_offset]
         p["geom_quat"][f] = tilt_quaternion(*env.floor_tilt)
     return p
+
+
+def write_pairs(p: dict[str, np.ndarray], tpl: Template) -> None:
+    """Fill `pair_friction` and `pair_solref` of every contact pair from the object geoms' friction and solref, by
+    MuJoCo's rules for geom contacts: against the floor the object's own (it has priority); between two objects the
+    larger of each friction coefficient, and the element-wise smaller solref (the mean where both are standard)."""
+    fric, ref = p["geom_friction"], p["geom_solref"]
+    for (i, j), k in zip(tpl.pairs, tpl.contact_pairs, strict=True):
+        a = tpl.geom_ids[i]
+        if j < 0:
+            f, r = fric[a], ref[a]
+        else:
+            b = tpl.geom_ids[j]
+            f = np.maximum(fric[a], fric[b])
+            r = (ref[a] + ref[b]) / 2 if ref[a][0] > 0 and ref[b][0] > 0 else np.minimum(ref[a], ref[b])
+        p["pair_friction"][k] = [f[0], f[0], f[1], f[2], f[2]]
+        p["pair_solref"][k] = r
+
+
+def pair_sliding(tpl: Template, mu: np.ndarray) -> np.ndarray:
+    """(..., len(pairs)) sliding friction of every contact pair given each object's μ (..., N)."""
+    i = np.array([a for a, _ in tpl.pairs], dtype=int)
+    j = np.array([b for _, b in tpl.pairs], dtype=int)
+    return np.where(j < 0, mu[..., i], np.maximum(mu[..., i], mu[..., np.maximum(j, 0)]))
 
 
 def tilt_quaternion(about_x: float, about_y: float) -> np.ndarray:

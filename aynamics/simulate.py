@@ -44,6 +44,7 @@ from aynamics.mujoco_model import (  # noqa: F401
     half_extents,
     inertia,
     initial_qpos_qvel,
+    pair_sliding,
     quat_to_mat,
     restitution_solref,
     rolling_radius,
@@ -66,8 +67,9 @@ from aynamics.rollout import (  # noqa: F401
 from aynamics.scene import Scene, is_whole, require_scene
 
 # Raise when a change makes the same scene simulate differently (generated data sets record it: a run made under
-# another physics is neither resumed nor assembled with this one). 2: damping exact per step (5330873).
-PHYSICS_VERSION = 2
+# another physics is neither resumed nor assembled with this one). 2: damping exact per step (5330873). 3: every
+# contact an explicit pair, so restitution no longer turns sliding friction viscous (`mujoco_model`).
+PHYSICS_VERSION = 3
 REST_LINEAR = 0.02  # m/s: below this (and REST_ANGULAR) for every later frame, an object is at rest
 REST_ANGULAR = 0.2  # rad/s
 MAX_SPEED = 200.0  # m/s: beyond this a rollout has blown up
@@ -226,7 +228,8 @@ def step_hooked(b: mjbatch.Batch, hooks: Hooks, nstep: int, record: tuple[str, .
     """`Batch.rollout` with the hook forces recomputed from the state before each physics step.
 
     Before step k: xfrc_applied = k·ω×v (world) on each object body, and the object geom's sliding friction
-    max(μ + κ·|v_xy|, 0) (object geoms have priority over the floor, so this is the floor contact's μ).
+    max(μ + κ·|v_xy|, 0), written into its contact pairs as `write_pairs` does (the floor's: the object's μ; two
+    objects': the larger).
     Returns the recorded fields after every step, (n, nstep, ...) as `Batch.rollout` does.
     """
     tpl = hooks.template
@@ -234,6 +237,8 @@ def step_hooked(b: mjbatch.Batch, hooks: Hooks, nstep: int, record: tuple[str, .
     xfrc = b.bind("xfrc_applied")  # (n, nbody, 6): world force, torque
     fric = b.expand("geom_friction")  # (n, ngeom, 3)
     mu0 = fric[:, tpl.geom_ids, 0].copy()  # (n, N)
+    pfric = b.expand("pair_friction")  # (n, npair, 5): the contacts' friction (every contact is a pair)
+    pmu0 = pfric[:, tpl.contact_pairs, :2].copy()
     live = {name: b.bind(name) for name in record}
     out = {name: np.empty((b.nsim, nstep, *np.shape(v)[1:])) for name, v in live.items()}
     magnus, sliding = hooks.magnus.any(), hooks.slope.any()
@@ -247,11 +252,14 @@ def step_hooked(b: mjbatch.Batch, hooks: Hooks, nstep: int, record: tuple[str, .
                 if sliding:
                     speed = np.linalg.norm(v[:, :2], axis=1)
                     fric[:, tpl.geom_ids[i], 0] = np.maximum(mu0[:, i] + hooks.slope[:, i] * speed, 0.0)
+            if sliding:
+                pfric[:, tpl.contact_pairs, :2] = pair_sliding(tpl, fric[:, tpl.geom_ids, 0])[..., None]
             b.step()
             for name, v in live.items():
                 out[name][:, step] = v
     finally:
         fric[:, tpl.geom_ids, 0] = mu0
+        pfric[:, tpl.contact_pairs, :2] = pmu0
         xfrc[...] = 0.0
     return out
 

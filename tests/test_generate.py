@@ -643,10 +643,12 @@ def test_a_run_made_by_other_physics_is_neither_resumed_nor_read_silently(tmp_pa
     assert manifest["config"]["physics"] == PHYSICS_VERSION and manifest["config"]["substeps"] == 8
     del manifest["config"]["physics"]  # as the code before wrote it
     (out / "generate.json").write_text(json.dumps(manifest))
-    with pytest.raises(ValueError, match=r"config physics = None \(this run: 2\)"):
+    with pytest.raises(ValueError, match=rf"config physics = None \(this run: {PHYSICS_VERSION}\)"):
         gen.generate(out, 4, SEED, CFG, shard=1, num_shards=2, progress=False)
     split = datasets.Dataset.from_dict({"frame_indices": [[0, 3]]})
-    with pytest.warns(UserWarning, match="simulated with physics version 1, this code simulates version 2"):
+    with pytest.warns(
+        UserWarning, match=f"simulated with physics version 1, this code simulates version {PHYSICS_VERSION}"
+    ):
         with_clock(PromptSpec(), out, split)
 
 

@@ -220,6 +220,17 @@ def test_restitution_raises_the_bounce():
     assert abs(peaks[-1] / math.sqrt(2 * 9.81 * 0.8) - 0.8) < 0.1  # rebound speed ≈ e × impact speed
 
 
+@pytest.mark.parametrize("e", [0.5, 0.8, 0.9])
+def test_restitution_leaves_sliding_friction_coulomb(e):
+    """A bouncy object still slides to d = v² / (2 μ g): μ = 1, v = 1 m/s stops after 1 / 19.62 = 0.051 m. The
+    contact's friction rows took the restitution spring's damping b = 2ζ√k as their reference (b = 6.7/s at
+    e = 0.9), a viscous pull -b·v below μg/b = 1.5 m/s instead of Coulomb friction: the box slid 1.56 / 3.27
+    times as far at e = 0.8 / 0.9 (0.95: 6.6). Explicit contact pairs keep MuJoCo's default friction reference."""
+    r = run(scene([box(v=(1.0, 0.0, 0.0), mu=1.0) | {"physics": {"friction": [1.0, 0.0], "restitution": e}}]))
+    d = r.position[-1, 0, 0] - r.position[0, 0, 0]
+    assert abs(d / (1 / (2 * 9.81)) - 1) < 0.05, d
+
+
 def test_restitution_between_two_objects_is_the_less_bouncy_ones():
     """Two equal spheres meet head-on without gravity. MuJoCo takes the element-wise minimum of the two direct-form
     solrefs: the less bouncy sphere's e governs (the README had "the bouncier wins"), a sphere without restitution
