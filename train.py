@@ -444,8 +444,10 @@ def raised_in_init(error: BaseException) -> bool:
 def name_keys(message: str, key: str) -> str:
     """A config node's error with its keys in full: "min_pixels = 0: must be >= 784" from `data` reads
     "data.min_pixels = 0: must be >= 784"; a message naming no `name = value` before its first ': ' ends
-    "(config: data)"."""
+    "(config: data)"; one that names its key in full already ("model.lora_rank = 0: ...") is left as it is."""
     head, sep, tail = message.partition(": ")
+    if re.match(rf"{re.escape(key)}\.\w", head):  # named in full already: "model.tiny.num_heads = 0"
+        return message
     named, n = re.subn(r"(^|, )([a-z_]\w*) = ", rf"\g<1>{key}.\g<2> = ", head)
     return f"{named}{sep}{tail}" if n else f"{message} (config: {key})"
 

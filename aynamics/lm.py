@@ -226,6 +226,12 @@ class ModelSpec:
             raise ValueError(f"model.lora_rank = {self.lora_rank!r}: must be a whole number >= 1")
         if not (isinstance(self.lora_alpha, int | float) and math.isfinite(self.lora_alpha) and self.lora_alpha > 0):
             raise ValueError(f"model.lora_alpha = {self.lora_alpha!r}: must be a finite number > 0")
+        if self.kind == "tiny":  # before the data and the model load: 0 heads divided by zero inside tiny_config
+            from aynamics.model import check_tiny_sizes
+
+            if not isinstance(self.tiny, dict):
+                raise ValueError(f"model.tiny = {self.tiny!r}: must be a mapping of sizes (e.g. hidden_size: 64)")
+            check_tiny_sizes(self.tiny, "model.tiny.")
         if self.dtype not in ("float32", "bfloat16"):
             raise ValueError(f"model dtype = {self.dtype!r}: must be 'float32' or 'bfloat16'")
         kernels = ("sdpa", "eager", "flash_attention_2") if self.kind == "pretrained" else ("sdpa", "eager")

@@ -41,6 +41,53 @@ QWEN2_5_VL_7B = "Qwen/Qwen2.5-VL-7B-Instruct"
 DEFAULT_LORA_TARGETS = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
 
 
+# `tiny_config`'s sizes (`model.tiny` in the config), each a whole number >= 1, and their defaults
+TINY_SIZES = {
+    "hidden_size": 64,
+    "num_layers": 2,
+    "num_heads": 4,
+    "num_kv_heads": 2,
+    "intermediate_size": 128,
+    "vision_hidden_size": 32,
+    "vision_depth": 2,
+    "vision_heads": 2,
+    "vision_intermediate_size": 64,
+}
+
+
+def check_tiny_sizes(sizes: dict, prefix: str = "") -> None:
+    """Refuse tiny-model sizes `tiny_config` cannot build, naming each key with `prefix` ("model.tiny." for the
+    config): an unknown key (a TypeError in `tiny_config`), a size that is no whole number >= 1 (0 heads divided by
+    zero, a negative width failed inside torch, 0 layers left LoRA nothing to adapt), head widths that do not divide.
+    Keys left out take `TINY_SIZES`' defaults."""
+    unknown = sorted(set(sizes) - set(TINY_SIZES) - {"tie_word_embeddings"})
+    if unknown:
+        raise ValueError(
+            f"{prefix}{unknown[0]} = {sizes[unknown[0]]!r}: not a size of the tiny model (its keys: "
+            f"{', '.join([*TINY_SIZES, 'tie_word_embeddings'])})"
+        )
+    tie = sizes.get("tie_word_embeddings", False)
+    if not isinstance(tie, bool):
+        raise ValueError(f"{prefix}tie_word_embeddings = {tie!r}: must be true or false")
+    for key, value in sizes.items():
+        if key != "tie_word_embeddings" and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{prefix}{key} = {value!r}: must be a whole number >= 1")
+    s = TINY_SIZES | sizes
+    hidden, heads, kv, vision, vision_heads = (
+        s[k] for k in ("hidden_size", "num_heads", "num_kv_heads", "vision_hidden_size", "vision_heads")
+    )
+    if hidden % heads or (hidden // heads) % 2:
+        raise ValueError(
+            f"{prefix}hidden_size = {hidden}, {prefix}num_heads = {heads}: head_dim must be an even integer"
+        )
+    if heads % kv:
+        raise ValueError(f"{prefix}num_heads = {heads} is not a multiple of {prefix}num_kv_heads = {kv}")
+    if vision % vision_heads:
+        raise ValueError(
+            f"{prefix}vision_hidden_size = {vision} is not a multiple of {prefix}vision_heads = {vision_heads}"
+        )
+
+
 def tiny_config(
     tokenizer: PreTrainedTokenizerBase,
     *,
@@ -60,15 +107,9 @@ def tiny_config(
     Keeps Qwen's patch geometry (14 px patches, 2x2 merge, temporal patch 2), so the processor is the real one.
     The embedding is the tokenizer's length rounded up to a multiple of 64.
     """
+    sizes = {k: v for k, v in locals().items() if k in TINY_SIZES}
+    check_tiny_sizes(sizes | {"tie_word_embeddings": tie_word_embeddings})
     head_dim = hidden_size // num_heads
-    if hidden_size % num_heads or head_dim % 2:
-        raise ValueError(f"hidden_size = {hidden_size}, num_heads = {num_heads}: head_dim must be an even integer")
-    if num_heads % num_kv_heads:
-        raise ValueError(f"num_heads = {num_heads} is not a multiple of num_kv_heads = {num_kv_heads}")
-    if vision_hidden_size % vision_heads:
-        raise ValueError(
-            f"vision_hidden_size = {vision_hidden_size} is not a multiple of vision_heads = {vision_heads}"
-        )
     # M-RoPE splits head_dim/2 rotary frequencies over (t, h, w); Qwen uses [16, 24, 24] of 64.
     half = head_dim // 2
     mrope_section = [half - 2 * (3 * half // 8), 3 * half // 8, 3 * half // 8]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 
 import numpy as np
@@ -425,6 +426,27 @@ def test_tiny_config_and_lora_refuse_bad_sizes():
         apply_lora(build_tiny_model(), rank=0)
     with pytest.raises(ValueError, match="lora dropout = 1.0"):
         apply_lora(build_tiny_model(), dropout=1.0)
+
+
+def test_tiny_sizes_are_refused_by_the_model_spec_with_their_keys():
+    """`model.tiny` is checked when the spec is made (before any model): unknown keys, sizes that are no whole
+    number >= 1 and widths that do not divide, each named in full; the sizes the spec leaves out are the defaults."""
+    from aynamics.lm import ModelSpec
+
+    for tiny, message in [
+        ({"num_heads": 0}, "model.tiny.num_heads = 0: must be a whole number >= 1"),
+        ({"num_kv_heads": 0}, "model.tiny.num_kv_heads = 0: must be a whole number >= 1"),
+        ({"num_layers": 0}, "model.tiny.num_layers = 0: must be a whole number >= 1"),
+        ({"vision_depth": 1.5}, "model.tiny.vision_depth = 1.5: must be a whole number >= 1"),
+        ({"hidden_size": True}, "model.tiny.hidden_size = True: must be a whole number >= 1"),
+        ({"heads": 4}, "model.tiny.heads = 4: not a size of the tiny model"),
+        ({"tie_word_embeddings": 1}, "model.tiny.tie_word_embeddings = 1: must be true or false"),
+        ({"num_kv_heads": 3}, "model.tiny.num_heads = 4 is not a multiple of model.tiny.num_kv_heads = 3"),
+        ({"hidden_size": 36}, "model.tiny.hidden_size = 36, model.tiny.num_heads = 4: head_dim must be"),
+    ]:
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
+            ModelSpec(kind="tiny", tiny=tiny)
+    ModelSpec(kind="tiny", tiny={"hidden_size": 32, "num_heads": 2, "tie_word_embeddings": True})  # fine
 
 
 def test_tiny_model_generation_ids_seed_and_global_rng():

@@ -1791,9 +1791,24 @@ def test_a_run_that_both_limits_end_by_its_epochs_logs_its_last_step(tmp_path, d
 def test_a_model_config_error_is_not_named_as_a_stage_module_key(tmp_path, dataset_dir):
     """The model is built inside the module's constructor: "lora dropout = 1.5" (model.lora_dropout) read
     "... (config: stage.module)" and model.tiny.hidden_size "stage.module.hidden_size = 62"."""
+    from hydra.errors import InstantiationException
+
+    from train import input_error_message
+
     for override, message in [
         ("model.lora_dropout=1.5", r"^lora dropout = 1.5: must be in \[0, 1\)$"),
-        ("model.tiny.hidden_size=62", r"^hidden_size = 62, num_heads = 4: head_dim must be an even integer$"),
     ]:
         with pytest.raises(ValueError, match=message):
             train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", override))
+    # the tiny sizes are refused with the model config, before the data and the model load: 0 heads was a
+    # ZeroDivisionError traceback inside tiny_config, an unknown key a TypeError, a negative width torch's own
+    for override, message in [
+        ("model.tiny.hidden_size=62", "model.tiny.hidden_size = 62, model.tiny.num_heads = 4: head_dim must be"),
+        ("model.tiny.num_heads=0", "model.tiny.num_heads = 0: must be a whole number >= 1"),
+        ("model.tiny.hidden_size=-64", "model.tiny.hidden_size = -64: must be a whole number >= 1"),
+        ("+model.tiny.foo=1", "model.tiny.foo = 1: not a size of the tiny model"),
+    ]:
+        with pytest.raises(InstantiationException) as caught:
+            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", override))
+        assert input_error_message(caught.value) == str(caught.value.__cause__)  # no "(config: model)" after it
+        assert str(caught.value.__cause__).startswith(message)
