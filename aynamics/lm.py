@@ -232,6 +232,14 @@ class ModelSpec:
             if not isinstance(self.tiny, dict):
                 raise ValueError(f"model.tiny = {self.tiny!r}: must be a mapping of sizes (e.g. hidden_size: 64)")
             check_tiny_sizes(self.tiny, "model.tiny.")
+        # before the base loads (minutes for the 3B): apply_lora refused these only once the weights were there
+        if not (isinstance(self.lora_dropout, int | float) and 0 <= self.lora_dropout < 1):
+            raise ValueError(f"model.lora_dropout = {self.lora_dropout!r}: must be a number in [0, 1)")
+        targets = self.lora_targets
+        if isinstance(targets, str) or not targets or not all(isinstance(t, str) and t for t in targets):
+            raise ValueError(
+                f"model.lora_targets = {targets!r}: must be a list of projection names, e.g. [q_proj, v_proj]"
+            )
         if self.dtype not in ("float32", "bfloat16"):
             raise ValueError(f"model dtype = {self.dtype!r}: must be 'float32' or 'bfloat16'")
         kernels = ("sdpa", "eager", "flash_attention_2") if self.kind == "pretrained" else ("sdpa", "eager")

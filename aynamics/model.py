@@ -343,7 +343,7 @@ def _set_generation_ids(model: Qwen2_5_VLForConditionalGeneration, tokenizer: Pr
 def lora_target_regex(target_modules: Sequence[str] = DEFAULT_LORA_TARGETS) -> str:
     """Regex (peft full-matches it against module names) selecting `target_modules` inside the language model."""
     if not target_modules:
-        raise ValueError("target_modules is empty: name at least one projection, e.g. 'q_proj'")
+        raise ValueError("model.lora_targets = []: name at least one projection, e.g. 'q_proj'")
     names = "|".join(re.escape(m) for m in target_modules)
     return rf"(.*\.)?language_model\.(.*\.)?({names})"
 
@@ -402,6 +402,19 @@ def apply_lora(
         raise ValueError(f"lora rank = {rank}: must be > 0")
     if not 0.0 <= dropout < 1.0:
         raise ValueError(f"lora dropout = {dropout}: must be in [0, 1)")
+    pattern = re.compile(lora_target_regex(target_modules))
+    language = {n: m for n, m in model.named_modules() if "language_model" in n}
+    adapted = {
+        n.rsplit(".", 1)[-1] for n, m in language.items() if isinstance(m, torch.nn.Linear) and pattern.fullmatch(n)
+    }
+    if missed := [m for m in target_modules if m not in adapted]:
+        # peft adapted the names it found and left a misspelt one ('vproj' beside 'q_proj') out without a word;
+        # a block's name ('mlp'), not a linear layer's, failed inside peft
+        linear = sorted({n.rsplit(".", 1)[-1] for n, m in language.items() if isinstance(m, torch.nn.Linear)})
+        raise ValueError(
+            f"model.lora_targets = {list(target_modules)}: {missed} names no linear layer of the language model "
+            f"(its linear layers: {', '.join(linear) or 'none'})"
+        )
     names = [name for name, _ in model.named_modules(remove_duplicate=False)]
     unknown = [m for m in modules_to_save if not any(n.endswith(m) for n in names)]  # peft's own test of a name
     if unknown:  # peft trained nothing for such a name, without a word
@@ -421,7 +434,7 @@ def apply_lora(
         with peft_quietly():
             return get_peft_model(model, config)
     except ValueError as e:  # peft: "Target modules ... not found in the base model"
-        raise ValueError(f"LoRA target_modules = {list(target_modules)}: no such module in language_model") from e
+        raise ValueError(f"model.lora_targets = {list(target_modules)}: no such module in language_model") from e
 
 
 @contextlib.contextmanager

@@ -119,6 +119,10 @@ def test_lora_hits_only_the_language_model():
     assert sum("lora_A" in n for n, _ in only_q.named_parameters()) == 2
     with pytest.raises(ValueError, match="nope_proj"):
         apply_lora(build_tiny_model(), target_modules=["nope_proj"])
+    # peft adapted q_proj and left the misspelt 'vproj' out without a word; 'mlp' is a block, not a linear layer
+    for targets, missed in [(["q_proj", "vproj"], "['vproj']"), (["mlp"], "['mlp']"), (["merger"], "['merger']")]:
+        with pytest.raises(ValueError, match=rf"^model.lora_targets = .*: {re.escape(missed)} names no linear layer"):
+            apply_lora(build_tiny_model(), target_modules=targets)
 
 
 def test_model_spec_defaults_adapt_every_projection_at_scale_two():
@@ -447,6 +451,14 @@ def test_tiny_sizes_are_refused_by_the_model_spec_with_their_keys():
         with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
             ModelSpec(kind="tiny", tiny=tiny)
     ModelSpec(kind="tiny", tiny={"hidden_size": 32, "num_heads": 2, "tie_word_embeddings": True})  # fine
+    # the adapter's settings too, before the base loads (minutes for the 3B)
+    for kwargs, message in [
+        ({"lora_dropout": 1.5}, "model.lora_dropout = 1.5: must be a number in [0, 1)"),
+        ({"lora_targets": []}, "model.lora_targets = []: must be a list of projection names"),
+        ({"lora_targets": "q_proj"}, "model.lora_targets = 'q_proj': must be a list of projection names"),
+    ]:
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
+            ModelSpec(kind="tiny", **kwargs)
 
 
 def test_tiny_model_generation_ids_seed_and_global_rng():

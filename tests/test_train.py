@@ -1795,14 +1795,12 @@ def test_a_model_config_error_is_not_named_as_a_stage_module_key(tmp_path, datas
 
     from train import input_error_message
 
+    # the model config's values are refused with the spec, before the data and the model load, named in full: 0
+    # heads was a ZeroDivisionError traceback inside tiny_config, an unknown key a TypeError, a negative width
+    # torch's own; "lora dropout = 1.5" and "LoRA target_modules = []" came once the base had loaded
     for override, message in [
-        ("model.lora_dropout=1.5", r"^lora dropout = 1.5: must be in \[0, 1\)$"),
-    ]:
-        with pytest.raises(ValueError, match=message):
-            train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", override))
-    # the tiny sizes are refused with the model config, before the data and the model load: 0 heads was a
-    # ZeroDivisionError traceback inside tiny_config, an unknown key a TypeError, a negative width torch's own
-    for override, message in [
+        ("model.lora_dropout=1.5", "model.lora_dropout = 1.5: must be a number in [0, 1)"),
+        ("model.lora_targets=[]", "model.lora_targets = []: must be a list of projection names"),
         ("model.tiny.hidden_size=62", "model.tiny.hidden_size = 62, model.tiny.num_heads = 4: head_dim must be"),
         ("model.tiny.num_heads=0", "model.tiny.num_heads = 0: must be a whole number >= 1"),
         ("model.tiny.hidden_size=-64", "model.tiny.hidden_size = -64: must be a whole number >= 1"),
@@ -1812,3 +1810,13 @@ def test_a_model_config_error_is_not_named_as_a_stage_module_key(tmp_path, datas
             train(_cfg(tmp_path / "x", f"data.dir={dataset_dir}", "callbacks.evaluation=null", override))
         assert input_error_message(caught.value) == str(caught.value.__cause__)  # no "(config: model)" after it
         assert str(caught.value.__cause__).startswith(message)
+    # a misspelt target beside a right one trained without it, without a word
+    with pytest.raises(ValueError, match=r"^model.lora_targets = \['q_proj', 'vproj'\]: \['vproj'\] names no linear"):
+        train(
+            _cfg(
+                tmp_path / "x",
+                f"data.dir={dataset_dir}",
+                "callbacks.evaluation=null",
+                "model.lora_targets=[q_proj,vproj]",
+            )
+        )
