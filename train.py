@@ -53,6 +53,17 @@ def train(cfg: DictConfig) -> dict[str, float]:
     steps = cfg.trainer.get("max_steps")
     if not (isinstance(steps, int) and (steps >= 1 or steps == -1)):  # 0 trained nothing and wrote no adapter
         raise ValueError(f"trainer.max_steps = {steps}: must be >= 1 (or -1 with trainer.max_epochs > 0)")
+    epochs = cfg.trainer.get("max_epochs")
+    if epochs is not None and not (isinstance(epochs, int) and not isinstance(epochs, bool) and epochs >= -1):
+        raise ValueError(f"trainer.max_epochs = {epochs!r}: must be a whole number >= 1, or -1 (no epoch limit)")
+    if epochs == 0 or (steps == -1 and epochs == -1):  # null: Lightning's 1000 epochs
+        # 0 stopped before the first batch: exit status 0, no adapter, an empty metrics.json; both -1 failed in the
+        # learning-rate schedule, once the model had loaded
+        raise ValueError(
+            f"trainer.max_steps = {steps}, trainer.max_epochs = {epochs}: "
+            + ("trains nothing" if epochs == 0 else "training has no end, so the learning-rate schedule has no length")
+            + "; set trainer.max_steps (or trainer.max_epochs with trainer.max_steps=-1) to a count >= 1"
+        )
     every = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("every_n_train_steps")
     if every is not None and not (isinstance(every, int) and every >= 1):
         raise ValueError(f"callbacks.checkpoint.every_n_train_steps = {every}: must be a whole number >= 1")

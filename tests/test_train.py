@@ -1142,6 +1142,11 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["trainer.val_check_interval=0.5"], r"val_check_interval = 0.5: must be a whole number"),  # Lightning's
         # traceback; helper-43's: no adapter written, a traceback, a key ignored, a target named as data's
         (["trainer.max_steps=0"], r"trainer.max_steps = 0: must be >= 1"),
+        # max_epochs 0 stopped before the first batch with exit status 0, no adapter and an empty metrics.json
+        (["trainer.max_steps=-1", "trainer.max_epochs=0"], r"trainer.max_steps = -1, trainer.max_epochs = 0: trains"),
+        (["trainer.max_epochs=0"], r"trainer.max_steps = 200, trainer.max_epochs = 0: trains nothing"),
+        (["trainer.max_epochs=-5"], r"trainer.max_epochs = -5: must be a whole number >= 1, or -1"),
+        (["trainer.max_epochs=1.5"], r"trainer.max_epochs = 1.5: must be a whole number >= 1, or -1"),
         # each process's share would be split again by Lightning (a ddp run trained on 1 / world of its data)
         (["trainer.use_distributed_sampler=true"], r"trainer.use_distributed_sampler = true: the data modules"),
         (
