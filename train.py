@@ -64,6 +64,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
             + ("trains nothing" if epochs == 0 else "training has no end, so the learning-rate schedule has no length")
             + "; set trainer.max_steps (or trainer.max_epochs with trainer.max_steps=-1) to a count >= 1"
         )
+    seed = cfg.get("seed")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**32:
+        # "-1 is not in bounds, numpy accepts from 0 to 4294967295" or "invalid literal for int()", naming no key
+        raise ValueError(f"seed = {seed!r}: must be a whole number in [0, 2**32 - 1]")
     every = ((cfg.get("callbacks") or {}).get("checkpoint") or {}).get("every_n_train_steps")
     if every is not None and not (isinstance(every, int) and every >= 1):
         raise ValueError(f"callbacks.checkpoint.every_n_train_steps = {every}: must be a whole number >= 1")

@@ -1147,6 +1147,9 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["trainer.max_epochs=0"], r"trainer.max_steps = 200, trainer.max_epochs = 0: trains nothing"),
         (["trainer.max_epochs=-5"], r"trainer.max_epochs = -5: must be a whole number >= 1, or -1"),
         (["trainer.max_epochs=1.5"], r"trainer.max_epochs = 1.5: must be a whole number >= 1, or -1"),
+        # numpy's "-1 is not in bounds, numpy accepts from 0 to 4294967295", int()'s "invalid literal": no key named
+        (["seed=-1"], r"seed = -1: must be a whole number in \[0, 2\*\*32 - 1\]"),
+        (["seed=abc"], r"seed = 'abc': must be a whole number"),
         # each process's share would be split again by Lightning (a ddp run trained on 1 / world of its data)
         (["trainer.use_distributed_sampler=true"], r"trainer.use_distributed_sampler = true: the data modules"),
         (
