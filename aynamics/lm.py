@@ -217,9 +217,9 @@ class ModelSpec:
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
-            raise ValueError(f"model kind = {self.kind!r}: must be one of {KINDS}")
+            raise ValueError(f"model.kind = {self.kind!r}: must be one of {KINDS}")
         if self.kind == "pretrained" and not self.path:
-            raise ValueError("model kind = 'pretrained' needs model.path (a local directory or a hub id)")
+            raise ValueError("model.kind = 'pretrained' needs model.path (a local directory or a hub id)")
         # before the base loads (apply_lora checks rank and dropout again); alpha 0 froze the LoRA update (its
         # gradients are scaled by alpha / r), a negative one flipped it, NaN diverged at the first step
         if isinstance(self.lora_rank, bool) or not isinstance(self.lora_rank, int) or self.lora_rank < 1:
@@ -241,7 +241,7 @@ class ModelSpec:
                 f"model.lora_targets = {targets!r}: must be a list of projection names, e.g. [q_proj, v_proj]"
             )
         if self.dtype not in ("float32", "bfloat16"):
-            raise ValueError(f"model dtype = {self.dtype!r}: must be 'float32' or 'bfloat16'")
+            raise ValueError(f"model.dtype = {self.dtype!r}: must be 'float32' or 'bfloat16'")
         kernels = ("sdpa", "eager", "flash_attention_2") if self.kind == "pretrained" else ("sdpa", "eager")
         if self.attn_implementation is not None and self.attn_implementation not in kernels:
             raise ValueError(

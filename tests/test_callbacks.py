@@ -289,7 +289,7 @@ def test_predict_cli_names_the_broken_file(tmp_path, capsys):
     cases = [  # (file, content, what the message says)
         ("aynamics.json", "{}", "aynamics.json': not the model and prompt specs training writes"),
         ("aynamics.json", "garbage", "aynamics.json' (the adapter's model and prompt specs) is not valid JSON"),
-        ("aynamics.json", '{"model": {"kind": "huge"}, "prompt": {}}', "model kind = 'huge'"),
+        ("aynamics.json", '{"model": {"kind": "huge"}, "prompt": {}}', "model.kind = 'huge'"),
         ("adapter_config.json", "garbage", "adapter_config.json' (peft's adapter config) is not valid JSON"),
         ("adapter_config.json", "{}", "adapter_config.json' is not a peft adapter config"),
         ("adapter_model.safetensors", weights[:30], "adapter_model.safetensors' is not a readable safetensors"),

@@ -114,7 +114,7 @@ def test_a_missing_optional_package_is_an_input_error():
 
 def test_bad_values_are_named(tmp_path):
     cfg = _compose(tmp_path, "model.kind=huge")
-    with pytest.raises(Exception, match="model kind = 'huge'"):
+    with pytest.raises(Exception, match="model.kind = 'huge'"):
         hydra.utils.instantiate(cfg.model)
 
 
