@@ -42,6 +42,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     from aynamics.callbacks import SceneEvaluation, format_reasons, format_table, json_safe
     from aynamics.lm import TARGETS
+    from aynamics.processor import PixelBoundsError
     from aynamics.run_callbacks import progress_bar, use_atomic_checkpoints
     from aynamics.sharding import model_init_context
 
@@ -125,7 +126,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     L.seed_everything(cfg.seed, workers=True, verbose=False)  # the model's random draws as before the trainer
     spec = hydra.utils.instantiate(cfg.model)
     datamodule = hydra.utils.instantiate(cfg.data, processor_path=spec.processor_path, target=cfg.stage.target)
-    datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
+    try:
+        datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
+    except PixelBoundsError as error:  # the processor's "min_pixels = 20000 > max_pixels = 10000": data's keys
+        raise ValueError(re.sub(r"\b(min|max)_pixels\b", r"data.\1_pixels", str(error))) from None
     warn_drifting_validation(datamodule, trainer, interval, accumulate)
     # the run ends at whichever limit comes first: max_steps, or max_epochs' steps
     limits = [n for n in (steps if steps > 0 else None, run_steps(datamodule, trainer, accumulate)) if n is not None]

@@ -210,7 +210,7 @@ class SFTModule(adapters.ExactResume, L.LightningModule):
 
     def _no_targets(self) -> ValueError:
         return ValueError(
-            f"vision_aux_weight = {self.hparams.vision_aux_weight} needs per-token targets: set "
+            f"stage.module.vision_aux_weight = {self.hparams.vision_aux_weight} needs per-token targets: set "
             "data.visual_targets=true"
         )
 

@@ -1138,6 +1138,10 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["data.eval_batch_size=0"], r"data.eval_batch_size = 0: must be >= 1"),
         (["data.num_frames=20"], r"data.num_frames = 20: the scenes in data.dir = .* store 10 frames each"),
         (["data.min_pixels=0"], r"min_pixels = 0: must be >= 784"),
+        (
+            ["data.min_pixels=20000", "data.max_pixels=10000"],
+            r"^data.min_pixels = 20000 > data.max_pixels = 10000 .*: need data.min_pixels <= data.max_pixels$",
+        ),
         (["trainer.val_check_interval=0"], r"trainer.val_check_interval = 0: must be a whole number of steps > 0"),
         (["trainer.val_check_interval=0.5"], r"val_check_interval = 0.5: must be a whole number"),  # Lightning's
         # traceback; helper-43's: no adapter written, a traceback, a key ignored, a target named as data's
@@ -1159,6 +1163,10 @@ def test_config_mistakes_are_named_before_training(tmp_path, dataset_dir):
         (["data.target=think_answer"], r"data.target = 'think_answer': set the target as stage.target=think"),
         (["stage.target=foo"], r"stage.target = 'foo': must be one of \('answer', 'think_answer'\)"),
         (["stage.module.lr=inf"], r"stage.module.lr = inf.*need finite lr > 0"),  # trained to NaN and saved the adapter
+        (
+            ["stage.module.vision_aux_weight=1", "model.train_vision=true", "data.visual_targets=false"],
+            r"^stage.module.vision_aux_weight = 1 needs per-token targets: set data.visual_targets=true$",
+        ),
     ]
     from hydra.errors import InstantiationException  # hydra's wrapper of an error in a config's constructor
 
