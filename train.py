@@ -40,6 +40,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit the stage described by `cfg` and return the final metrics (also written to `OUT/metrics.json`)."""
     import lightning as L
 
+    from aynamics.adapters import check_resume_checkpoint, check_resume_settings
     from aynamics.callbacks import SceneEvaluation, format_reasons, format_table, json_safe
     from aynamics.lm import TARGETS
     from aynamics.processor import PixelBoundsError
@@ -87,8 +88,6 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if cfg.data.get("target", cfg.stage.target) != cfg.stage.target:  # the data take the stage's: one key
         raise ValueError(f"data.target = {cfg.data.target!r}: set the target as stage.target={cfg.data.target}")
     if cfg.get("ckpt_path"):
-        from aynamics.adapters import check_resume_checkpoint
-
         check_resume_checkpoint(cfg.ckpt_path, cfg.stage.get("name"))  # before the model loads
     L.seed_everything(cfg.seed, workers=True)
     out = Path(cfg.output_dir)
@@ -130,6 +129,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
         datamodule.setup("fit")  # a wrong data.dir or data.num_frames is named now, not after the model has loaded
     except PixelBoundsError as error:  # the processor's "min_pixels = 20000 > max_pixels = 10000": data's keys
         raise ValueError(re.sub(r"\b(min|max)_pixels\b", r"data.\1_pixels", str(error))) from None
+    if cfg.get("ckpt_path"):  # another base, adapter or (SFT) prompt: named before the model loads, not after
+        prompt = datamodule.prompt if cfg.stage.get("name") == "sft" else None  # PRO's is its init adapter's
+        check_resume_settings(cfg.ckpt_path, spec, prompt)
     warn_drifting_validation(datamodule, trainer, interval, accumulate)
     # the run ends at whichever limit comes first: max_steps, or max_epochs' steps
     limits = [n for n in (steps if steps > 0 else None, run_steps(datamodule, trainer, accumulate)) if n is not None]

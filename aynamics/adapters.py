@@ -20,7 +20,15 @@ from typing import Any
 import torch
 
 from aynamics import rng
-from aynamics.lm import ModelSpec, PromptSpec, build_base, build_model, inference_device, runnable_kernel
+from aynamics.lm import (
+    ModelSpec,
+    PromptSpec,
+    build_base,
+    build_model,
+    inference_device,
+    prompt_mismatch,
+    runnable_kernel,
+)
 
 ADAPTER_META = "aynamics.json"  # written next to the peft adapter: how to rebuild the base model and the prompt
 
@@ -286,6 +294,21 @@ def _suggested_checkpoint(folder: Path) -> str | None:
     """The checkpoint of `folder` to name when a folder was given for one: last.ckpt, else the last by name."""
     found = sorted(p.name for p in folder.glob("*.ckpt"))
     return "last.ckpt" if "last.ckpt" in found else found[-1] if found else None
+
+
+def check_resume_settings(path: str | Path, spec: ModelSpec, prompt: PromptSpec | None = None) -> None:
+    """Refuse, before the model is built, a `ckpt_path` written for another base or adapter (`check_same_base`) or,
+    given `prompt`, another prompt (target, modality, frames: `lm.prompt_mismatch`). The modules check both again
+    as Lightning loads the checkpoint, which is after the model has loaded: minutes for the 3B. A path that is no
+    checkpoint file (a DeepSpeed folder) is left to them."""
+    path = Path(path)
+    if not path.is_file():
+        return
+    ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    check_same_base(ckpt.get("hyper_parameters", {}).get("spec"), spec)
+    stored = (ckpt.get("aynamics_meta") or {}).get("prompt")
+    if isinstance(stored, dict) and prompt is not None and (mismatch := prompt_mismatch(stored, prompt)):
+        raise ValueError(f"the checkpoint was trained with {mismatch[0]}, but the data are set to {mismatch[1]}")
 
 
 def check_resume_checkpoint(path: str | Path, stage: str | None = None) -> None:

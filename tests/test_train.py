@@ -1469,18 +1469,27 @@ def test_resume_from_a_validated_step_continues_exactly(tmp_path, dataset_dir):
     _same_steps(tmp_path / "straight", tmp_path / "resumed", (3, 4))
 
 
-def test_resume_refuses_another_base_scaling_data_order_or_examples(tmp_path, dataset_dir):
+def test_resume_refuses_another_base_scaling_data_order_or_examples(tmp_path, dataset_dir, monkeypatch):
     """A checkpoint resumed under another model.seed (the tiny model's random base: the adapter was trained on other
     frozen weights), model.lora_alpha (the update's scale), data.seed (the loader's stored seed: the resumed epoch
     skipped the first examples of another order) or in-context examples is refused, naming the setting; all four
-    resumed silently (the adapter folder then named the new base)."""
+    resumed silently (the adapter folder then named the new base). Another base or prompt (stage.target,
+    data.modality) is named before the model is built (helper-109: after it, minutes for the 3B)."""
     common = [f"data.dir={dataset_dir}", "data.batch_size=1", "callbacks.evaluation=null"]
     common += ["trainer.val_check_interval=null", "trainer.check_val_every_n_epoch=100"]
     train(_cfg(tmp_path / "a", *common, "trainer.max_steps=1"))
     ckpt = f"ckpt_path={tmp_path / 'a' / 'checkpoints' / 'last.ckpt'}"
+    with monkeypatch.context() as m:  # named before the model is built (minutes for the 3B), not as Lightning loads
+        m.setattr(lm, "build_model", lambda *a, **k: pytest.fail("the model was built before the refusal"))
+        for override, message in (
+            ("model.seed=7", "trained on model seed=0, but the run builds seed=7"),
+            ("model.lora_alpha=8", "lora_alpha=64.0, but the run builds lora_alpha=8"),
+            ("stage.target=think_answer", r"the checkpoint was trained with .*answer.*, but the data are set to"),
+            ("data.modality=flow", r"the checkpoint was trained with .*rgb.*, but the data are set to .*flow"),
+        ):
+            with pytest.raises(ValueError, match=message):
+                train(_cfg(tmp_path / "b", *common, "trainer.max_steps=2", override, ckpt))
     for override, message in (
-        ("model.seed=7", "trained on model seed=0, but the run builds seed=7"),
-        ("model.lora_alpha=8", "lora_alpha=64.0, but the run builds lora_alpha=8"),
         ("data.seed=5", "data.seed = 5, but the checkpoint was trained with 0"),
         ("data.num_examples=1", "trained with 0 in-context examples in its prompt, but the data are set to 1"),
     ):
