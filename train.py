@@ -552,5 +552,21 @@ def main(cfg: DictConfig) -> float | None:
     return metrics.get("val/iou_full")  # the value a Hydra sweeper would optimise
 
 
+def refuse_file_output_dir(argv: list[str]) -> str | None:
+    """The message for a `hydra.run.dir=` or `hydra.sweep.dir=` override that names a file, or a folder below one,
+    else None: Hydra's own mkdir failed on it with a FileExistsError traceback naming no key, before `main`."""
+    for arg in argv:
+        key, sep, value = arg.partition("=")
+        path = Path(value.strip("'\""))
+        if sep and key.lstrip("+~") in ("hydra.run.dir", "hydra.sweep.dir") and value:
+            if file := next((p for p in (path, *path.parents) if p.is_file()), None):
+                where = "is a file" if file == path else f"is below the file {str(file)!r}"
+                return f"{key.lstrip('+~')} = {value!r} {where}: give a folder for the run's outputs"
+    return None
+
+
 if __name__ == "__main__":
+    if refused := refuse_file_output_dir(sys.argv[1:]):
+        sys.stderr.write(f"train.py: {refused}\n")
+        sys.exit(2)  # as train.py's other input errors
     main()

@@ -1845,3 +1845,22 @@ def test_a_model_config_error_is_not_named_as_a_stage_module_key(tmp_path, datas
                 "model.lora_targets=[q_proj,vproj]",
             )
         )
+
+
+def test_a_run_folder_that_is_a_file_is_named(tmp_path):
+    """hydra.run.dir naming a file (or a folder below one) failed in Hydra's own mkdir with a FileExistsError
+    traceback naming no key (helper-109); now status 2 and one line, before Hydra starts."""
+    from train import refuse_file_output_dir
+
+    afile = tmp_path / "notes.txt"
+    afile.write_text("mine")
+    folder = "give a folder for the run's outputs"
+    assert refuse_file_output_dir([f"hydra.run.dir={afile}"]) == f"hydra.run.dir = {str(afile)!r} is a file: {folder}"
+    below = refuse_file_output_dir(["stage=sft", f"hydra.sweep.dir={afile / 'x'}"])
+    assert below == f"hydra.sweep.dir = {str(afile / 'x')!r} is below the file {str(afile)!r}: {folder}"
+    assert refuse_file_output_dir([f"hydra.run.dir={tmp_path / 'new'}", f"data.dir={afile}"]) is None
+    done = subprocess.run(
+        [sys.executable, "train.py", f"hydra.run.dir={afile}"], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 2 and done.stderr.strip().endswith("is a file: give a folder for the run's outputs")
+    assert "Traceback" not in done.stderr and afile.read_text() == "mine"
