@@ -10,6 +10,7 @@ observed flow that EPE rewards and validation's EPE columns need.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import warnings
 from collections.abc import Sequence
@@ -36,6 +37,17 @@ def without_flow(videos: Sequence[UnlabeledVideo]) -> str | None:
     if isinstance(videos, GeneratedVideos):
         return None if has_flow(videos) else "(every record: data.use_flow = false or no flow column)"
     return next((v.key for v in videos if v.observation.flow is None), None)
+
+
+@contextlib.contextmanager
+def _named(key: str):
+    """Errors of the reader inside put after the config key that named its path ("stage.preferences_dir: ...")."""
+    try:
+        yield
+    except FileNotFoundError as e:
+        raise FileNotFoundError(e.errno, f"{key}: {e.strerror}", e.filename) from None
+    except ValueError as e:
+        raise ValueError(f"{key}: {e}") from None
 
 
 class ProDataModule(L.LightningDataModule):
@@ -98,7 +110,8 @@ class ProDataModule(L.LightningDataModule):
         if hp.preferences_dir is not None:
             from aynamics.preference_data import load_preferences, stored_clock
 
-            self.train_set = load_preferences(hp.preferences_dir)
+            with _named("stage.preferences_dir"):
+                self.train_set = load_preferences(hp.preferences_dir)
             clock = stored_clock(hp.preferences_dir)  # the clock the rows were sampled on, as online mode would
             if clock is not None:
                 self.prompt = dataclasses.replace(self.prompt, **clock)
@@ -108,7 +121,8 @@ class ProDataModule(L.LightningDataModule):
                 ref = open_videos(hp.dir, hp.train_split, limit=1, **kw)
                 self.prompt = with_clock(self.prompt, hp.dir, ref.ds)
         else:
-            self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
+            with _named("data.dir"):  # a preference set given as data.dir: "columns [...] are missing"
+                self.train_set = open_videos(hp.dir, hp.train_split, limit=hp.limit_train, **kw)
             if isinstance(self.train_set, GeneratedVideos):  # video folders: every third of 30 frames, the default
                 from aynamics.data import with_clock
 

@@ -1350,3 +1350,19 @@ def test_preferences_with_an_adapter_trained_again_into_its_folder_are_refused(t
             pass
     args.adapter = None
     assert settings()["adapter_weights"] is None
+
+
+def test_pro_data_errors_name_their_config_keys(tmp_path, dataset_dir):
+    """A missing preference set and a preference set given as data.dir named no config key (helper-109's sweep):
+    "preferences '/x': no data set here", "'/x': columns [...] are missing"."""
+    from aynamics.pro_datamodule import ProDataModule
+
+    tiny = lm.ModelSpec().processor_path
+    nowhere = str(tmp_path / "nope")
+    with pytest.raises(
+        FileNotFoundError, match=r"^\[Errno 2\] stage.preferences_dir: preferences .*nope.*: no data set"
+    ):
+        ProDataModule(str(dataset_dir), tiny, preferences_dir=nowhere).setup()
+    prefs = _handmade_preferences(dataset_dir, tmp_path / "prefs")
+    with pytest.raises(ValueError, match=r"^data.dir: .*prefs.*: columns \[.*\] are missing"):
+        ProDataModule(str(prefs), tiny).setup()
