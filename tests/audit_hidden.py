@@ -2,9 +2,9 @@
 
 It shares no simulation code with aynamics: its own hand-written MJCF, a 1 ms time step (the audit uses
 1/240 s), MuJoCo's default contact softness, and the effects injected its own way: MJCF options and geom attributes
-for drag, wind, floor, gravity, rolling friction and bounce; forces (Magnus) and friction (speed-dependent)
-recomputed in a Python stepping loop; a wrong clock by re-stamping the frames. The audit sees only the CSV
-and a scene whose nominal μ is off by up to ±20 % and that has no effect in it.
+for drag, wind, floor, gravity and rolling friction, an explicit contact pair for bounce; forces (Magnus) and
+friction (speed-dependent) recomputed in a Python stepping loop; a wrong clock by re-stamping the frames. The
+audit sees only the CSV and a scene whose nominal μ is off by up to ±20 % and that has no effect in it.
 
 The friction cone is elliptic, the exact Coulomb law in which the effect sizes are stated. MuJoCo's default
 pyramidal cone is not: it bends a sliding box's path (friction not opposite to the slip) and, with condim 6,
@@ -109,23 +109,30 @@ def _xml(shape: str, mu: float, h: dict) -> str:
     floor_quat = _quat_about(*h.get("tilt", (0.0, 0.0)))
     geom = f'type="sphere" size="{RADIUS}"' if shape == "sphere" else f'type="box" size="{HALF} {HALF} {HALF}"'
     rolling = h.get("c_rr", 0.0) * (RADIUS if shape == "sphere" else HALF)
-    solref = ""
+    off, contact = "", ""
     if "restitution" in h:  # underdamped spring k = 1e4 with the damping ratio giving this bounce
         le = math.log(h["restitution"])
         b = 2 * (-le / math.sqrt(math.pi**2 + le**2)) * 100.0
-        solref = f'solref="-10000 {-b}"'
+        # on an explicit pair, whose friction rows keep MuJoCo's default reference: a geom's solref set theirs too,
+        # and friction turned viscous below mu g / b (a bounce coefficient means Coulomb friction all the same)
+        off = 'contype="0" conaffinity="0"'
+        contact = f"""<contact>
+    <pair geom1="g" geom2="floor" condim="6" friction="{mu} {mu} 0 {rolling} {rolling}" solref="-10000 {-b}"
+          solreffriction="0.02 1"/>
+  </contact>"""
     return f"""
 <mujoco>
   <option timestep="0.001" cone="elliptic" gravity="{g[0]} {g[1]} {g[2]}" density="{rho}"
           viscosity="{h.get("air_viscosity", 0.0)}" wind="{wind[0]} {wind[1]} {wind[2]}"/>
   <worldbody>
     <geom name="floor" type="plane" size="0 0 1" pos="0 0 {h.get("floor_offset", 0.0)}"
-          quat="{" ".join(map(str, floor_quat))}" friction="0 0 0"/>
+          quat="{" ".join(map(str, floor_quat))}" friction="0 0 0" {off}/>
     <body name="ball" pos="0 0 1">
       <freejoint/>
-      <geom name="g" {geom} mass="{MASS}" friction="{mu} 0 {rolling}" condim="6" priority="1" {solref}/>
+      <geom name="g" {geom} mass="{MASS}" friction="{mu} 0 {rolling}" condim="6" priority="1" {off}/>
     </body>
   </worldbody>
+  {contact}
 </mujoco>"""
 
 
