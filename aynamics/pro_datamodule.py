@@ -45,7 +45,7 @@ def _named(key: str):
     try:
         yield
     except FileNotFoundError as e:
-        raise FileNotFoundError(e.errno, f"{key}: {e.strerror}", e.filename) from None
+        raise FileNotFoundError(e.errno, f"{key}: {e.strerror or e}", e.filename) from None
     except ValueError as e:
         raise ValueError(f"{key}: {e}") from None
 
