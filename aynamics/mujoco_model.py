@@ -137,6 +137,7 @@ class Template:
     dof_adr: np.ndarray  # (N,) start in qvel
     pairs: tuple[tuple[int, int], ...]  # contact sensors: (i, j) objects, j = -1 for the floor
     contact_pairs: np.ndarray  # (len(pairs),) MuJoCo pair id of each of `pairs`: every contact is an explicit pair
+    contact_objects: np.ndarray  # (len(pairs), 2) objects i, j of each of `pairs`, the floor's as (i, i): `write_pairs`
 
 
 def build_spec(structure: tuple[str, ...]) -> mujoco.MjSpec:
@@ -222,6 +223,7 @@ def template(structure: tuple[str, ...]) -> Template:
         dof_adr=np.array([j.dofadr[0] for j in joints]),
         pairs=pairs,
         contact_pairs=np.array([model.pair(_pair_name(i, j)).id for i, j in pairs], dtype=int),
+        contact_objects=np.array([(i, i if j < 0 else j) for i, j in pairs], dtype=int).reshape(-1, 2),
     )
 
 
@@ -293,26 +295,21 @@ def scene_params(scene: Scene, tpl: Template, timestep: float = RESTITUTION_TIME
 
 def write_pairs(p: dict[str, np.ndarray], tpl: Template) -> None:
     """Fill `pair_friction` and `pair_solref` of every contact pair from the object geoms' friction and solref, by
-    MuJoCo's rules for geom contacts: against the floor the object's own (it has priority); between two objects the
-    larger of each friction coefficient, and the element-wise smaller solref (the mean where both are standard)."""
+    MuJoCo's rules for geom contacts: between two objects the larger of each friction coefficient, and the
+    element-wise smaller solref (the mean where both are standard); against the floor the object's own (it has
+    priority), which the same rules give for the floor's pairs taken as (i, i) (`Template.contact_objects`)."""
     fric, ref = p["geom_friction"], p["geom_solref"]
-    for (i, j), k in zip(tpl.pairs, tpl.contact_pairs, strict=True):
-        a = tpl.geom_ids[i]
-        if j < 0:
-            f, r = fric[a], ref[a]
-        else:
-            b = tpl.geom_ids[j]
-            f = np.maximum(fric[a], fric[b])
-            r = (ref[a] + ref[b]) / 2 if ref[a][0] > 0 and ref[b][0] > 0 else np.minimum(ref[a], ref[b])
-        p["pair_friction"][k] = [f[0], f[0], f[1], f[2], f[2]]
-        p["pair_solref"][k] = r
+    a, b = tpl.geom_ids[tpl.contact_objects.T]
+    standard = (ref[a, :1] > 0) & (ref[b, :1] > 0)
+    p["pair_friction"][tpl.contact_pairs] = np.maximum(fric[a], fric[b])[:, [0, 0, 1, 2, 2]]
+    p["pair_solref"][tpl.contact_pairs] = np.where(standard, (ref[a] + ref[b]) / 2, np.minimum(ref[a], ref[b]))
 
 
 def pair_sliding(tpl: Template, mu: np.ndarray) -> np.ndarray:
-    """(..., len(pairs)) sliding friction of every contact pair given each object's μ (..., N)."""
-    i = np.array([a for a, _ in tpl.pairs], dtype=int)
-    j = np.array([b for _, b in tpl.pairs], dtype=int)
-    return np.where(j < 0, mu[..., i], np.maximum(mu[..., i], mu[..., np.maximum(j, 0)]))
+    """(..., len(pairs)) sliding friction of every contact pair given each object's μ (..., N), as `write_pairs`
+    mixes it."""
+    i, j = tpl.contact_objects.T
+    return np.maximum(mu[..., i], mu[..., j])
 
 
 def tilt_quaternion(about_x: float, about_y: float) -> np.ndarray:
