@@ -17,6 +17,7 @@ MLPs that share the projection names stay untouched) and freezes or trains the v
 from __future__ import annotations
 
 import contextlib
+import inspect
 import re
 import warnings
 from collections.abc import Sequence
@@ -39,20 +40,6 @@ QWEN2_5_VL_7B = "Qwen/Qwen2.5-VL-7B-Instruct"
 # The seven projections of every decoder layer. The vision blocks' MLPs are also called gate/up/down_proj,
 # hence `lora_target_regex` restricts matching to `language_model`.
 DEFAULT_LORA_TARGETS = ("q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj")
-
-
-# `tiny_config`'s sizes (`model.tiny` in the config), each a whole number >= 1, and their defaults
-TINY_SIZES = {
-    "hidden_size": 64,
-    "num_layers": 2,
-    "num_heads": 4,
-    "num_kv_heads": 2,
-    "intermediate_size": 128,
-    "vision_hidden_size": 32,
-    "vision_depth": 2,
-    "vision_heads": 2,
-    "vision_intermediate_size": 64,
-}
 
 
 def check_tiny_sizes(sizes: dict, prefix: str = "") -> None:
@@ -153,6 +140,14 @@ def tiny_config(
         vision_end_token_id=ids["<|vision_end|>"],
         tie_word_embeddings=tie_word_embeddings,
     )
+
+
+# `tiny_config`'s sizes (`model.tiny` in the config), each a whole number >= 1, with its signature's defaults
+TINY_SIZES = {
+    name: arg.default
+    for name, arg in inspect.signature(tiny_config).parameters.items()
+    if arg.kind is arg.KEYWORD_ONLY and name != "tie_word_embeddings"
+}
 
 
 # The published architectures (the checkpoints' config.json): the language model's width, layers, attention and
