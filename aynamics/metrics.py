@@ -106,7 +106,8 @@ def content_rank(rows) -> np.ndarray:
     Objects described by their rows (masks' pixel counts, initial states) enter `match_objects`' assignment in
     this order, so that which of several equally good assignments it picks follows the objects, not their order
     in the list: objects with equal rows are interchangeable in the metric."""
-    a = np.asarray(rows, float).reshape(len(rows), -1)
+    a = np.asarray(rows, float)
+    a = a.reshape(len(a), -1) if a.size else np.zeros((len(a), 0))  # no objects (a prediction out of view)
     order = np.lexsort(a.T[::-1]) if a.shape[1] else np.arange(len(a))
     rank = np.empty(len(a), np.int64)
     rank[order] = np.arange(len(a))

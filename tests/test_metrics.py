@@ -310,6 +310,16 @@ def test_iou_full_averages_every_frame_and_skips_a_pair_shown_by_neither_side():
     assert first == 1.0 and full == pytest.approx(2 / 3)
 
 
+def test_iou_of_a_prediction_without_any_object_pixel():
+    """A prediction whose objects are all out of view (masks all -1, no names): the observed object is unmatched in
+    frame 0 (0 / 1) and no object shows on either side in frame 1 (1): (0, 0.5); nothing on either side in any frame:
+    (1, 1). Both raised "cannot reshape array of size 0" in the assignment's tie-break (`content_rank`)."""
+    empty = _seg([[-1, -1]], [[-1, -1]])
+    assert metrics.segmentation_iou(empty, _seg([[0, -1]], [[-1, -1]])) == (0.0, 0.5)
+    assert metrics.segmentation_iou(empty, empty) == (1.0, 1.0)
+    assert metrics.content_rank(np.zeros((0, 2, 1))).tolist() == []
+
+
 def test_epe_is_zero_when_no_frame_shows_an_object():
     """No object on either side in any frame: nothing to get wrong, EPE (0, 0), not nan."""
     none = _seg([[-1, -1]], [[-1, -1]])
