@@ -445,7 +445,8 @@ def check_states(
 ) -> tuple[bool, str | None]:
     """(valid, reason) of simulated states: objects that start inside each other or the floor (`overlap`, from
     `overlap_of`: the contact pushes them apart at any speed, a launch not in the scene), non-finite values,
-    blow-up speeds, tunnelling, the camera inside an object (with `orientation`), MuJoCo warnings.
+    blow-up speeds, the camera below the floor plane, tunnelling, the camera inside an object (with `orientation`),
+    MuJoCo warnings.
 
     position (T, N, 3) and v (T, N, 6) per frame and object, orientation (T, N, 4) wxyz, nwarning the MuJoCo
     warning count, t (T,) seconds.
@@ -474,6 +475,13 @@ def check_states(
     mujoco.mju_quat2Mat(rot, tilt_quaternion(*tilt))
     normal = rot.reshape(3, 3)[:, 2]  # the floor's z axis in world
     height = (position - np.array([0.0, 0.0, floor])) @ normal
+    under = -float((np.asarray(scene.camera.position, float) - np.array([0.0, 0.0, floor])) @ normal)
+    if under >= 0:  # mj_ray ignores a plane met from below, OpenGL draws its underside: no view to compare
+        return False, (
+            f"camera below the floor: camera.position = {list(scene.camera.position)} is {under:.3g} m under the "
+            "floor plane; a video cannot show that view (the renderer sees the floor's underside, the scorer sees "
+            "the objects through it)"
+        )
     depth = np.array([half_extents(o).min() for o in scene.objects])
     below = height < -depth  # the centre went through the floor
     if below.any():

@@ -507,6 +507,28 @@ def test_a_camera_inside_an_object_is_an_invalid_rollout():
     assert not got.valid and got.iou_full == 0 and "camera inside cylinder_0" in got.reason
 
 
+def test_a_camera_below_the_floor_is_an_invalid_rollout():
+    """Under a raised floor the renderer drew the floor's underside over the ball while the ray-caster (MuJoCo's
+    ray meets a plane only from above) saw the ball through it: the true scene scored IoU 0 against its own render.
+    Such a scene is refused, by the simulator and the scorer, whether the floor is raised (0.5 m over a camera at
+    0.3 m) or tilted (-20° about x: 2.18 m over a camera at y = -6, z = 1.5); a camera above a tilted floor is fine."""
+    from aynamics import observation, scorer
+
+    low = {"type": "camera", "position": [0.0, -2.0, 0.3], "orientation": 89, "fovy": 60}
+    raised = scene([sphere(y=1.0, z=0.75, r=0.25)], camera=low, environment={"floor_offset": 0.5})
+    r = sim.simulate(raised)
+    assert not r.valid and r.reason.startswith("camera below the floor: camera.position = [0.0, -2.0, 0.3] is 0.2 m")
+    cam = {"type": "camera", "position": [0.0, -6.0, 1.5], "orientation": 80, "fovy": 60}
+    tilted = scene([sphere(z=0.3)], camera=cam, environment={"floor_tilt": [-20.0, 0.0]})
+    assert sim.simulate(tilted).reason.startswith("camera below the floor")
+    assert sim.simulate(scene([sphere(z=0.3)], camera=cam, environment={"floor_tilt": [20.0, 0.0]})).valid
+    observed = observation.Observation.from_scene(
+        scene([sphere(y=1.0, z=0.25, r=0.25)], camera=low), width=12, height=8
+    )
+    (got,) = scorer.score([raised], observed)
+    assert not got.valid and got.iou_full == 0 and got.reason.startswith("camera below the floor")
+
+
 def test_invalid_timing_is_refused():
     with pytest.raises(ValueError, match="duration"):
         sim.SimConfig(duration=-1)
