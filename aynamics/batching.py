@@ -10,7 +10,8 @@ training is indifferent to it because Qwen2.5-VL derives its 3-D positions from 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import itertools
+from collections.abc import Iterable, Iterator, Sequence
 
 import torch
 
@@ -88,6 +89,40 @@ def collate(
 # second): 15 for 14 at the 15th patch) away from those generation gives (its inputs are not cast). Integers are
 # not cast; `model_inputs` reads the value back exactly.
 SECONDS_BITS = "second_per_grid_ts_bits"
+
+
+# The summed label weight of the batches of one optimizer step (`with_window_weights`), as the bits of a float64:
+# an integer tensor, which precision plugins do not cast (bfloat16 holds whole numbers exactly only up to 256).
+WINDOW_WEIGHT_BITS = "window_weight_bits"
+
+
+def label_weight(batch: dict[str, torch.Tensor]) -> float:
+    """What the SFT loss of `batch` is a mean over (`lm.sft_loss`): its labelled tokens, or their summed
+    `loss_weights` when it has them."""
+    mask = batch["labels"][:, 1:] != IGNORE_INDEX
+    if "loss_weights" in batch:
+        return float((batch["loss_weights"][:, 1:].double() * mask).sum())
+    return float(mask.sum())
+
+
+def with_window_weights(batches: Iterable[dict[str, torch.Tensor]], size: int) -> Iterator[dict[str, torch.Tensor]]:
+    """The batches, each of every `size` consecutive ones (an optimizer step's under gradient accumulation; the
+    last window of an epoch may be shorter) holding the window's summed `label_weight` (`WINDOW_WEIGHT_BITS`), so
+    that the SFT step can be the mean over all of the step's tokens, not a mean of its micro-batches' means."""
+    if size < 1:
+        raise ValueError(f"size = {size}: must be >= 1")
+    it = iter(batches)
+    while chunk := list(itertools.islice(it, size)):
+        total = torch.tensor([sum(label_weight(b) for b in chunk)], dtype=torch.float64).view(torch.int64)
+        for b in chunk:
+            yield {**b, WINDOW_WEIGHT_BITS: total}
+
+
+def window_weight(batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+    """The summed label weight of the optimizer step `batch` belongs to (float64, (1,)), or None when the loader
+    did not record it (`with_window_weights`)."""
+    bits = batch.get(WINDOW_WEIGHT_BITS)
+    return None if bits is None else bits.view(torch.float64)
 
 
 def model_inputs(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -415,6 +415,7 @@ class SceneDataModule(L.LightningDataModule):
             collate_fn=self._collate,
             num_workers=self.num_workers,
             cache=self.cache,
+            window_weights=True,  # the step's loss is the mean over all its tokens (SFTModule.training_step)
         )
 
     def _eval_loader(self, split: str) -> DataLoader:

@@ -95,7 +95,25 @@ class ResumableSampler(Sampler[int]):
 
 
 class ResumableLoader(DataLoader):
-    """A DataLoader Lightning treats as resumable: its position lives in the sampler (see `ResumableSampler`)."""
+    """A DataLoader Lightning treats as resumable: its position lives in the sampler (see `ResumableSampler`).
+
+    With `window` > 0, every batch also holds the summed label weight of the `window` consecutive batches of its
+    optimizer step (`batching.with_window_weights`; `window` = the trainer's `accumulate_grad_batches`): what the
+    SFT step's loss is normalised by. An epoch (and a resumed one: the sampler starts at a step's first batch)
+    starts a window, as Lightning's accumulation does.
+    """
+
+    def __init__(self, *args: Any, window: int = 0, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.window = window
+
+    def __iter__(self):
+        batches = super().__iter__()
+        if not self.window:
+            return batches
+        from aynamics.batching import with_window_weights
+
+        return with_window_weights(batches, self.window)
 
     def state_dict(self) -> dict[str, int]:
         return {"seed": self.sampler.seed, "n": self.sampler.n}
@@ -200,11 +218,13 @@ def resumable_loader(
     collate_fn=None,
     num_workers: int | None = 0,
     cache: bool = False,
+    window_weights: bool = False,
 ) -> ResumableLoader:
     """The training loader of `ds` for this process: its shard of every epoch's order (`ResumableSampler`), and
     after a resume (`trainer.global_step` is restored before loaders are built) past what was trained on.
-    `trainer` None: one process from the start. `num_workers` None: see `loader_workers`."""
-    rank, world, start_epoch, skip = 0, 1, 0, 0
+    `trainer` None: one process from the start. `num_workers` None: see `loader_workers`. `window_weights`: each
+    batch holds its optimizer step's summed label weight (`ResumableLoader`; SFT batches of dicts with labels)."""
+    rank, world, start_epoch, skip, accum = 0, 1, 0, 0, 1
     if trainer is not None:
         rank, world = trainer.global_rank, trainer.world_size
         # Lightning steps the optimizer on each epoch's last batch too, so an epoch is ceil(batches / accum) steps.
@@ -228,5 +248,6 @@ def resumable_loader(
         sampler=sampler,
         collate_fn=collate_fn,
         generator=torch.Generator().manual_seed(seed),  # worker seeds: not from the global RNG
+        window=accum if window_weights else 0,
         **loader_options(num_workers, trainer, cache),
     )

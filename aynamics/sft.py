@@ -1,7 +1,8 @@
 """The SFT stage: teach the vision-language model to write the scene (optionally after its motion reasoning).
 
 A LightningModule around `lm.build_model(spec)` (a Qwen2.5-VL with LoRA on the language model). The loss is
-the token-mean negative log-likelihood of the response tokens only (`lm.sft_loss`). Checkpoints hold the
+the token-mean negative log-likelihood of the response tokens only (`lm.sft_loss`), over every response token of an
+optimizer step (all its micro-batches under gradient accumulation, all processes: `_step_mean`). Checkpoints hold the
 trainable weights (the adapter) plus the optimizer, scheduler, loop counters and RNG states, so a resumed run
 continues exactly; `run_callbacks.AdapterExport` writes the peft folder that `PeftModel.from_pretrained` loads.
 
@@ -19,7 +20,7 @@ import lightning as L
 import torch
 
 from aynamics import adapters, lm, sharding, visual_targets
-from aynamics.batching import model_inputs
+from aynamics.batching import label_weight, model_inputs, window_weight
 from aynamics.data import real_rows
 from aynamics.model import find_visual
 from aynamics.processor import IGNORE_INDEX
@@ -294,6 +295,22 @@ class SFTModule(adapters.ExactResume, L.LightningModule):
             last["frame_count_acc"],
         )
 
+    def _step_mean(self, loss: torch.Tensor, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The micro-batch's share of the optimizer step's token mean: Lightning divides each micro-batch's loss
+        by `accumulate_grad_batches` and ddp / fsdp average the processes' gradients, which of per-micro-batch means
+        weighed a token of a short response more than one of a long response. Scaled here by this batch's label
+        weight over the step's (every micro-batch, every process: `batching.with_window_weights`), the step's
+        gradient is that of sum(nll) / sum(weights) over all its tokens, as one batch of them all gives. A batch
+        of a loader that does not record its step's weight keeps its own mean."""
+        total = window_weight(batch)
+        if total is None or self._trainer is None:
+            return loss
+        trainer = self.trainer
+        if trainer.world_size > 1:  # every process's window (float64 on the device: NCCL and gloo reduce it)
+            total = trainer.strategy.reduce(total.to(loss.device).clone(), reduce_op="sum").cpu()
+        scale = label_weight(batch) * trainer.accumulate_grad_batches * trainer.world_size / total.clamp(min=1e-12)
+        return loss * scale.to(loss.device, loss.dtype).reshape(())  # exactly 1 for one process without accumulation
+
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         loss, n, _ = self._loss(batch, weighted=True)  # validation and test report the plain mean
         bs = batch["input_ids"].shape[0]
@@ -303,6 +320,7 @@ class SFTModule(adapters.ExactResume, L.LightningModule):
             self.log("train/total_loss", loss + self.hparams.vision_aux_weight * aux, batch_size=bs)
         self.log("train/response_tokens", n.float(), batch_size=bs, reduce_fx="sum", on_step=True, on_epoch=False)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=bs, on_step=True, on_epoch=False)
+        loss = self._step_mean(loss, batch)  # logged above as this batch's mean; trained as its share of the step's
         return loss if aux is None else loss + self.hparams.vision_aux_weight * aux
 
     def _without_padding(

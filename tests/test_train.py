@@ -1864,3 +1864,52 @@ def test_a_run_folder_that_is_a_file_is_named(tmp_path):
     )
     assert done.returncode == 2 and done.stderr.strip().endswith("is a file: give a folder for the run's outputs")
     assert "Traceback" not in done.stderr and afile.read_text() == "mine"
+
+
+def test_gradient_accumulation_trains_the_token_mean_of_the_step(dataset_dir):
+    """The first two training scenes of the epoch's order, of different response lengths: one optimizer step over
+    them as one batch, or as two batches with accumulate_grad_batches=2, takes the gradient of sum(nll) / n over
+    the step's n response tokens both ways (and a shorter last window of an epoch counts its own tokens). Each
+    micro-batch's own mean, divided by 2 as Lightning does, gave (mean_1 + mean_2) / 2 instead: the tokens of the
+    shorter response weighed more (and alike across ddp processes)."""
+    import lightning as L
+
+    class Grad(L.Callback):
+        def on_before_optimizer_step(self, trainer, module, optimizer):
+            self.grad = torch.cat([p.grad.flatten() for p in module.parameters() if p.grad is not None])
+
+    spec = lm.ModelSpec(kind="tiny", lora_rank=8, lora_alpha=16.0, lora_dropout=0.0)
+
+    def step_gradient(batch_size: int, accumulate: int) -> tuple[torch.Tensor, list[int]]:
+        dm = SceneDataModule(str(dataset_dir), spec.processor_path, num_frames=2, batch_size=batch_size)
+        torch.manual_seed(0)  # the same LoRA initialisation
+        module, grad = SFTModule(spec), Grad()
+        trainer = L.Trainer(
+            max_steps=1,
+            accumulate_grad_batches=accumulate,
+            accelerator="cpu",
+            logger=False,
+            enable_checkpointing=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            limit_val_batches=0,
+            callbacks=[grad],
+        )
+        trainer.fit(module, datamodule=dm)
+        order = dm.train_dataloader().sampler._order()[:2]  # epoch 0's
+        tokens = [int((dm.dataset("train")[i]["labels"] != -100).sum()) for i in order]
+        return grad.grad, tokens
+
+    whole, tokens = step_gradient(2, 1)
+    accumulated, same = step_gradient(1, 2)
+    assert tokens == same and tokens[0] != tokens[1]  # the same two scenes, of different lengths
+    torch.testing.assert_close(accumulated, whole, rtol=1e-4, atol=1e-6)
+    # the loader's windows: 2 batches a step, a shorter last window at the epoch's end
+    from aynamics.batching import window_weight, with_window_weights
+
+    batches = [
+        {"input_ids": torch.zeros(1, n + 1, dtype=torch.long), "labels": torch.tensor([[-100] + [1] * n])}
+        for n in (4, 45, 7)
+    ]
+    assert [window_weight(b).item() for b in with_window_weights(batches, 2)] == [49.0, 49.0, 7.0]
+    assert "window_weight_bits" not in model_inputs(next(with_window_weights(batches, 2)))
