@@ -64,9 +64,19 @@ def clip_of(path: str | Path, prompt, fps: float | None = None) -> list[np.ndarr
     return frames
 
 
-def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int = 2048, device: str = "auto") -> dict:
+def predict(
+    adapter: str | Path,
+    frames: list[np.ndarray],
+    max_new_tokens: int = 2048,
+    device: str = "auto",
+    separate: bool = False,
+) -> dict:
     """Greedy response of the adapter's model for `frames`: {"response", "reasoning", "yaml", "valid", "problems"}.
-    `device`: "auto" (a GPU when there is one), "cpu", "cuda", "cuda:1", ..."""
+    `device`: "auto" (a GPU when there is one), "cpu", "cuda", "cuda:1", ...
+
+    With `separate`, the scene's objects that start inside each other or the floor are pushed apart
+    (`aynamics.separate.separate_start`): "yaml" is the separated scene, "moved" {name: [dx, dy, dz] in m} what
+    moved; a scene that cannot be separated keeps its YAML, with the reason as a problem and "valid" False."""
     from aynamics import adapters, lm
     from aynamics.scene import SceneError, dump, parse
 
@@ -77,9 +87,18 @@ def predict(adapter: str | Path, frames: list[np.ndarray], max_new_tokens: int =
     think = _THINK.search(response)
     result = {"response": response, "reasoning": think.group(1).strip() if think else None}
     try:
-        result |= {"yaml": dump(parse(response)), "valid": True, "problems": []}
+        scene = parse(response)
     except SceneError as e:
-        result |= {"yaml": None, "valid": False, "problems": [str(p) for p in e.problems]}
+        return result | {"yaml": None, "valid": False, "problems": [str(p) for p in e.problems]}
+    result |= {"yaml": dump(scene), "valid": True, "problems": []}
+    if separate:
+        from aynamics.separate import separate_start
+
+        try:
+            separated = separate_start(scene)
+        except ValueError as e:
+            return result | {"valid": False, "problems": [str(e)], "moved": {}}
+        result |= {"yaml": dump(separated.scene), "moved": {k: list(v) for k, v in separated.moved.items()}}
     return result
 
 
@@ -100,6 +119,12 @@ def add_predict_command(sub) -> None:
         "it (0 to 0.9 s of the video for generated data)",
     )
     p.add_argument("--max-new-tokens", type=int, default=2048, help="response length limit (default 2048)")
+    p.add_argument(
+        "--separate",
+        action="store_true",
+        help="push apart objects the scene starts inside each other or the floor (each as little as their "
+        "contacts say; what moved is printed as a comment)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     add_device_option(p)
     p.set_defaults(run=run_predict)
@@ -117,7 +142,7 @@ def run_predict(args) -> int:
         raise UsageError(f"predict: --fps {args.fps}: must be a finite number > 0")
     try:
         frames = clip_of(args.input, adapters.read_adapter_meta(args.adapter)[1], args.fps)
-        result = predict(args.adapter, frames, args.max_new_tokens, args.device)
+        result = predict(args.adapter, frames, args.max_new_tokens, args.device, args.separate)
     except FileNotFoundError as e:
         raise UsageError(f"predict: {missing_file_message(e)}") from None
     except ValueError as e:
@@ -128,8 +153,12 @@ def run_predict(args) -> int:
     else:
         if result["reasoning"]:
             sys.stdout.write(f"# reasoning\n{result['reasoning']}\n\n")
+        for name, d in result.get("moved", {}).items():
+            sys.stdout.write(f"# separated: {name} moved by [{', '.join(f'{x:.4g}' for x in d)}] m\n")
         if result["valid"]:
             sys.stdout.write(result["yaml"])
+        elif result["yaml"] is not None:  # a scene that could not be separated
+            sys.stdout.write(f"# {result['problems'][0]}\n{result['yaml']}")
         else:
             sys.stdout.write(f"# the response holds no valid scene: {'; '.join(result['problems'][:5])}\n")
             sys.stdout.write(result["response"] + "\n")

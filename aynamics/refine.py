@@ -80,6 +80,28 @@ TRACK_TIE = 0.05  # weight of the track objective (image heights) breaking near-
 TRACK_STAGE_SIMS = 3 + 6 + 7 + 7 + 1
 
 
+def _separated_start(start: Scene, value: float, observed, left: Budget, flow_weight: float, nthread, trace: list):
+    """The start and its objective value, or its separated version's (`separate_start`) when that scores
+    higher; the one simulation is counted in `left` and the switch in `trace`. A start that nothing overlaps, or
+    that cannot be separated (still overlapping after the rounds, or pushed out of range), stays."""
+    from aynamics.scorer import score
+    from aynamics.separate import separate_start
+
+    try:
+        separated = separate_start(start)
+    except ValueError:
+        return start, value
+    if not separated.moved:
+        return start, value
+    s = score([separated.scene], observed, nthread=nthread)[0]
+    left.used += 1
+    v = objective_value(s, flow_weight)
+    if v <= value:
+        return start, value
+    trace.append((left.used, left.elapsed, v, "separated"))
+    return separated.scene, v
+
+
 # --------------------------------------------------------------------------------------------
 # Refinement
 # --------------------------------------------------------------------------------------------
@@ -89,8 +111,8 @@ class RefineResult:
 
     Attributes:
         scene: the refined scene (same objects and shapes as the start).
-        start: the warm-start scene (best of the given ones).
-        before, after: `aynamics.scorer.Score` of the start and of the refined scene.
+        start: the warm-start scene: the best of the given ones, or it separated (see `refine`'s `separate`).
+        before, after: `aynamics.scorer.Score` of the best given scene and of the refined scene.
         trace: (simulations used, seconds, best objective value, stage) after every generation.
         simulations: candidates simulated in all (scoring the start included).
         seconds: wall time.
@@ -302,6 +324,7 @@ def refine(
     flow_weight: float = 0.01,
     stop_at: float | None = None,
     fix_grounded: bool = True,
+    separate: bool = True,
 ) -> RefineResult:
     """Refine a predicted scene against an observed video (an `aynamics.observation.Observation`).
 
@@ -324,6 +347,8 @@ def refine(
         flow_weight: objective = IoU_full - flow_weight × EPE_full (px) when the observation has flow.
         stop_at: stop once the objective reaches this value (e.g. 0.98); None spends the budget.
         fix_grounded: keep the height and vertical velocity of objects that start on the floor (`grounded_dims`).
+        separate: when the best given scene starts objects inside each other or the floor, score it separated
+            too (`aynamics.separate.separate_start`, one simulation) and start from the better of the two.
 
     Raises:
         ValueError: no initial scene, initial scenes of different structures, bad `params`, or a number out of
@@ -364,8 +389,10 @@ def refine(
     values = [objective_value(s, flow_weight) for s in first]
     k = int(np.argmax(values))
     start, before, best_v = scenes[k], first[k], values[k]
-    best = start
     trace: list[tuple[int, float, float, str]] = [(left.used, left.elapsed, best_v, "start")]
+    if separate and left.left() > 0:
+        start, best_v = _separated_start(start, best_v, observed, left, flow_weight, nthread, trace)
+    best = start
     restarts = 0
 
     ground = fix_grounded and left.left() > 0  # one simulation, within the budget

@@ -86,6 +86,12 @@ def add_refine_command(sub) -> None:
         help="stop once the objective reaches this: IoU_full - 0.01 x EPE_full (px at 480 wide) when the video has "
         "flow, IoU_full alone when not (default: spend the budget)",
     )
+    p.add_argument(
+        "--no-separate",
+        action="store_true",
+        help="start from the prediction as it is, even when it starts objects inside each other or the floor "
+        "(default: score it separated too, `aynamics.separate`, and start from the better)",
+    )
     p.add_argument("--out", help="write the refined scene YAML here")
     p.add_argument(
         "--animation", help="write a before/after segmentation animation here, .gif or .mp4 (needs headless OpenGL)"
@@ -156,6 +162,7 @@ def run_refine_command(args) -> int:
             seed=args.seed,
             stop_at=args.stop_at,
             sigma_scale=args.sigma_scale,
+            separate=not args.no_separate,
         )
     except ValueError as e:  # refine's own messages start with "refine: " already
         raise UsageError(f"refine: {str(e).removeprefix('refine: ')}") from None
