@@ -13,7 +13,9 @@ scene" of the data set's training split. The prompt is rebuilt from the adapter 
 evaluation's. With `refine_budget` N every valid prediction is also refined by CMA-ES against its video
 (`refine_texts`: `aynamics.refine`, N simulations and at most `refine_seconds` each) and scored again: the paper's
 test-time refinement column; the average scene is refined the same way beside it, so the table shows what the
-model's start adds to the search.
+model's start adds to the search. With `separate`, the responses are also scored with their starts separated
+(`aynamics.separate`: objects written inside each other or the floor pushed apart), column "model, separated":
+how the model places objects, apart from the overlaps that make most of a weak model's scenes invalid.
 
 `evaluate_videos` scores videos that have no scene label, as the paper does on real videos: folders of
 `frames/*.png` beside the observed segmentation (and optional flow) that `aynamics render` writes and the PRO stage
@@ -47,9 +49,11 @@ from aynamics.callbacks import (
     write_predictions,
 )
 from aynamics.kept_batches import KeptBatches, content_digest
+from aynamics.separate import separate_texts
 
 MODEL, BASELINE = "model", "average scene"
 REFINED, BASELINE_REFINED = f"{MODEL} + refine", f"{BASELINE} + refine"
+SEPARATED = f"{MODEL}, separated"
 # what `--out OUT` keeps in OUT.partial as it goes (`kept_batches`): each batch's responses, each refinement
 RESPONSES, REFINED_KEPT, AVERAGE_REFINED_KEPT = "responses", "refined", "average-refined"
 KEPT_FIELDS = {
@@ -214,6 +218,7 @@ def _score(
     refine_seconds: float,
     progress: bool,
     n: int,
+    separate: bool = False,
     split_size: int,
     what: str,
     kept: KeptBatches | None = None,
@@ -229,6 +234,8 @@ def _score(
     observations = [r["observation"] for r in records]
     per = evaluate_texts(texts, targets, observations)
     result = Evaluation({MODEL: summarize(per)}, records, texts, per, left_out=n - len(records), split_size=split_size)
+    if separate:
+        result.table[SEPARATED] = summarize(evaluate_texts(separate_texts(texts), targets, observations))
     if average is not None:
         result.table[BASELINE] = baseline_summary(average, records)
     if refine_budget:
@@ -259,6 +266,7 @@ def evaluate_adapter(
     device: str = "auto",
     refine_budget: int = 0,
     refine_seconds: float = 60.0,
+    separate: bool = False,
     baseline: bool = True,
     progress: bool = False,
     kept: KeptBatches | None = None,
@@ -318,6 +326,7 @@ def evaluate_adapter(
         what=f"scene of the {where}",
         kept=kept,
         digests=digests,
+        separate=separate,
     )
 
 
@@ -331,6 +340,7 @@ def evaluate_videos(
     device: str = "auto",
     refine_budget: int = 0,
     refine_seconds: float = 60.0,
+    separate: bool = False,
     progress: bool = False,
     kept: KeptBatches | None = None,
 ) -> Evaluation:
@@ -381,6 +391,7 @@ def evaluate_videos(
         what=f"video of --videos {str(videos)!r}",
         kept=kept,
         digests=digests,
+        separate=separate,
     )
 
 

@@ -70,6 +70,12 @@ def add_evaluate_command(sub) -> None:
     )
     p.add_argument("--refine-seconds", type=float, default=60.0, help="time limit of each refinement (default 60)")
     p.add_argument("--no-baseline", action="store_true", help="leave out the average scene")
+    p.add_argument(
+        "--separate",
+        action="store_true",
+        help="also score each response with its objects that start inside each other or the floor pushed apart "
+        "(column 'model, separated')",
+    )
     p.add_argument("--out", help="folder for predictions.jsonl and metrics.json")
     p.add_argument(
         "--json", action="store_true", help="print the table and counts as JSON (metrics.json less settings)"
@@ -111,6 +117,7 @@ def run_evaluate(args) -> int:
         "refine_budget": args.refine,
         "refine_seconds": args.refine_seconds,
         "progress": not args.quiet,
+        "separate": args.separate,
     }
     try:
         kept = (
@@ -145,7 +152,7 @@ def run_evaluate(args) -> int:
                 raise
             if kept is not None:
                 try:
-                    write_evaluation(args.out, result, settings)
+                    write_evaluation(args.out, result, settings | {"separate": args.separate})
                 except OSError as e:
                     raise UsageError(
                         f"evaluate: cannot write --out {args.out!r}: {e}; the responses and refinements are kept in "

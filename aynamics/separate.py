@@ -13,7 +13,8 @@ where they are (one pushed into a third object moves that one in the next round)
     result.scene, result.moved  # the separated scene; {name: (dx, dy, dz) in m} of the objects moved
 
 `aynamics predict --separate` prints a prediction separated; `aynamics.refine` starts from the better (by the
-scorer) of a prediction and its separated start.
+scorer) of a prediction and its separated start; `aynamics evaluate --separate` scores the responses separated
+too (`separate_texts`).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import mujoco
 import numpy as np
 
 from aynamics.ranges import SceneError
-from aynamics.scene import Scene, from_items, is_whole, require_scene
+from aynamics.scene import Scene, dump, from_items, is_whole, parse, require_scene
 from aynamics.scene_dump import to_items
 from aynamics.simulate import overlap_words, prepare_batch
 
@@ -91,6 +92,18 @@ def separate_start(scene: Scene, tolerance: float = TOLERANCE, max_rounds: int =
     except SceneError as e:
         raise ValueError(f"separate_start: the separated scene is out of range: {e}") from None
     return Separation(separated, moved, rounds)
+
+
+def separate_texts(texts: list[str]) -> list[str]:
+    """Each model response's scene separated (`separate_start`) as canonical YAML; a response without a valid scene,
+    or one that cannot be separated, is kept as it is (it scores as invalid again)."""
+    out = []
+    for text in texts:
+        try:
+            out.append(dump(separate_start(parse(text)).scene))
+        except ValueError:  # no valid scene (a SceneError), or one that cannot be separated
+            out.append(text)
+    return out
 
 
 def _deepest(data: mujoco.MjData, obj_of: dict[int, int], tolerance: float) -> dict:

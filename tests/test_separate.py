@@ -192,3 +192,43 @@ def test_cli_refine_separates_unless_told_not_to(tmp_path, capsys):
         assert main([*args, *extra]) == 0
         stages.append([stage for *_, stage in json.loads(capsys.readouterr().out)["trace"]])
     assert "separated" in stages[0] and "separated" not in stages[1]
+
+
+def test_evaluation_scores_the_responses_separated_beside_them(tmp_path, monkeypatch, capsys):
+    """`evaluate._score(separate=True)` of two records whose video shows two spheres 0.4 m apart: the response
+    that writes them at one point does not simulate (validity 0, IoU 0), separated it does and overlaps the video;
+    a response without a scene stays invalid in both columns. `aynamics evaluate --separate` hands it on and
+    records it in metrics.json's settings."""
+    from aynamics import evaluate as ev
+    from aynamics import evaluate_cli
+    from aynamics.observation import Observation
+    from aynamics.separate import separate_texts
+
+    sphere = "- type: sphere\n  radius: 0.2\n  state: {{position: [{x}, 1.0, 0.2]}}\n"
+    truth = _scene(sphere.format(x=-0.2) + sphere.format(x=0.2))
+    obs = Observation.from_scene(truth)
+    records = [{"index": k, "scene_yaml": dump(truth), "scene": truth, "observation": obs} for k in range(2)]
+    texts = [dump(_scene(sphere.format(x=0.0) * 2)), "no scene"]
+    assert separate_texts(texts) == [dump(separate_start(parse(texts[0])).scene), "no scene"]
+    result = ev._score(
+        records, texts, average=None, refine_budget=0, refine_seconds=1.0, progress=False, n=2, split_size=2,
+        what="x", separate=True,
+    )  # fmt: skip
+    model, separated = result.table["model"], result.table["model, separated"]
+    assert (model["sim_valid"], model["iou_full"]) == (0.0, 0.0)
+    assert separated["sim_valid"] == 0.5 and separated["iou_full"] > 0.25 and separated["yaml_valid"] == 0.5
+    calls = []
+
+    def fixed(adapter, source, **kwargs):
+        calls.append(kwargs)
+        return ev.Evaluation({"model": {"yaml_valid": 1.0}}, [{"index": 0}], ["t"], {"yaml_valid": [1.0]})
+
+    monkeypatch.setattr(evaluate_cli, "evaluate_adapter", fixed)
+    (tmp_path / "adapter").mkdir()
+    args = ["evaluate", "--adapter", str(tmp_path / "adapter"), "--data", "D", "--quiet", "--out", str(tmp_path / "e")]
+    from aynamics.cli import main
+
+    assert main([*args, "--separate"]) == 0
+    capsys.readouterr()
+    assert calls[0]["separate"] is True
+    assert json.loads((tmp_path / "e" / "metrics.json").read_text())["settings"]["separate"] is True
