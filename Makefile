@@ -48,11 +48,12 @@ TRAIN_SCENES ?= 1536
 TRAIN_OUT ?= runs/make_train
 
 train: setup  ## generate a small data set if missing, train the tiny model on the CPU (10-17 min once its data exist), print the validation table
-	@# a data set simulated by older physics (simulate.PHYSICS_VERSION) is moved aside, kept, and made again
+	@# a data set simulated by older physics (simulate.PHYSICS_VERSION) or labelled by older code
+	@# (generate.LABELS_VERSION: its scenes and texts) is moved aside, kept, and made again
 	@if [ -f $(TRAIN_DATA)/dataset_dict.json ] && ! $(BIN)/python -c "import sys; from aynamics.dataset_store \
-	  import stale_physics; sys.exit(bool(stale_physics('$(TRAIN_DATA)')))"; then \
-	  old=$(TRAIN_DATA).old-physics-$$(date +%Y%m%d-%H%M%S); mv $(TRAIN_DATA) $$old; \
-	  echo "$(TRAIN_DATA) was simulated by older physics: moved to $$old, generating it again"; fi
+	  import stale_labels, stale_physics as p; sys.exit(bool(p('$(TRAIN_DATA)') or stale_labels('$(TRAIN_DATA)')))"; \
+	  then old=$(TRAIN_DATA).old-$$(date +%Y%m%d-%H%M%S); mv $(TRAIN_DATA) $$old; \
+	  echo "$(TRAIN_DATA) was made by older physics or labels: moved to $$old, generating it again"; fi
 	@test -f $(TRAIN_DATA)/dataset_dict.json || $(BIN)/aynamics generate --num $(TRAIN_SCENES) --out $(TRAIN_DATA) \
 	  --seed 0 --quiet width=112 height=80 backdrop=plain
 	@# an earlier run there is moved aside, kept (train.py refuses a fresh run into a folder holding one)

@@ -76,6 +76,20 @@ def stale_physics(path: str | Path) -> str | None:
     )
 
 
+def stale_labels(path: str | Path) -> str | None:
+    """Why a generated data set's records were labelled (rest times, reasoning text, the scenes kept) by other code
+    than this (its manifest's `config.labels`, absent before version 2), or None (current, or no manifest)."""
+    from aynamics.generate_config import LABELS_VERSION
+
+    config = _manifest_config(path)
+    if config is None or config.get("labels", 1) == LABELS_VERSION:
+        return None
+    return (
+        f"data set {str(path)!r} was labelled by labels version {config.get('labels', 1)}, this code writes version "
+        f"{LABELS_VERSION}"
+    )
+
+
 def dataset_substeps(path: str | Path) -> int | None:
     """The physics steps per frame a generated data set's videos were simulated with (its manifest's
     `config.substeps`, written by every generate), or None for a data set made otherwise."""

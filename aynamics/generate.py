@@ -93,7 +93,7 @@ from aynamics.scene_files import (  # noqa: F401 - re-exported: the scenes of `g
     split_of_folder,
     warn_repeated_scenes,
 )
-from aynamics.simulate import Rollout, bounding_radius, simulate
+from aynamics.simulate import MAX_UNPUSHED_GAIN, Rollout, bounding_radius, simulate, unpushed_energy_gain
 
 if TYPE_CHECKING:  # rendering is imported inside the workers only
     from aynamics.render import Frames, Renderer
@@ -103,7 +103,9 @@ if TYPE_CHECKING:  # rendering is imported inside the workers only
 # One record
 # --------------------------------------------------------------------------------------------
 def sample_simulated(index: int, seed: int, config: GenerateConfig) -> tuple[Scene, Rollout, int]:
-    """Scene `index` and its rollout; resampled (attempt 1, 2, ...) when placement fails or the simulation diverges.
+    """Scene `index` and its rollout; resampled (attempt 1, 2, ...) when placement fails, the simulation diverges, or
+    an object gains energy with no other object touching it (`simulate.unpushed_energy_gain`: an upright cylinder
+    launched by MuJoCo's plane-cylinder contact).
 
     Raises:
         RuntimeError: every attempt failed (the reasons are listed).
@@ -117,9 +119,14 @@ def sample_simulated(index: int, seed: int, config: GenerateConfig) -> tuple[Sce
             reasons.append(str(e))
             continue
         rollout = simulate(scene, config.sim)
-        if rollout.valid:
+        if not rollout.valid:
+            reasons.append(str(rollout.reason))
+            continue
+        gain = unpushed_energy_gain(scene, rollout)
+        if gain.max() <= MAX_UNPUSHED_GAIN:
             return scene, rollout, attempt
-        reasons.append(str(rollout.reason))
+        i = int(gain.argmax())  # MuJoCo's plane-cylinder contact launched it: not the scene's physics
+        reasons.append(f"{rollout.names[i]} gained {gain[i]:.3g} J/kg with no object touching it")
     raise RuntimeError(f"scene {index} (seed {seed}): all {config.max_attempts} attempts failed: {'; '.join(reasons)}")
 
 

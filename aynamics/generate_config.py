@@ -19,8 +19,10 @@ from aynamics.simulate import PHYSICS_VERSION, SimConfig
 # Raise when the same rollout gets other labels (rest_time, reasoning text): a run whose chunks were labelled by
 # other code is neither resumed nor assembled with this one (absent: 1). 2: rest from the frame's mean speed (a
 # resting object's contact jitter is not motion), occlusion told apart from leaving the view, heights above the
-# floor plane.
-LABELS_VERSION = 2
+# floor plane. 3: a scene whose rollout gains energy with no push (an upright cylinder launched by MuJoCo's
+# plane-cylinder contact, `simulate.unpushed_energy_gain`) is resampled; an object in flight (touching nothing in
+# the frame) is moving at its instant speed, not at rest at the top of a bounce.
+LABELS_VERSION = 3
 OPTIONAL_INTEGERS = ("substeps",)  # config fields that are an integer or None (the others None by default: paths)
 
 

@@ -771,6 +771,20 @@ def test_a_still_ball_with_restitution_is_at_rest_from_the_start():
     assert r.rest_time == (0.0,)
 
 
+def test_a_ball_at_the_top_of_its_flight_in_the_last_frame_is_not_at_rest():
+    """A ball thrown straight up at g·236.5/240 m/s: MuJoCo's semi-implicit step gives v0 - n·g·dt after step n,
+    so steps 233-240 (the last frame) sum to no displacement, the frame's mean speed is 0, while the ball, 4.9 m up
+    and touching nothing, falls at 3.5·g·dt = 0.143 m/s at t = 1 s. It never comes to rest: rest_time None (it
+    read 1.0, "stops at t=1.00s"). A ball resting on the floor is still at rest from the start."""
+    g = 9.81
+    thrown = run(scene([sphere(y=2.0, v=(0.0, 0.0, g * 236.5 / 240))]))
+    assert abs(thrown.position[-1, 0, 2] - thrown.position[-2, 0, 2]) < 1e-4
+    assert thrown.linear_velocity[-1, 0, 2] == pytest.approx(-3.5 * g / 240, rel=1e-3)
+    assert not thrown.touching[-1, 0].any()
+    assert thrown.rest_time == (None,)
+    assert run(scene([sphere(y=2.0)])).rest_time == (0.0,)
+
+
 # --------------------------------------------------------------------------------------------
 # Hand-worked checks of the conversions (mutation audit helper-68)
 # --------------------------------------------------------------------------------------------
@@ -890,3 +904,47 @@ def test_sim_config_takes_a_zero_dimensional_array_duration():
     for bad in (np.array([1.0]), "1.0", np.array(True)):
         with pytest.raises(ValueError, match=r"duration = .*: must be a number of seconds"):
             sim.SimConfig(duration=bad)
+
+
+def upright_cylinder(spin, x=0.0, mu=0.8):
+    """An upright cylinder (r 0.306 m, h 0.675 m) standing on the floor at rest, spun about its axis."""
+    return {
+        "type": "cylinder",
+        "radius": 0.306,
+        "height": 0.675,
+        "state": {
+            "position": [x, 0.0, 0.3375],
+            "orientation": [0.9014, 0.0, 0.0, 0.433],
+            "angular_velocity": [0.0, 0.0, spin],
+        },
+        "physics": {"friction": [mu, 0.2392], "mass": 1.0, "damping": -6.0},
+    }
+
+
+def test_energy_gained_untouched_names_an_upright_cylinder_that_mujoco_launches():
+    """Nothing can lift a cylinder standing on the floor: friction only stops its spin (2 rad/s at μ = 0.8 in
+    0.04 s, α = 2μg/r = 51 rad/s²), so its energy per kg never rises above the ½ω²·r²/2 = 0.094 J/kg it starts
+    with. MuJoCo's plane-cylinder contact launches it all the same (one contact a radius deep once the axis is
+    vertical to rounding): its centre rises 12 cm, 1.3 J/kg, and `unpushed_energy_gain` names that rise. Real
+    motion gains nothing untouched: a ball dropped from 1 m with restitution 0.8, a box sliding to rest, a ball
+    rolling, a box dropped on a corner; a box struck by a ball takes its energy from the push (0)."""
+    spun = scene([upright_cylinder(-2.0)])
+    launched = run(spun)
+    assert launched.position[:, 0, 2].max() > 0.3375 + 0.1  # the artefact, by itself
+    assert sim.unpushed_energy_gain(spun, launched)[0] > sim.MAX_UNPUSHED_GAIN
+    tilted = {"position": [0.0, 0.0, 0.8], "orientation": [0.9, 0.3, 0.2, 0.1]}
+    tilted_box = box(v=(0, 0, 0), size=(0.3, 0.2, 0.1)) | {"state": tilted}
+    real = [
+        scene([sphere(z=1.2, r=0.2, restitution=0.8)]),
+        scene([box(v=(3.0, 1.0, 0.0))]),
+        scene([sphere(v=(2.0, 0.0, 0.0), w=(0.0, 10.0, 0.0), crr=0.05)]),
+        scene([tilted_box]),
+        scene(
+            [sphere(x=-1.0, v=(3.0, 0.0, 0.0), w=(0.0, 15.0, 0.0), mass=5.0), box(x=0.0, v=(0, 0, 0), name="struck")]
+        ),
+    ]
+    for s in real:
+        r = run(s)
+        assert sim.unpushed_energy_gain(s, r).max() < 0.1, s.names
+    struck = run(real[-1])
+    assert struck.touching[:, 1, 0].any() and np.linalg.norm(struck.linear_velocity[:, 1], axis=-1).max() > 0.5
