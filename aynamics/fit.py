@@ -44,11 +44,21 @@ class FitResult:
 
     @property
     def bic(self) -> float:
-        """Bayesian information criterion on the effective sample size. Two fits' difference mixes their own
-        n_eff with ln(rss / n), whose size depends on the length unit: the audit's margins are calibrated in
-        metres (the loader's unit). On one shared n_eff the difference is unit-free, but it lost a pair of hidden
-        causes that this form finds (floor tilt + linear drag fell out of the screening's finalists)."""
+        """Bayesian information criterion on the effective sample size (up to a constant). Compare two fits with
+        `d_bic`, not by subtracting: each fit's own n_eff multiplies ln(rss / n), whose size depends on the length
+        unit, so the plain difference rewarded residuals that were merely less autocorrelated."""
         return self.n_eff * math.log(max(self.rss / self.n, 1e-300)) + self.k * math.log(self.n_eff)
+
+    def d_bic(self, ref: FitResult) -> float:
+        """BIC of this fit minus `ref`'s (the model it extends, fitted to the same residuals), both on ONE
+        effective sample size, ref's: n_eff·ln(rss / rss_ref) + (k − k_ref)·ln n_eff. `bic` − `ref.bic` weighed
+        ln(rss / n) ≈ −9 (metres) by each fit's own n_eff, so a fit whose residuals were only a little less
+        autocorrelated won tens of BIC units with no better rss (on 40 real cube tosses: speed-dependent friction
+        −44 for a 2.8 % lower rss, +26 for the same fit in millimetres); this difference is unit-free."""
+        if self.n != ref.n:
+            raise ValueError(f"d_bic: fits to {self.n} and {ref.n} residuals: BIC compares fits to the same data")
+        ne = ref.n_eff
+        return ne * math.log(max(self.rss, 1e-300) / max(ref.rss, 1e-300)) + (self.k - ref.k) * math.log(ne)
 
     def mahalanobis(self, name: str) -> float:
         """Distance (in standard errors, jointly) of a candidate's parameters from its 'absent' value."""

@@ -321,8 +321,9 @@ def initial_state(track: Track, i: int, time_scale: float = 1.0) -> dict[str, np
     t, p = track.t, track.position[:, i]
     ok = np.isfinite(p).all(-1)
     sel = ok & (t <= t[ok][0] + INIT_WINDOW)
-    if sel.sum() < 4:
-        sel = np.flatnonzero(ok)[:4]
+    if sel.sum() < 4:  # a mask, not the frames' indices: np.flatnonzero below read [0, 1, 2, 3] as frames 1, 2, 3
+        sel = np.zeros_like(ok)
+        sel[np.flatnonzero(ok)[:4]] = True
     tt, pp = t[sel] - t[ok][0], p[sel]
     coef = np.polynomial.polynomial.polyfit(tt, pp, 2)  # (3, 3): c0, c1, c2 per axis
     k0 = int(np.flatnonzero(ok)[0])

@@ -139,6 +139,20 @@ def test_split_is_by_whole_trajectory_and_initial_state_recovers_a_parabola(tmp_
     np.testing.assert_allclose(slow["position"], [0.1, 0.0, 1.0], atol=1e-6)  # positions do not scale
 
 
+def test_initial_spin_at_30_frames_per_second_averages_the_first_four_frames():
+    """At 30 frames/s only 3 frames lie within INIT_WINDOW (0.08 s), so the first 4 frames are used: spin about z
+    8, 4, 4, 4 rad/s averages to 5 (it read 4: frame 0 was dropped). At 148 Hz, 8 then 4s: the first SPIN_FRAMES
+    = 8 frames average to 4.5."""
+    from aynamics.measured import Track
+
+    for fps, want in ((30.0, 5.0), (148.0, 4.5)):
+        t = np.arange(12) / fps
+        vel = np.zeros((12, 1, 6))
+        vel[:, 0, 5] = [8.0] + [4.0] * 11
+        track = Track("0", t, np.zeros((12, 1, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (12, 1, 1)), vel)
+        assert initial_state(track, 0)["angular"][2] == pytest.approx(want), fps
+
+
 def test_lagging_measured_velocities_are_corrected_by_the_early_flight(tmp_path):
     """The cube tosses' velocities are backward differences of the tracked poses: at t = 0 vz reads g·dt/2 =
     0.033 m/s above the true one (checked on the file: v[k] = (p[k] - p[k-1]) · 148 to 0.06 m/s). The audit starts
@@ -556,6 +570,25 @@ def test_a_candidate_is_significant_only_when_the_bic_drops_by_more_than_the_mar
     monkeypatch.setattr(audit_module, "fit", lambda *a, **k: fits[0])
     row, kept = audit_module._candidate(None, [], [], cur, np.ones(4), "floor_offset", 0, start=fits[1])
     assert kept is fits[1] and row.d_bic == pytest.approx(-15.395, abs=1e-3)
+
+
+def test_a_candidate_that_only_whitens_the_residuals_gains_no_bic(monkeypatch):
+    """`_candidate` stubbed as above. The current model: rss 100 over n = 1000, n_eff 50, k = 1; the candidate lowers
+    rss by 3 % with n_eff 80 (residuals a little less autocorrelated). dBIC on the current n_eff: 50 ln 0.97 + ln 50
+    = +2.39, not significant; each fit on its own n_eff made it 80 ln 0.097 - 50 ln 0.1 + 2 ln 80 - ln 50 = -66.7."""
+    import aynamics.audit as audit_module
+    from aynamics.fit import FitResult
+
+    cov = np.diag([1e-6, 1e-6])
+    cur = FitResult({"mu": 0.3}, [], {"mu": 1e-3}, 100.0, 1000, 50.0, 1, 0, cov[:1, :1], ["mu"])
+    res = FitResult(
+        {"mu": 0.3, "floor_offset": 0.02}, ["floor_offset"], {"mu": 1e-3, "floor_offset": 1e-3},
+        97.0, 1000, 80.0, 2, 0, cov, ["mu", "floor_offset"],
+    )  # fmt: skip
+    monkeypatch.setattr(audit_module, "track_errors", lambda *a: np.full(4, 0.5))
+    monkeypatch.setattr(audit_module, "fit", lambda *a, **k: res)
+    row, _ = audit_module._candidate(None, [], [], cur, np.ones(4), "floor_offset", 0)
+    assert row.d_bic == pytest.approx(50 * math.log(0.97) + math.log(50)) and row.significant is False
 
 
 def test_support_height_is_the_lowest_corner_whichever_way_the_body_is_turned():

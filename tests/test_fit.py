@@ -174,3 +174,20 @@ def test_fit_takes_numpy_numbers(monkeypatch):
     assert res.values["mu"] == pytest.approx(plain.values["mu"], abs=1e-6)
     with pytest.raises(ValueError, match=r"fit: start\['mu'\] = np.True_"):
         fitlib.fit(None, tracks, {"mu": np.True_}, [])
+
+
+def test_d_bic_is_on_one_effective_sample_size_and_does_not_depend_on_the_length_unit():
+    """The current model: rss 100 over n = 1000, n_eff 50, k = 1. An extension (k = 2) lowers rss by 3 % and its
+    residuals come out a little less autocorrelated (n_eff 80). On ref's n_eff: 50 ln 0.97 + ln 50 = +2.389, no
+    evidence. Each fit's own n_eff gave 80 ln 0.097 - 50 ln 0.1 + 2 ln 80 - ln 50 = -66.68 (in metres) and, for the
+    same fits in millimetres (rss × 10^6), 80 ln 97000 - 50 ln 100000 + 2 ln 80 - ln 50 = +348.0."""
+    cur = FitResult({}, [], {}, 100.0, 1000, 50.0, 1, 0)
+    ext = FitResult({}, [], {}, 97.0, 1000, 80.0, 2, 0)
+    assert ext.d_bic(cur) == pytest.approx(50 * math.log(0.97) + math.log(50))
+    assert ext.d_bic(cur) == pytest.approx(2.389, abs=1e-3)
+    mm = [FitResult({}, [], {}, f.rss * 1e6, f.n, f.n_eff, f.k, 0) for f in (cur, ext)]
+    assert mm[1].d_bic(mm[0]) == pytest.approx(ext.d_bic(cur))
+    same = FitResult({}, [], {}, 100.0, 1000, 80.0, 1, 0)  # whiter residuals, nothing else: no difference
+    assert same.d_bic(cur) == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="same data"):
+        FitResult({}, [], {}, 97.0, 999, 80.0, 2, 0).d_bic(cur)
