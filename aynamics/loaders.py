@@ -11,6 +11,7 @@ the accelerator. `data.SceneDataModule` builds its loaders from these.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import os
 import signal
@@ -103,9 +104,9 @@ class ResumableLoader(DataLoader):
     starts a window, as Lightning's accumulation does.
     """
 
-    def __init__(self, *args: Any, window: int = 0, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, window: int = 0, epoch_batches: int | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.window = window
+        self.window, self.epoch_batches = window, epoch_batches
 
     def __iter__(self):
         batches = super().__iter__()
@@ -113,7 +114,12 @@ class ResumableLoader(DataLoader):
             return batches
         from aynamics.batching import with_window_weights
 
-        return with_window_weights(batches, self.window)
+        # Lightning's epoch ends after `epoch_batches` (limit_train_batches) with an optimizer step: the last
+        # window ends there too, not with batches that epoch never trains on (a resumed epoch: fewer are left)
+        left = self.epoch_batches
+        if left is not None and self.sampler.epoch == self.sampler.start_epoch:
+            left -= self.sampler.skip // self.batch_size
+        return with_window_weights(batches if left is None else itertools.islice(batches, max(left, 0)), self.window)
 
     def state_dict(self) -> dict[str, int]:
         return {"seed": self.sampler.seed, "n": self.sampler.n}
@@ -224,11 +230,14 @@ def resumable_loader(
     after a resume (`trainer.global_step` is restored before loaders are built) past what was trained on.
     `trainer` None: one process from the start. `num_workers` None: see `loader_workers`. `window_weights`: each
     batch holds its optimizer step's summed label weight (`ResumableLoader`; SFT batches of dicts with labels)."""
-    rank, world, start_epoch, skip, accum = 0, 1, 0, 0, 1
+    rank, world, start_epoch, skip, accum, batches = 0, 1, 0, 0, 1, None
     if trainer is not None:
         rank, world = trainer.global_rank, trainer.world_size
-        # Lightning steps the optimizer on each epoch's last batch too, so an epoch is ceil(batches / accum) steps.
-        batches = math.ceil(math.ceil(len(ds) / world) / batch_size)
+        # Lightning steps the optimizer on each epoch's last batch too, so an epoch is ceil(batches / accum) steps;
+        # its last batch is the one `limit_train_batches` leaves (a count, or a share of the loader's batches)
+        batches = epoch_batches(
+            math.ceil(math.ceil(len(ds) / world) / batch_size), getattr(trainer, "limit_train_batches", 1.0)
+        )
         accum = trainer.accumulate_grad_batches
         start_epoch, steps = divmod(trainer.global_step, math.ceil(batches / accum)) if batches else (0, 0)
         skip = steps * accum * batch_size
@@ -249,5 +258,14 @@ def resumable_loader(
         collate_fn=collate_fn,
         generator=torch.Generator().manual_seed(seed),  # worker seeds: not from the global RNG
         window=accum if window_weights else 0,
+        epoch_batches=batches,
         **loader_options(num_workers, trainer, cache),
     )
+
+
+def epoch_batches(batches: int, limit) -> int:
+    """The batches of a training epoch that Lightning runs of a loader of `batches` under `limit_train_batches`
+    `limit` (a count, or a share: Lightning's `_parse_num_batches`)."""
+    if isinstance(limit, int) and not isinstance(limit, bool):
+        return min(batches, limit)
+    return int(batches * limit) if isinstance(limit, float) else batches

@@ -1913,3 +1913,58 @@ def test_gradient_accumulation_trains_the_token_mean_of_the_step(dataset_dir):
     ]
     assert [window_weight(b).item() for b in with_window_weights(batches, 2)] == [49.0, 49.0, 7.0]
     assert "window_weight_bits" not in model_inputs(next(with_window_weights(batches, 2)))
+
+
+def test_a_step_cut_short_by_limit_train_batches_is_the_mean_of_its_own_tokens(tmp_path):
+    """Six one-example batches of 3..17 response tokens, each token's nll (θ - 1)²/2 at θ = 0: every step's
+    token-mean gradient is -1 whatever its tokens. With accumulate_grad_batches=2 and limit_train_batches=3,
+    Lightning's epoch steps on batches {0, 1} and {2}; the loader's window for batch 2 held batch 3's tokens too
+    (gradient -w2 / (w2 + w3), -0.79 for this order). Resumed after step 3 (mid-epoch 1), the run trains the
+    batch and gradient an uninterrupted run does (it skipped by the whole epoch's length: another batch, -0.23)."""
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from aynamics.loaders import resumable_loader
+
+    tokens = [3, 5, 7, 11, 13, 17]
+    rows = [
+        {"input_ids": torch.zeros(n + 1, dtype=torch.long), "labels": torch.tensor([-100] + [1] * n)} for n in tokens
+    ]
+
+    class Tiny(L.LightningModule):
+        _step_mean = SFTModule._step_mean
+
+        def __init__(self):
+            super().__init__()
+            self.theta = torch.nn.Parameter(torch.zeros(()))
+            self.grads, self.seen = [], []
+
+        def train_dataloader(self):
+            collate = lambda b: {k: torch.stack([r[k] for r in b]) for k in b[0]}  # noqa: E731
+            return resumable_loader(rows, self.trainer, batch_size=1, seed=0, collate_fn=collate, window_weights=True)
+
+        def training_step(self, batch, batch_idx):
+            mask = batch["labels"][:, 1:] != -100
+            self.seen.append(int(mask.sum()))
+            loss = (0.5 * (self.theta - batch["labels"][:, 1:].float()) ** 2 * mask).sum() / mask.sum()
+            return self._step_mean(loss, batch)
+
+        def on_before_optimizer_step(self, optimizer):
+            self.grads.append(float(self.theta.grad))
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.0)
+
+    def fit(module, callbacks=(), ckpt_path=None):
+        L.Trainer(
+            max_steps=4, accumulate_grad_batches=2, limit_train_batches=3, accelerator="cpu", logger=False,
+            enable_checkpointing=bool(callbacks), callbacks=list(callbacks), default_root_dir=tmp_path,
+            enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+        ).fit(module, ckpt_path=ckpt_path)  # fmt: skip
+        return module
+
+    each = ModelCheckpoint(tmp_path, every_n_train_steps=1, save_top_k=-1, filename="{step}")
+    whole = fit(Tiny(), [each])
+    assert whole.grads == pytest.approx([-1.0] * 4)
+    resumed = fit(Tiny(), ckpt_path=tmp_path / "step=3.ckpt")
+    assert resumed.seen == whole.seen[-1:] and resumed.grads == pytest.approx([-1.0])
