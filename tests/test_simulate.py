@@ -611,6 +611,21 @@ def test_magnus_lift_turns_a_spinning_flight_and_grows_with_k():
     assert flipped.position[-1, 0, 1] == pytest.approx(-ys[-1], rel=1e-6)
 
 
+def test_magnus_lift_keeps_the_speed_of_a_fast_turn():
+    """No gravity, a ball of 0.1 kg at v = 3 x̂ spinning at 40 ẑ with k = 0.05 kg (both in range): the lift turns
+    v at Ω = k|ω|/m = 20/s, a circle of radius |v|/Ω = 0.15 m at 3 m/s. Applied as k·ω×v for
+    each 1/240 s step, it lengthened v by √(1 + (Ω/240)²) a step: 3 → 6.9 m/s in 1 s (`magnus_force`)."""
+    ball = sphere(z=3.0, v=(3.0, 0, 0), w=(0, 0, 40.0), r=0.1, mass=0.1, magnus=0.05)
+    r = run(scene([ball], gravity=(0.0, 0.0, 0.0)))
+    speed = np.linalg.norm(r.linear_velocity[:, 0], axis=1)
+    assert np.allclose(speed, 3.0, atol=1e-9), speed[-1]
+    x, y = r.position[:, 0, 0], r.position[:, 0, 1]  # on one circle: x² + y² + Dx + Ey + F = 0 fits every frame
+    (d, e, f), *_ = np.linalg.lstsq(np.stack([x, y, np.ones_like(x)], axis=1), -(x**2 + y**2), rcond=None)
+    assert np.abs(x**2 + y**2 + d * x + e * y + f).max() < 1e-9 and np.allclose(r.position[:, 0, 2], 3.0)
+    assert math.sqrt(d**2 / 4 + e**2 / 4 - f) == pytest.approx(0.15, rel=2e-3)  # (the step's centre: half a step off)
+    assert r.valid and sim.unpushed_energy_gain(scene([ball], gravity=(0.0, 0.0, 0.0)), r).max() < 1e-9
+
+
 def test_friction_slope_shortens_the_slide_as_closed_form():
     """dv/dt = −g(μ + κv): v(t) = (v0 + μ/κ)e^{−gκt} − μ/κ stops at t_s = ln(1 + κv0/μ)/(gκ) after
     x_s = (v0 + μ/κ)(1 − e^{−gκ t_s})/(gκ) − μ t_s/κ. μ = 0.3, v0 = 3 m/s: κ = 0 → 1.529 m, κ = 0.1 → 1.292 m."""
