@@ -63,11 +63,7 @@ def stale_physics(path: str | Path) -> str | None:
     `config.physics`, absent before version 2), or None (current, or no manifest: made otherwise)."""
     from aynamics.simulate import PHYSICS_VERSION
 
-    config = _manifest_config(path)
-    if config is None:
-        return None
-    made = config.get("physics", 1)
-    if made == PHYSICS_VERSION:
+    if (made := _other_version(path, "physics", PHYSICS_VERSION)) is None:
         return None
     return (
         f"data set {str(path)!r} was simulated with physics version {made}, this code simulates version "
@@ -81,13 +77,17 @@ def stale_labels(path: str | Path) -> str | None:
     than this (its manifest's `config.labels`, absent before version 2), or None (current, or no manifest)."""
     from aynamics.generate_config import LABELS_VERSION
 
-    config = _manifest_config(path)
-    if config is None or config.get("labels", 1) == LABELS_VERSION:
+    if (made := _other_version(path, "labels", LABELS_VERSION)) is None:
         return None
-    return (
-        f"data set {str(path)!r} was labelled by labels version {config.get('labels', 1)}, this code writes version "
-        f"{LABELS_VERSION}"
-    )
+    return f"data set {str(path)!r} was labelled by labels version {made}, this code writes version {LABELS_VERSION}"
+
+
+def _other_version(path: str | Path, key: str, current: int) -> int | None:
+    """A generated data set's manifest `config[key]` version (1 when absent: written from version 2 on) when it is
+    not `current`; None when it is, or when there is no manifest (a data set made otherwise)."""
+    config = _manifest_config(path)
+    made = None if config is None else config.get(key, 1)
+    return None if made == current else made
 
 
 def dataset_substeps(path: str | Path) -> int | None:

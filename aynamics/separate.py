@@ -28,7 +28,7 @@ import numpy as np
 from aynamics.ranges import SceneError
 from aynamics.scene import Scene, dump, from_items, is_whole, parse, require_scene
 from aynamics.scene_dump import to_items
-from aynamics.simulate import MAX_START_OVERLAP, overlap_words, prepare_batch
+from aynamics.simulate import MAX_START_OVERLAP, Template, deep_contacts, overlap_words, prepare_batch
 
 TOLERANCE = 1e-3  # m: a contact this deep is left alone (objects resting on each other touch at ~0)
 MAX_ROUNDS = 200  # rounds of pushes; two coincident objects part in one, chains of five in ~30
@@ -67,14 +67,13 @@ def separate_start(scene: Scene, tolerance: float = TOLERANCE, max_rounds: int =
         return Separation(scene, {}, 0)
     batch, tpl = prepare_batch([scene], scene.structure, nthread=1)
     model, data = batch.get_model(0), batch.get_data(0)
-    obj_of = {int(g): i for i, g in enumerate(tpl.geom_ids)} | {int(tpl.floor_geom): len(tpl.geom_ids)}
     pos = np.asarray(tpl.qpos_adr)[:, None] + np.arange(3)  # (N, 3) each free joint's position in qpos
     start = data.qpos[pos].copy()
     rounds = 0
-    while (push := _pushes(model, data, obj_of, tolerance)) is not None:
+    while (push := _pushes(model, data, tpl, tolerance)) is not None:
         if rounds == max_rounds:
             names = (*scene.names, "the floor")
-            (i, j), depth = max(_deepest(data, obj_of, tolerance).items(), key=lambda p: p[1][0])
+            (i, j), depth = max(deep_contacts(data, tpl, tolerance).items(), key=lambda p: p[1][0])
             if depth[0] <= MAX_START_OVERLAP:  # a long chain halves slowly: what is left, the simulation accepts
                 break
             raise ValueError(
@@ -110,30 +109,14 @@ def separate_texts(texts: list[str]) -> list[str]:
     return out
 
 
-def _deepest(data: mujoco.MjData, obj_of: dict[int, int], tolerance: float) -> dict:
-    """{(i, j): (depth, normal)} of the deepest contact of each pair deeper than `tolerance` at the state
-    `data` was last run at: objects i < j (j = N for the floor), the normal pointing from i to j."""
-    out: dict[tuple[int, int], tuple[float, np.ndarray]] = {}
-    con = data.contact
-    for c in np.flatnonzero(con.dist[: data.ncon] < -tolerance):
-        i, j = obj_of[int(con.geom1[c])], obj_of[int(con.geom2[c])]
-        normal = np.array(con.frame[c, :3])  # MuJoCo's contact normal points from geom1 to geom2
-        if i > j:
-            i, j, normal = j, i, -normal
-        depth = float(-con.dist[c])
-        if depth > out.get((i, j), (0.0,))[0]:
-            out[(i, j)] = (depth, normal)
-    return out
-
-
-def _pushes(model: mujoco.MjModel, data: mujoco.MjData, obj_of: dict[int, int], tolerance: float):
+def _pushes(model: mujoco.MjModel, data: mujoco.MjData, tpl: Template, tolerance: float):
     """(N, 3) the move of each object this round, or None when no contact is deeper than `tolerance`."""
     mujoco.mj_kinematics(model, data)
     mujoco.mj_collision(model, data)
-    deepest = _deepest(data, obj_of, tolerance)
+    deepest = deep_contacts(data, tpl, tolerance)
     if not deepest:
         return None
-    n = len(obj_of) - 1
+    n = len(tpl.geom_ids)
     push = np.zeros((n, 3))
     for (i, j), (depth, normal) in deepest.items():
         if j == n:  # the floor does not move: the object leaves it by the whole depth

@@ -9,8 +9,9 @@ MuJoCo's threaded `mujoco.batch.Batch` (bit-identical to one simulation at a tim
     rollouts = simulate_batch(scenes, nthread=2)  # many scenes or CMA-ES/reward candidates
 
 The fields' physical meaning in MuJoCo (friction, damping, restitution, the hooks, the clock) is documented
-in `mujoco_model.py`, which builds the templates and writes the parameters; the records a rollout is timed by and
-gives back (`SimConfig`, `Rollout`, `Contact`, `RawRollout`) are `rollout.py`'s.
+in `mujoco_model.py`, which builds the templates and writes the parameters; the per-step hook forces (Magnus,
+speed-dependent friction) are `hooks.py`'s; the records a rollout is timed by and gives back (`SimConfig`,
+`Rollout`, `Contact`, `RawRollout`) are `rollout.py`'s.
 """
 
 from __future__ import annotations
@@ -20,13 +21,13 @@ import logging
 import os
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 from mujoco import batch as mjbatch
 
 from aynamics import camera as camlib
+from aynamics.hooks import Hooks, magnus_force, step_hooked  # noqa: F401 - simulate.Hooks, ... (re-exported)
 
 # the model builder's names are part of simulate's API (simulate.template, simulate.FPS, ...)
 from aynamics.mujoco_model import (  # noqa: F401
@@ -214,86 +215,6 @@ def time_scale(scene: Scene) -> float:
     return 1.0 if scene.environment is None else float(scene.environment.time_scale)
 
 
-@dataclass(frozen=True)
-class Hooks:
-    """Per-step forces a Batch cannot hold: Magnus lift and speed-dependent friction, (n, N) per object."""
-
-    template: Template
-    magnus: np.ndarray  # (n, N) k, kg
-    slope: np.ndarray  # (n, N) κ, s/m
-    mass: np.ndarray  # (n, N) kg
-
-    @staticmethod
-    def of(scenes: list[Scene], tpl: Template) -> Hooks | None:
-        """The scenes' hook coefficients, or None when no object has magnus or friction_slope set."""
-        magnus = np.array([[o.physics.magnus or 0.0 for o in s.objects] for s in scenes], dtype=float)
-        slope = np.array([[o.physics.friction_slope or 0.0 for o in s.objects] for s in scenes], dtype=float)
-        if not magnus.any() and not slope.any():
-            return None
-        mass = np.array([[float(o.physics.mass) for o in s.objects] for s in scenes], dtype=float)
-        return Hooks(tpl, magnus, slope, mass)
-
-
-def magnus_force(k: np.ndarray, spin: np.ndarray, v: np.ndarray, mass: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """(n, 3) the force that turns v as Magnus lift k·ω×v does over one step of h seconds, without changing its
-    length: m (v' − v) / h with v' = Cayley(h·a) v, a = k·ω / m, that is
-    (k·ω×v + (h/2)·a×(k·ω×v)) / (1 + (h|a|/2)²). k·ω×v itself, applied for a step, lengthens v by a factor
-    √(1 + (h|a|)²) a step: a ball of 0.1 kg at k = 0.05, spinning at 40 rad/s with no gravity, went from 3 to 6.9 m/s
-    in 1 s (its path a circle at 3 m/s). k (n,), spin and v (n, 3) in world axes, mass and h (n,)."""
-    kw = k[:, None] * spin
-    a = kw / mass[:, None]
-    lift = np.cross(kw, v)
-    half = 0.5 * h[:, None]
-    return (lift + half * np.cross(a, lift)) / (1.0 + (half * np.linalg.norm(a, axis=1, keepdims=True)) ** 2)
-
-
-def step_hooked(b: mjbatch.Batch, hooks: Hooks, nstep: int, record: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """`Batch.rollout` with the hook forces recomputed from the state before each physics step.
-
-    Before step k: xfrc_applied = Magnus lift k·ω×v (world) on each object body, as a turn of v that keeps its
-    length (`magnus_force`), and the object geom's sliding friction
-    max(μ + κ·|v_xy|, 0), written into its contact pairs as `write_pairs` does (the floor's: the object's μ; two
-    objects': the larger).
-    Returns the recorded fields after every step, (n, nstep, ...) as `Batch.rollout` does.
-    """
-    tpl = hooks.template
-    qpos, qvel = b.bind("qpos"), b.bind("qvel")
-    xfrc = b.bind("xfrc_applied")  # (n, nbody, 6): world force, torque
-    fric = b.expand("geom_friction")  # (n, ngeom, 3)
-    mu0 = fric[:, tpl.geom_ids, 0].copy()  # (n, N)
-    pfric = b.expand("pair_friction")  # (n, npair, 5): the contacts' friction (every contact is a pair)
-    pmu0 = pfric[:, tpl.contact_pairs, :2].copy()
-    live = {name: b.bind(name) for name in record}
-    out = {name: np.empty((b.nsim, nstep, *np.shape(v)[1:])) for name, v in live.items()}
-    magnus, sliding = hooks.magnus.any(), hooks.slope.any()
-    h = b.expand("opt.timestep").reshape(b.nsim).copy() if magnus else None  # (n,) each scene's physics step
-    try:
-        for step in range(nstep):
-            for i, (a, d) in enumerate(zip(tpl.qpos_adr, tpl.dof_adr, strict=True)):
-                v = qvel[:, d : d + 3]  # (n, 3) world linear velocity
-                if magnus:
-                    spin = np.einsum("nij,nj->ni", quat_to_mat(_unit(qpos[:, a + 3 : a + 7])), qvel[:, d + 3 : d + 6])
-                    xfrc[:, tpl.body_ids[i], :3] = magnus_force(hooks.magnus[:, i], spin, v, hooks.mass[:, i], h)
-                if sliding:
-                    speed = np.linalg.norm(v[:, :2], axis=1)
-                    fric[:, tpl.geom_ids[i], 0] = np.maximum(mu0[:, i] + hooks.slope[:, i] * speed, 0.0)
-            if sliding:
-                pfric[:, tpl.contact_pairs, :2] = pair_sliding(tpl, fric[:, tpl.geom_ids, 0])[..., None]
-            b.step()
-            for name, v in live.items():
-                out[name][:, step] = v
-    finally:
-        fric[:, tpl.geom_ids, 0] = mu0
-        pfric[:, tpl.contact_pairs, :2] = pmu0
-        xfrc[...] = 0.0
-    return out
-
-
-def _unit(q: np.ndarray) -> np.ndarray:
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
 def start_overlaps(b: mjbatch.Batch, tpl: Template, n_sim: int) -> tuple:
     """Per simulation of a batch at its initial state: (depth, i, j) of the deepest contact deeper than
     `MAX_START_OVERLAP` (objects i, j; j = N for the floor), else None. ~0.07 ms a scene (one mj_forward)."""
@@ -304,17 +225,30 @@ def start_overlaps(b: mjbatch.Batch, tpl: Template, n_sim: int) -> tuple:
 def _deep_pairs(b: mjbatch.Batch, tpl: Template, n_sim: int) -> list[dict[tuple[int, int], float]]:
     """Per simulation at its initial state: {(i, j): depth} of every pair of objects (j = N for the floor) whose
     deepest contact is deeper than `MAX_START_OVERLAP`, in contact order."""
-    obj_of = {int(g): i for i, g in enumerate(tpl.geom_ids)} | {int(tpl.floor_geom): len(tpl.geom_ids)}
     out = []
     model = data = None
     for k in range(n_sim):
         model, data = b.get_model(k, model), b.get_data(k, data)
         mujoco.mj_forward(model, data)
-        pairs: dict[tuple[int, int], float] = {}
-        for c in np.flatnonzero(data.contact.dist[: data.ncon] < -MAX_START_OVERLAP):
-            pair = tuple(sorted((obj_of[int(data.contact.geom1[c])], obj_of[int(data.contact.geom2[c])])))
-            pairs[pair] = max(pairs.get(pair, 0.0), float(-data.contact.dist[c]))
-        out.append(pairs)
+        out.append({pair: depth for pair, (depth, _) in deep_contacts(data, tpl, MAX_START_OVERLAP).items()})
+    return out
+
+
+def deep_contacts(data: mujoco.MjData, tpl: Template, deeper_than: float) -> dict:
+    """{(i, j): (depth, normal)} of the deepest contact of each pair of objects i < j (j = N for the floor) deeper
+    than `deeper_than` m at the state `data`'s collision was last run at, in contact order; the normal (3,) points
+    from i to j."""
+    obj_of = {int(g): i for i, g in enumerate(tpl.geom_ids)} | {int(tpl.floor_geom): len(tpl.geom_ids)}
+    out: dict[tuple[int, int], tuple[float, np.ndarray]] = {}
+    con = data.contact
+    for c in np.flatnonzero(con.dist[: data.ncon] < -deeper_than):
+        i, j = obj_of[int(con.geom1[c])], obj_of[int(con.geom2[c])]
+        normal = np.array(con.frame[c, :3])  # MuJoCo's contact normal points from geom1 to geom2
+        if i > j:
+            i, j, normal = j, i, -normal
+        depth = float(-con.dist[c])
+        if depth > out.get((i, j), (0.0,))[0]:
+            out[(i, j)] = (depth, normal)
     return out
 
 
@@ -487,11 +421,9 @@ def unpushed_energy_gain(scene: Scene, rollout: Rollout) -> np.ndarray:
             - rollout.position[:, i] @ g
         )
         pushed = rollout.touching[:, i, :n].any(axis=1)
-        highest = energy[0]
-        for k in range(1, len(energy)):
-            if not (pushed[k] or pushed[k - 1]):
-                out[i] = max(out[i], energy[k] - highest)
-            highest = max(highest, energy[k])
+        free = ~(pushed[1:] | pushed[:-1])  # frames 1.. touched by no other object, nor in the frame before
+        rise = energy[1:] - np.maximum.accumulate(energy)[:-1]  # above the highest of every earlier frame
+        out[i] = max(0.0, rise[free].max(initial=0.0))
     return out
 
 
